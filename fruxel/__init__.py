@@ -1,0 +1,28 @@
+"""fruxel: semantic fruxel (frustum voxel) models of a scene from one image.
+
+The core package is numpy-only: grid geometry (:class:`FruxelGrid`), viewing cameras (:class:`Camera`), the
+model container (:class:`FruxelModel`), files (:func:`save`, :func:`load`) and trapezoid meshing. Compute
+kernels live in :mod:`fruxel.kernels`, display in :mod:`fruxel.render`, the network and simulator in
+:mod:`fruxel.train`; they are imported on demand so that ``import fruxel`` stays light.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from .camera import Camera, CameraError
+from .grid import FruxelGrid, GridError
+
+__version__ = "0.1.0"
+
+__all__ = ["Camera", "CameraError", "FruxelGrid", "GridError", "__version__"]
+
+_SUBMODULES = ("kernels", "render", "train")
+
+
+def __getattr__(name: str) -> Any:
+    # Sub-packages import torch / warp / pyrender; load them only when a user reaches for them.
+    if name in _SUBMODULES:
+        return importlib.import_module(f"fruxel.{name}")
+    raise AttributeError(f"module 'fruxel' has no attribute {name!r}")

@@ -1,0 +1,148 @@
+"""The one backend registry: names, availability, install hints and the default choice.
+
+A backend is a module with the same functions and signatures as every other backend (see
+:data:`OPERATIONS`). Backends are imported only when chosen, so a missing ``warp-lang`` or ``pyopencl``
+fails only for the user who asks for it, with an install hint.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from functools import cache
+from types import ModuleType
+from typing import Any
+
+OPERATIONS = ("first_hit", "shell")
+"""Functions every backend module defines, with identical signatures (see ``fruxel.kernels``)."""
+
+
+class BackendUnavailable(RuntimeError):
+    """Raised when a chosen backend cannot be imported or has no usable device; the message has an install hint."""
+
+
+class BackendError(ValueError):
+    """Raised for an unknown backend or device name."""
+
+
+@dataclass(frozen=True)
+class BackendInfo:
+    """Static description of one backend."""
+
+    name: str
+    """Registry name: ``"warp"`` or ``"opencl"``."""
+    module: str
+    """Module implementing :data:`OPERATIONS`."""
+    install_hint: str
+    """What to run when the backend is missing."""
+
+
+BACKENDS: dict[str, BackendInfo] = {
+    "warp": BackendInfo("warp", "fruxel.kernels.wp", "pip install 'fruxel[warp]'  (NVIDIA Warp: warp-lang)"),
+    "opencl": BackendInfo(
+        "opencl",
+        "fruxel.kernels.cl",
+        "pip install 'fruxel[opencl]'  (pyopencl plus pocl-binary-distribution, PoCL's CPU OpenCL driver)",
+    ),
+}
+
+
+@cache
+def _load(name: str) -> ModuleType:
+    info = BACKENDS[name]
+    try:
+        mod = importlib.import_module(info.module)
+    except ImportError as e:
+        msg = f"backend {name!r} is not installed ({e}). Install it with: {info.install_hint}"
+        raise BackendUnavailable(msg) from None
+    return mod
+
+
+def get_backend(name: str) -> ModuleType:
+    """The module of backend ``name`` (``"warp"`` or ``"opencl"``), imported on first use.
+
+    Raises:
+        BackendError: an unknown name.
+        BackendUnavailable: the backend's packages are missing or it finds no device; the message says what to
+            install.
+    """
+    if name not in BACKENDS:
+        raise BackendError(f"unknown backend {name!r}; choose one of {sorted(BACKENDS)}")
+    mod = _load(name)
+    if not mod.is_available():
+        raise BackendUnavailable(f"backend {name!r} found no usable device. {mod.unavailable_reason()}")
+    return mod
+
+
+def _try(name: str) -> ModuleType | None:
+    try:
+        return get_backend(name)
+    except BackendUnavailable:
+        return None
+
+
+def available_backends() -> list[str]:
+    """Backends usable here, fastest first, with Warp split by device: e.g. ``["warp-cuda", "warp-cpu", "opencl"]``.
+
+    Test suites parametrise over this list (ids are these names).
+    """
+    out = []
+    wp = _try("warp")
+    cl = _try("opencl")
+    if wp is not None and wp.cuda_available():
+        out.append("warp-cuda")
+    if wp is not None:
+        out.append("warp-cpu")
+    if cl is not None:
+        out.append("opencl")
+    return out
+
+
+def split_name(name: str) -> tuple[str, str | None]:
+    """``"warp-cuda"`` -> ``("warp", "cuda")``, ``"opencl"`` -> ``("opencl", None)``: names from
+    :func:`available_backends` back into ``(backend, device)`` arguments."""
+    if name in BACKENDS:
+        return name, None
+    base, _, dev = name.partition("-")
+    if base not in BACKENDS or not dev:
+        raise BackendError(f"unknown backend {name!r}; choose one of {sorted(BACKENDS)} or {available_backends()}")
+    return base, dev
+
+
+def is_cuda_data(volume: Any) -> bool:
+    """True when ``volume`` is a torch tensor on a CUDA device (checked without importing torch)."""
+    dev = getattr(volume, "device", None)
+    return getattr(dev, "type", None) == "cuda"
+
+
+def resolve(backend: str | None, device: str | None, volume: Any = None) -> tuple[ModuleType, str | None]:
+    """Pick the backend module and Warp device for a call.
+
+    ``backend=None`` takes the best available: Warp on CUDA when a GPU is present, else OpenCL, else Warp on
+    the CPU (single-threaded, hence last). ``device=None`` follows the data: a CUDA tensor stays on its device;
+    other data goes to CUDA when the chosen backend is Warp and a GPU is present, else to the CPU.
+
+    Returns:
+        (module, device): device is a Warp device string (``"cpu"``, ``"cuda:0"``) for Warp, or the OpenCL
+        device selector (None = first GPU, else first CPU) for OpenCL.
+    """
+    if backend is not None and "-" in backend:
+        backend, dev2 = split_name(backend)
+        device = device or dev2
+    if backend is None:
+        wp = _try("warp")
+        if wp is not None and wp.cuda_available():
+            backend = "warp"
+        elif _try("opencl") is not None:
+            backend = "opencl"
+        elif wp is not None:
+            backend = "warp"
+        else:
+            raise BackendUnavailable(
+                "no compute backend is installed. Install one with: "
+                + " or ".join(info.install_hint for info in BACKENDS.values())
+            )
+    mod = get_backend(backend)
+    if device is None and is_cuda_data(volume):
+        device = str(volume.device)
+    return mod, mod.resolve_device(device)
