@@ -1,0 +1,113 @@
+"""The ray traversal every backend implements, and the constants they share.
+
+This module is the single definition of the algorithm; the Warp kernels, the OpenCL source and the test
+reference implement exactly these steps, and take the constants below as arguments (OpenCL gets them as
+``-D`` build options), never as copies.
+
+Ray
+    Pixel ``(x, y)`` of a camera with pose ``[R | c]`` (camera-to-grid) has origin ``o = c`` and direction
+    ``d = R @ ((x + 0.5 - cx) / fx, (y + 0.5 - cy) / fy, 1)``, unnormalised, so the ray parameter ``t`` is the
+    depth in the viewing camera. All work is in the grid frame.
+
+1. Clip (Cyrus-Beck) to the frustum, the intersection of six half-spaces ``n . p + c >= 0``::
+
+       left   (1, 0, -u_0)   c = 0         right  (-1, 0, u_W)   c = 0
+       top    (0, 1, -v_0)   c = 0         bottom (0, -1, v_H)   c = 0
+       near   (0, 0, 1)      c = -z_near   far    (0, 0, -1)     c = z_far
+
+   Start with ``[t_lo, t_hi] = [0, inf)``. For each plane in the order above, ``a = n . d``, ``b = n . o + c``:
+   ``a == 0``: miss if ``b < 0``, else no constraint; ``a > 0``: ``t_lo = max(t_lo, -b / a)``, remembering the
+   plane when it raises t_lo (strictly); ``a < 0``: ``t_hi = min(t_hi, -b / a)``. Miss when ``t_lo >= t_hi``.
+   The left and right half-spaces already imply z >= 0, and near clips the apex region, so the six describe the
+   frustum exactly and rays through the apex or from behind it need no special case.
+
+2. Entry cell at ``p = o + t_lo d``: ``k = floor((p_z - z_near) / dz)``, ``i = floor((p_x / p_z - u_0) / du)``,
+   ``j = floor((p_y / p_z - v_0) / dv)``, each clamped to its range. The index of the entry plane's family is
+   set exactly instead (left: i = 0, right: i = W - 1, top: j = 0, bottom: j = H - 1, near: k = 0,
+   far: k = D - 1). A camera inside the frustum (no entry plane) starts in the cell containing it.
+
+3. Step signs, constant along the ray because ``u(t) = x(t) / z(t)`` is monotone where z > 0:
+   ``s_i = sign(d_x o_z - d_z o_x)``, ``s_j = sign(d_y o_z - d_z o_y)``, ``s_k = sign(d_z)``. A zero sign means
+   that family is never crossed (next crossing at +inf).
+
+4. Next crossing of each family: the boundary ahead is ``ib = i + (s_i > 0)`` (likewise jb, kb);
+   ``t_u = (u_ib o_z - o_x) / (d_x - u_ib d_z)``, ``t_v = (v_jb o_z - o_y) / (d_y - v_jb d_z)``,
+   ``t_z = (z_kb - o_z) / d_z``. Boundaries are computed from their index (``u_ib = -tu + ib * du``), never
+   accumulated.
+
+5. Loop, at most ``W + H + D + 3`` times: if the current cell is occupied, it is the hit: ``depth = t_entry``
+   (``t_lo`` for the first cell), ``normal`` = the entry face's. Otherwise take the family with the smallest
+   next crossing, ties broken in the order u, v, z (``FAMILY_U < FAMILY_V < FAMILY_Z``); if that crossing is
+   ``>= t_hi`` or the stepped index leaves its range, the ray misses. Else step that index by its sign, set
+   ``t_entry`` to the crossing, and recompute that family's next crossing.
+
+Entry-face normal (grid frame, unit, facing the camera, i.e. ``dot(n, d) < 0``)
+    u-plane at ``u``: ``-s_i (1, 0, -u) / |(1, 0, -u)|``; v-plane: ``-s_j (0, 1, -v) / |.|``; z-plane:
+    ``(0, 0, -s_k)``. Entering through a clip plane: minus that plane's unit normal (the same formulas). A camera
+    inside an occupied cell hits it at ``t = 0`` with normal ``-d / |d|``.
+
+Empty-space skipping
+    Backends may skip empty space with a coarse occupancy pyramid of ``BLOCK``-cell cubes (in index space; the
+    block boundaries are fine planes, so the block is itself a trapezoid cell). Skipping must give the same
+    hits as the plain loop above: when the current block is empty, find the crossing ``t_exit`` where the ray
+    leaves the block, and advance each family past all of its fine crossings below ``t_exit`` with the same
+    formulas as step 4 (at most ``BLOCK`` per family), then continue. Results may differ from the plain loop
+    only for rays that pass exactly through a cell edge.
+
+Precision
+    Kernels compute in float32. Backends and the float64 test reference agree on labels and cells except for
+    rays passing within float32 rounding of a cell edge or corner; depths agree to float32 rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
+
+FAMILY_U = 0
+"""Plane family x = u z (column boundaries); also the first in the tie order."""
+FAMILY_V = 1
+"""Plane family y = v z (row boundaries)."""
+FAMILY_Z = 2
+"""Plane family z = const (slice boundaries)."""
+
+BLOCK = 4
+"""Edge of a coarse pyramid block, in cells, along each axis (the last block of an axis may be partial)."""
+
+
+def max_steps(grid: FruxelGrid) -> int:
+    """Upper bound on DDA iterations for one ray: every step moves one index monotonically."""
+    return grid.width + grid.height + grid.depth + 3
+
+
+def grid_params(grid: FruxelGrid) -> np.ndarray:
+    """Grid constants for the kernels: ``(8,)`` float32 ``(u_0, v_0, du, dv, z_near, dz, z_far, 0)``.
+
+    ``u_W`` and ``v_H`` are ``-u_0`` and ``-v_0`` (the grid is symmetric about its axis).
+    """
+    return np.array([-grid.tu, -grid.tv, grid.du, grid.dv, grid.z_near, grid.dz, grid.z_far, 0.0], dtype=np.float32)
+
+
+def camera_params(camera: Camera) -> np.ndarray:
+    """Camera constants for the kernels: ``(16,)`` float32.
+
+    Layout: ``(fx, fy, cx, cy, r00, r01, r02, r10, r11, r12, r20, r21, r22, ox, oy, oz)``: intrinsics, the
+    camera-to-grid rotation row by row, and the optical centre in the grid frame.
+    """
+    return np.concatenate(
+        [[camera.fx, camera.fy, camera.cx, camera.cy], camera.rotation.reshape(-1), camera.position]
+    ).astype(np.float32)
+
+
+def is_own_view(camera: Camera, grid: FruxelGrid) -> bool:
+    """True when ``camera`` is the grid's own camera at native resolution (identity pose, same intrinsics), for
+    which ``shell`` takes the column fast path: pixel (i, j) then looks straight down column (j, i)."""
+    own = grid.camera()
+    return (
+        camera.width == own.width
+        and camera.height == own.height
+        and np.allclose([camera.fx, camera.fy, camera.cx, camera.cy], [own.fx, own.fy, own.cx, own.cy], rtol=1e-9)
+        and np.allclose(camera.pose, np.eye(4), atol=1e-12)
+    )
