@@ -1,0 +1,29 @@
+"""Small compatibility shims for third-party packages, applied before they are imported.
+
+pyrender 0.1.45 (the last release) refers to ``np.infty``, which NumPy 2 removed, and picks its OpenGL platform
+from ``PYOPENGL_PLATFORM`` at import time. fruxel does not import pyrender here (the core stays free of it);
+``render/`` and ``train/`` call :func:`prepare_pyrender` right before ``import pyrender``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+
+def prepare_pyrender(headless: bool | None = None) -> None:
+    """Make ``import pyrender`` work with NumPy 2 and choose the OpenGL platform.
+
+    Args:
+        headless: True selects EGL (offscreen, no display needed: Mesa here, NVIDIA on GPU machines); False keeps
+            the default window platform; None (default) selects EGL when no ``DISPLAY`` is set. A
+            ``PYOPENGL_PLATFORM`` the user set is always kept.
+    """
+    if not hasattr(np, "infty"):
+        # Same value NumPy 1 had under this name; pyrender only reads it.
+        setattr(np, "infty", np.inf)  # noqa: B010 - a plain assignment trips the NumPy 2 lint
+    if headless is None:
+        headless = not os.environ.get("DISPLAY")
+    if headless:
+        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
