@@ -1,0 +1,18 @@
+# The two commands of the README. Both create .venv and install the pinned dependencies when needed.
+#   make demo   renders the bundled sample model (the main job) into out/
+#   make test   runs the test suite
+.PHONY: demo test env lint bench-cpu
+
+export PYOPENGL_PLATFORM ?= egl
+
+env:
+	@bash scripts/setup_env.sh
+
+demo: env
+	.venv/bin/fruxel-render --out out
+
+test: env
+	.venv/bin/python -m pytest
+
+lint: env
+	.venv/bin/ruff check .
