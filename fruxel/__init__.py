@@ -12,11 +12,29 @@ import importlib
 from typing import Any
 
 from .camera import Camera, CameraError
+from .classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from .grid import FruxelGrid, GridError
+from .io import FruxelFileError, load, save
+from .model import FruxelModel, ModelError, labels_from_scores
 
 __version__ = "0.1.0"
 
-__all__ = ["Camera", "CameraError", "FruxelGrid", "GridError", "__version__"]
+__all__ = [
+    "DEFAULT_CLASSES",
+    "Camera",
+    "CameraError",
+    "ClassTable",
+    "ClassTableError",
+    "FruxelFileError",
+    "FruxelGrid",
+    "FruxelModel",
+    "GridError",
+    "ModelError",
+    "__version__",
+    "labels_from_scores",
+    "load",
+    "save",
+]
 
 _SUBMODULES = ("kernels", "render", "train")
 

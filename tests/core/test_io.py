@@ -1,0 +1,304 @@
+"""Model files (SPEC section 5): round trips, atomic writes, and a corpus of malformed files."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import traceback
+import tracemalloc
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import numpy.lib.format as npy_format
+import pytest
+
+import fruxel
+import fruxel.io as fio
+from fruxel.classes import DEFAULT_CLASSES, ClassTable
+from fruxel.grid import FruxelGrid
+from fruxel.io import FruxelFileError, load, save
+from fruxel.model import FruxelModel
+
+GRID = FruxelGrid(width=5, height=4, depth=3, z_near=0.25, z_far=7.5, hfov=73.5)
+
+
+def _labels(seed: int = 0, grid: FruxelGrid = GRID, n: int = 7) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, n, grid.shape).astype(np.uint8)
+
+
+def _model(seed: int = 0) -> FruxelModel:
+    return FruxelModel(_labels(seed), GRID)
+
+
+# ---------------------------------------------------------------------------------------------------- builders
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    npy_format.write_array(buf, array, allow_pickle=True)
+    return buf.getvalue()
+
+
+def _npy_header(shape: tuple, descr: str, version: tuple[int, int] = (1, 0)) -> bytes:
+    buf = io.BytesIO()
+    d = {"descr": descr, "fortran_order": False, "shape": shape}
+    if version == (1, 0):
+        npy_format.write_array_header_1_0(buf, d)
+    else:
+        npy_format.write_array_header_2_0(buf, d)
+    return buf.getvalue()
+
+
+def _meta(*, base_grid: FruxelGrid = GRID, base_classes: ClassTable = DEFAULT_CLASSES, **change) -> dict:
+    meta = {"format": "fruxel", "version": 1, "grid": base_grid.to_dict(), "classes": base_classes.to_dict()}
+    meta.update(change)
+    return meta
+
+
+def _meta_npy(meta: dict | str) -> bytes:
+    return _npy(np.array(meta if isinstance(meta, str) else json.dumps(meta)))
+
+
+def _zip(path: Path, members: dict[str, bytes], compression: int = zipfile.ZIP_STORED) -> Path:
+    with zipfile.ZipFile(path, "w", compression=compression) as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+    return path
+
+
+def _valid_members(labels: np.ndarray | None = None, meta: dict | None = None) -> dict[str, bytes]:
+    return {"labels.npy": _npy(_labels() if labels is None else labels), "meta.npy": _meta_npy(meta or _meta())}
+
+
+# ---------------------------------------------------------------------------------------------------- round trips
+def test_round_trip_keeps_labels_grid_and_classes(tmp_path: Path) -> None:
+    classes = DEFAULT_CLASSES.extended("café", "plant", colours=[(12, 34, 56)])
+    model = FruxelModel(_labels(1, n=len(classes)), GRID, classes)
+    path = tmp_path / "scene.npz"
+    fruxel.save(path, model)
+    again = fruxel.load(str(path))
+    assert again == model
+    assert again.grid == GRID and again.classes == classes and again.labels.dtype == np.uint8
+    np.testing.assert_array_equal(again.labels, model.labels)
+    # The file is a plain npz that numpy reads without pickle: uint8 labels and a unicode meta string.
+    with np.load(path, allow_pickle=False) as npz:
+        assert sorted(npz.files) == ["labels", "meta"]
+        assert npz["labels"].dtype == np.uint8 and npz["meta"].dtype.kind == "U" and npz["meta"].shape == ()
+        meta = json.loads(str(npz["meta"]))
+    assert meta["format"] == "fruxel" and meta["version"] == 1
+    assert FruxelGrid.from_dict(meta["grid"]) == GRID and ClassTable.from_dict(meta["classes"]) == classes
+
+
+def test_other_valid_writers_are_read(tmp_path: Path) -> None:
+    # An uncompressed np.savez file, a bytes (UTF-8) meta string and Fortran-ordered labels are all valid.
+    labels = _labels(2)
+    path = tmp_path / "plain.npz"
+    np.savez(path, labels=np.asfortranarray(labels), meta=np.array(json.dumps(_meta()).encode("utf-8")))
+    model = load(path)
+    np.testing.assert_array_equal(model.labels, labels)
+    assert model.labels.flags.c_contiguous
+
+
+def test_save_replaces_an_existing_file_and_respects_the_umask(tmp_path: Path) -> None:
+    path = tmp_path / "scene.npz"
+    save(path, _model(0))
+    save(path, _model(1))
+    assert load(path) == _model(1)
+    assert os.listdir(tmp_path) == ["scene.npz"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_save_refuses_non_models(tmp_path: Path) -> None:
+    with pytest.raises(TypeError):
+        save(tmp_path / "x.npz", _labels())
+    assert os.listdir(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------------- atomic writes
+def _half_write_then_fail(fileobj, model) -> None:
+    fileobj.write(b"PK\x03\x04 half of an archive")
+    raise RuntimeError("killed mid-write")
+
+
+def _fail_replace(src, dst) -> None:
+    raise OSError("disk vanished")
+
+
+@pytest.mark.parametrize(
+    "target, replacement",
+    [("_write_npz", _half_write_then_fail), ("os.replace", _fail_replace)],
+)
+def test_a_failed_write_leaves_the_old_file_and_no_litter(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, target: str, replacement: Callable
+) -> None:
+    path = tmp_path / "scene.npz"
+    save(path, _model(0))
+    before = path.read_bytes()
+    if target == "os.replace":
+        monkeypatch.setattr(fio.os, "replace", replacement)
+    else:
+        monkeypatch.setattr(fio, target, replacement)
+    with pytest.raises((RuntimeError, OSError)):
+        save(path, _model(1))
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == ["scene.npz"]
+    assert path.read_bytes() == before
+    assert load(path) == _model(0)
+
+
+def test_a_failed_first_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(fio, "_write_npz", _half_write_then_fail)
+    with pytest.raises(RuntimeError):
+        save(tmp_path / "new.npz", _model(0))
+    assert os.listdir(tmp_path) == []
+
+
+def test_saving_onto_a_directory_fails_cleanly(tmp_path: Path) -> None:
+    (tmp_path / "d.npz").mkdir()
+    with pytest.raises(OSError):
+        save(tmp_path / "d.npz", _model(0))
+    assert os.listdir(tmp_path) == ["d.npz"]
+
+
+# ---------------------------------------------------------------------------------------------------- malformed corpus
+def _cut(fraction: float) -> Callable[[Path], Path]:
+    def make(path: Path) -> Path:
+        save(path, _model(3))
+        data = path.read_bytes()
+        path.write_bytes(data[: int(len(data) * fraction)])
+        return path
+
+    return make
+
+
+def _flip_label_byte(path: Path) -> Path:
+    npy = _npy(_labels(4))
+    _zip(path, {"labels.npy": npy, "meta.npy": _meta_npy(_meta())})
+    data = bytearray(path.read_bytes())
+    at = bytes(data).find(npy) + len(npy) - 5
+    data[at] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _labels_header_only(shape: tuple, grid: FruxelGrid = GRID) -> Callable[[Path], Path]:
+    def make(path: Path) -> Path:
+        return _zip(path, {"labels.npy": _npy_header(shape, "|u1"), "meta.npy": _meta_npy(_meta(base_grid=grid))})
+
+    return make
+
+
+def _members(**members: bytes | Callable[[], bytes]) -> Callable[[Path], Path]:
+    def make(path: Path) -> Path:
+        return _zip(path, {f"{k}.npy": v() if callable(v) else v for k, v in members.items()})
+
+    return make
+
+
+def _with_meta(meta: dict | str) -> Callable[[Path], Path]:
+    return _members(labels=lambda: _npy(_labels()), meta=lambda: _meta_npy(meta))
+
+
+def _raw(data: bytes) -> Callable[[Path], Path]:
+    def make(path: Path) -> Path:
+        path.write_bytes(data)
+        return path
+
+    return make
+
+
+BIG_GRID = FruxelGrid(width=1000, height=1000, depth=1000, z_near=0.5, z_far=8.0, hfov=60.0)
+OBJECT_LABELS = np.empty(GRID.shape, dtype=object)
+OBJECT_LABELS[...] = 0
+
+MALFORMED: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "missing meta": (_members(labels=lambda: _npy(_labels())), "keys.*missing.*meta"),
+    "extra key": (_members(labels=lambda: _npy(_labels()), meta=lambda: _meta_npy(_meta()),
+                           extra=lambda: _npy(np.zeros(2))), "keys.*unexpected.*extra"),
+    "renamed key": (_members(label=lambda: _npy(_labels()), meta=lambda: _meta_npy(_meta())), "keys"),
+    "int64 labels": (_members(labels=lambda: _npy(_labels().astype(np.int64)), meta=lambda: _meta_npy(_meta())),
+                     "dtype int64"),
+    "float labels": (_members(labels=lambda: _npy(_labels().astype(np.float32)), meta=lambda: _meta_npy(_meta())),
+                     "dtype float32"),
+    "object labels": (_members(labels=lambda: _npy(OBJECT_LABELS), meta=lambda: _meta_npy(_meta())), "object"),
+    "object meta": (_members(labels=lambda: _npy(_labels()), meta=lambda: _npy(np.array([_meta()], dtype=object))),
+                    "object"),
+    "2-d labels": (_members(labels=lambda: _npy(_labels().reshape(12, 5)), meta=lambda: _meta_npy(_meta())),
+                   "dimensions"),
+    "shape mismatch": (_members(labels=lambda: _npy(_labels().reshape(4, 3, 5)), meta=lambda: _meta_npy(_meta())),
+                       "shape"),
+    "cut at 10%": (_cut(0.1), "truncated"),
+    "cut at 50%": (_cut(0.5), "truncated"),
+    "cut at 99%": (_cut(0.99), "truncated"),
+    "header claims 10^12 cells": (_labels_header_only((10_000, 10_000, 10_000)), "10{12} cells"),
+    "header without data": (_labels_header_only((1000, 1000, 1000), BIG_GRID), "truncated"),
+    "trailing data": (_members(labels=lambda: _npy(_labels()) + b"\0\0\0", meta=lambda: _meta_npy(_meta())),
+                      "trailing|inconsistent"),
+    "bad crc": (_flip_label_byte, "corrupt|CRC"),
+    "garbage bytes": (_raw(bytes(range(256)) * 8), "not an npz|zip"),
+    "empty file": (_raw(b""), "zip"),
+    "npy bad magic": (_members(labels=lambda: b"NOTNUMPY" + bytes(100), meta=lambda: _meta_npy(_meta())), "magic"),
+    "npy bad header": (_members(labels=lambda: b"\x93NUMPY\x01\x00\x10\x00{'descr': 12}   \n",
+                                meta=lambda: _meta_npy(_meta())), "header"),
+    "npy version 3": (_members(labels=lambda: b"\x93NUMPY\x03\x00" + bytes(60), meta=lambda: _meta_npy(_meta())),
+                      "version"),
+    "meta not JSON": (_with_meta("{'grid': oops"), "JSON"),
+    "meta a list": (_with_meta("[1, 2]"), "object"),
+    "meta missing grid": (_with_meta({k: v for k, v in _meta().items() if k != "grid"}), "missing.*grid"),
+    "meta extra key": (_with_meta(_meta(note="hello")), "unexpected.*note"),
+    "wrong format name": (_with_meta(_meta(format="froxel")), "format"),
+    "unsupported version": (_with_meta(_meta(version=2)), "unsupported format version 2"),
+    "version as text": (_with_meta(_meta(version="1")), "version"),
+    "invalid grid": (_with_meta(_meta(grid={**GRID.to_dict(), "z_near": -1.0})), "invalid grid.*z_near"),
+    "invalid classes": (_with_meta(_meta(classes={"names": ["wall"], "colours": [[0, 0, 0]]})), "invalid classes"),
+    "label out of range": (_members(labels=lambda: _npy(np.full(GRID.shape, 7, np.uint8)),
+                                    meta=lambda: _meta_npy(_meta())), "label value 7 is out of range"),
+    "huge meta string": (_members(labels=lambda: _npy(_labels()), meta=lambda: _npy_header((), "<U100000000")),
+                         "too large"),
+    "numeric meta": (_members(labels=lambda: _npy(_labels()), meta=lambda: _npy(np.arange(3))), "dtype"),
+    "meta array of strings": (_members(labels=lambda: _npy(_labels()),
+                                       meta=lambda: _npy(np.array([json.dumps(_meta())]))), "shape"),
+    "meta not UTF-8": (_members(labels=lambda: _npy(_labels()), meta=lambda: _npy(np.array(b"\xff\xfe{}"))), "UTF-8"),
+    "directory": (lambda p: (p.mkdir(), p)[1], "directory"),
+    "missing file": (lambda p: p, "no such file"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_malformed_files_raise_one_clear_error(tmp_path: Path, case: str) -> None:
+    make, problem = MALFORMED[case]
+    path = make(tmp_path / f"bad {case}.npz")
+    with pytest.raises(FruxelFileError) as info:
+        load(path)
+    err = info.value
+    assert isinstance(err, ValueError)
+    assert path.name in str(err) and err.path == str(path)
+    assert re.search(problem, str(err)), f"{str(err)!r} does not name the problem {problem!r}"
+    assert err.__cause__ is None and err.__context__ is None
+    text = "".join(traceback.format_exception(err))
+    assert "During handling" not in text and "direct cause" not in text
+
+
+@pytest.mark.parametrize("case", ["header claims 10^12 cells", "header without data", "huge meta string"])
+def test_absurd_headers_are_refused_before_allocating(tmp_path: Path, case: str) -> None:
+    path = MALFORMED[case][0](tmp_path / "big.npz")
+    tracemalloc.start()
+    try:
+        with pytest.raises(FruxelFileError):
+            load(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, f"loading a {case!r} file allocated {peak} bytes"
+
+
+def test_every_corpus_file_is_refused_by_the_public_name(tmp_path: Path) -> None:
+    # fruxel.load is the documented entry point; it must be the same function with the same error type.
+    assert fruxel.load is load and fruxel.save is save and fruxel.FruxelFileError is FruxelFileError
+    path = MALFORMED["garbage bytes"][0](tmp_path / "g.npz")
+    with pytest.raises(fruxel.FruxelFileError):
+        fruxel.load(path)
