@@ -15,6 +15,7 @@ from .camera import Camera, CameraError
 from .classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from .grid import FruxelGrid, GridError
 from .io import FruxelFileError, load, save
+from .mesh import TriMesh, export_mesh, mesh_labels
 from .model import FruxelModel, ModelError, labels_from_scores
 
 __version__ = "0.1.0"
@@ -30,9 +31,12 @@ __all__ = [
     "FruxelModel",
     "GridError",
     "ModelError",
+    "TriMesh",
     "__version__",
+    "export_mesh",
     "labels_from_scores",
     "load",
+    "mesh_labels",
     "save",
 ]
 
