@@ -1,0 +1,83 @@
+"""The environment simulator: procedural rooms, the paper's mobile robot, and ground truth by ray casting.
+
+* :mod:`.scene` — rooms with walls (with real openings), floor, windows, doors, furniture and sculptures,
+  lights and a free-space map, from a seed (:func:`make_scene`);
+* :mod:`.assets` — optional real meshes: a folder per class, and Sweet Home 3D ``.sh3f`` libraries;
+* :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
+  random or scripted trajectories giving one camera pose per frame;
+* ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids, and
+  :func:`own_view_truth` gives the grid camera's depth and label images.
+
+World frame: right-handed, metres, z up, the floor's top at z = 0 and the room's interior in
+``[0, Lx] x [0, Ly] x [0, Lz]``. Camera poses are camera-to-world 4x4 matrices with OpenCV camera axes
+(x right, y down, z forward), so ``fruxel.Camera(..., pose=T)`` and ``fruxelize(meshes, grid, T)`` work in world
+coordinates directly.
+"""
+
+from __future__ import annotations
+
+from fruxel.kernels.fruxelize import MeshSet, own_view_truth
+
+from .assets import Asset, AssetError, AssetLibrary, load_asset_folder, load_sh3f
+from .robot import (
+    CameraMount,
+    RobotParams,
+    RobotStates,
+    Trajectory,
+    TrajectoryError,
+    camera_poses,
+    constant_commands,
+    random_trajectory,
+    segment_commands,
+    simulate,
+    trajectory_from_commands,
+)
+from .scene import (
+    DOOR,
+    FLOOR,
+    FURNITURE,
+    SCULPTURE,
+    WALL,
+    WINDOW,
+    FreeSpace,
+    Light,
+    RoomConfig,
+    Scene,
+    SceneError,
+    SceneObject,
+    make_scene,
+)
+
+__all__ = [
+    "DOOR",
+    "FLOOR",
+    "FURNITURE",
+    "SCULPTURE",
+    "WALL",
+    "WINDOW",
+    "Asset",
+    "AssetError",
+    "AssetLibrary",
+    "CameraMount",
+    "FreeSpace",
+    "Light",
+    "MeshSet",
+    "RobotParams",
+    "RobotStates",
+    "RoomConfig",
+    "Scene",
+    "SceneError",
+    "SceneObject",
+    "Trajectory",
+    "TrajectoryError",
+    "camera_poses",
+    "constant_commands",
+    "load_asset_folder",
+    "load_sh3f",
+    "make_scene",
+    "own_view_truth",
+    "random_trajectory",
+    "segment_commands",
+    "simulate",
+    "trajectory_from_commands",
+]
