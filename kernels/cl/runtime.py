@@ -1,0 +1,271 @@
+"""OpenCL runtime of the fruxel kernels: device choice, one context and queue per device, programs built once
+per context, host <-> device transfers, and conversions between the caller's arrays and host arrays.
+
+Device selectors (what :func:`resolve_device` returns and :func:`get_runtime` takes): ``None`` (the first GPU,
+else the first CPU), ``"gpu"`` (the first GPU, else the first CPU) or ``"cpu"`` (the first CPU device). Warp-style
+names (``"cuda"``, ``"cuda:1"``) map to ``"gpu"`` so that data on a CUDA device can ask for "the GPU" without
+knowing about OpenCL platforms.
+
+Memory: on a device that shares the host's memory (PoCL on the CPU) the caller's arrays and the result arrays
+are wrapped as ``CL_MEM_USE_HOST_PTR`` buffers, so kernels read and write them in place with no copy; elsewhere
+they are copied through device buffers kept in a per-runtime pool and reused by calls of the same size. No
+result of a previous call is ever reused: the pool holds storage only.
+
+Thread safety: every operation holds :attr:`Runtime.lock` for its whole call (kernel objects and pooled
+buffers are shared state).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..inputs import VolumeSpec, is_torch
+from ..registry import BackendError
+
+try:
+    import pyopencl as cl
+
+    _IMPORT_ERROR: str | None = None
+except ImportError as _e:  # pragma: no cover - exercised only without pyopencl
+    cl = None
+    _IMPORT_ERROR = str(_e)
+
+BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
+"""Options every fruxel program is built with: correctly rounded division and square root on every device (GPU
+compilers otherwise approximate them), so that crossings are the float32 values kernels/traversal.py describes;
+never ``-cl-fast-relaxed-math`` or ``-cl-mad-enable``, which would change results."""
+
+
+# ---------------------------------------------------------------------------------------------- devices
+@cache
+def _devices() -> tuple[tuple[Any, ...], tuple[Any, ...], str]:
+    """All OpenCL devices as ``(gpus, cpus, reason)``; ``reason`` says why there are none."""
+    if cl is None:
+        return (), (), f"pyopencl is not importable ({_IMPORT_ERROR})"
+    try:
+        platforms = cl.get_platforms()
+    except Exception as e:  # noqa: BLE001 - any ICD loader failure means "no device"
+        return (), (), f"no OpenCL platform found ({e}); install pocl-binary-distribution for a CPU driver"
+    gpus, cpus = [], []
+    for p in platforms:
+        try:
+            devs = p.get_devices()
+        except Exception:  # noqa: BLE001, S112 - a broken platform must not hide the others
+            continue
+        for d in devs:
+            if d.type & cl.device_type.GPU:
+                gpus.append(d)
+            elif d.type & cl.device_type.CPU:
+                cpus.append(d)
+    reason = "" if gpus or cpus else "OpenCL platforms have no CPU or GPU device; install pocl-binary-distribution"
+    return tuple(gpus), tuple(cpus), reason
+
+
+def is_available() -> bool:
+    """True when pyopencl imports and at least one CPU or GPU OpenCL device exists."""
+    gpus, cpus, _ = _devices()
+    return bool(gpus or cpus)
+
+
+def unavailable_reason() -> str:
+    """Why :func:`is_available` is False (empty when it is True)."""
+    return _devices()[2]
+
+
+def cuda_available() -> bool:
+    """Always False: this backend never runs on CUDA itself (registry contract, used to rank backends)."""
+    return False
+
+
+def resolve_device(device: str | None) -> str | None:
+    """Map a user's device argument onto an OpenCL device selector.
+
+    Args:
+        device: None (first GPU, else first CPU), ``"cpu"``, ``"gpu"``, or a Warp/torch CUDA name
+            (``"cuda"``, ``"cuda:1"``), which asks for the first OpenCL GPU.
+
+    Returns:
+        None, ``"gpu"`` or ``"cpu"``; ``"gpu"`` only when an OpenCL GPU exists (else the CPU is used).
+
+    Raises:
+        BackendError: any other name.
+    """
+    if device is None:
+        return None
+    name = str(device).strip().lower()
+    if name == "cpu":
+        return "cpu"
+    if name == "gpu" or name == "cuda" or name.startswith("cuda:"):
+        return "gpu" if _devices()[0] else "cpu"
+    raise BackendError(f"unknown OpenCL device {device!r}; use None, 'cpu', 'gpu' or 'cuda[:n]'")
+
+
+# ---------------------------------------------------------------------------------------------- runtime
+@dataclass(eq=False)
+class Runtime:
+    """One OpenCL device with its context, in-order queue, program and kernel caches and buffer pool."""
+
+    device: Any
+    """The ``pyopencl.Device``."""
+    context: Any
+    """A context holding only :attr:`device`."""
+    queue: Any
+    """In-order command queue; every call enqueues on it and blocks once, at the end, for its results."""
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    """Held by each operation for its whole call."""
+    _programs: dict[tuple[str, tuple[str, ...]], Any] = field(default_factory=dict)
+    _kernels: dict[tuple[int, str], Any] = field(default_factory=dict)
+    _pool: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def zero_copy(self) -> bool:
+        """True when kernels can work on host arrays in place (the device is the host CPU)."""
+        return bool(self.device.type & cl.device_type.CPU) and bool(self.device.host_unified_memory)
+
+    @property
+    def has_fp64(self) -> bool:
+        """True when the device computes in double precision (``cl_khr_fp64``)."""
+        return "cl_khr_fp64" in self.device.extensions
+
+    def kernel(self, source: str, name: str, options: tuple[str, ...] = ()) -> Any:
+        """Kernel ``name`` of ``source`` built with ``BUILD_OPTIONS + options``; each program is built once per
+        context (cache key: source text and options), each kernel object made once per program."""
+        key = (source, tuple(options))
+        prg = self._programs.get(key)
+        if prg is None:
+            prg = cl.Program(self.context, source).build(options=list(BUILD_OPTIONS + tuple(options)))
+            self._programs[key] = prg
+        kkey = (id(prg), name)
+        k = self._kernels.get(kkey)
+        if k is None:
+            k = getattr(prg, name)
+            self._kernels[kkey] = k
+        return k
+
+    def scratch(self, name: str, nbytes: int) -> Any:
+        """A device buffer of at least ``nbytes`` bytes for intermediate data, kept for the next call under the
+        same ``name``; grown when too small. Its content on entry is undefined."""
+        nbytes = max(int(nbytes), 1)
+        buf = self._pool.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, nbytes)
+            self._pool[name] = buf
+        return buf
+
+    def zero(self, buf: Any, nbytes: int) -> None:
+        """Enqueue setting the first ``nbytes`` bytes of ``buf`` to 0."""
+        cl.enqueue_fill_buffer(self.queue, buf, np.uint8(0), 0, int(nbytes))
+
+    def input(self, name: str, arr: np.ndarray) -> Any:
+        """A read-only view of the C-contiguous host array ``arr`` for kernels.
+
+        Zero-copy devices get a ``USE_HOST_PTR`` buffer over ``arr`` itself; other devices get the pooled buffer
+        ``name`` and a non-blocking upload. Either way ``arr`` must stay alive and unchanged until the call's
+        final synchronisation.
+        """
+        if self.zero_copy:
+            return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        buf = self.scratch(name, arr.nbytes)
+        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
+        return buf
+
+    def output(self, name: str, arr: np.ndarray) -> Any:
+        """A write-only device view of the C-contiguous host array ``arr``, which receives the data at
+        :meth:`fetch`: ``arr`` itself on zero-copy devices, else the pooled buffer ``name``."""
+        if self.zero_copy:
+            return cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        return self.scratch(name, arr.nbytes)
+
+    def fetch(self, pairs: list[tuple[Any, np.ndarray]]) -> None:
+        """Make the kernels' writes to each ``(buffer, arr)`` from :meth:`output` visible in ``arr``, and wait
+        for every command of the call (the only host synchronisation of an operation)."""
+        if not pairs:
+            return
+        if self.zero_copy:
+            # Mapping a USE_HOST_PTR buffer is the OpenCL way to make device writes visible in the host array;
+            # the blocking maps also wait for the kernels that wrote them. PoCL maps in place (no copy).
+            maps = [cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
+                                          is_blocking=True)[0] for buf, arr in pairs]
+            for m in maps:
+                m.base.release(self.queue)
+        else:
+            for buf, arr in pairs:
+                cl.enqueue_copy(self.queue, arr, buf, is_blocking=False)
+        # Results are handed to the caller right after this: wait for the copies and unmaps, and thereby for
+        # every kernel of the call, so that the input wrappers may be released too.
+        self.queue.finish()
+
+
+@cache
+def _runtime_for(device: Any) -> Runtime:
+    ctx = cl.Context([device])
+    return Runtime(device=device, context=ctx, queue=cl.CommandQueue(ctx))
+
+
+def get_runtime(selector: str | None) -> Runtime:
+    """The cached :class:`Runtime` of a selector from :func:`resolve_device`.
+
+    Raises:
+        BackendError: no OpenCL device at all.
+    """
+    gpus, cpus, reason = _devices()
+    if selector == "cpu":
+        devs = cpus or gpus
+    else:
+        devs = gpus or cpus
+    if not devs:
+        raise BackendError(f"no OpenCL device: {reason}")
+    return _runtime_for(devs[0])
+
+
+def source(module_file: str) -> str:
+    """The OpenCL source that lies beside a Python module (``foo.py`` -> ``foo.cl``)."""
+    return Path(module_file).with_suffix(".cl").read_text(encoding="utf-8")
+
+
+def defines(**values: int | float) -> tuple[str, ...]:
+    """``-DNAME=value`` build options."""
+    return tuple(f"-D{k}={v!r}" for k, v in values.items())
+
+
+# ---------------------------------------------------------------------------------------------- host arrays
+def host_array(volume: Any) -> np.ndarray:
+    """The caller's volume as a C-contiguous numpy array on the host (no copy when it already is one).
+
+    torch tensors are detached and brought to the CPU; bfloat16 becomes float32 (OpenCL has no bfloat16).
+    """
+    if is_torch(volume):
+        import torch
+
+        t = volume.detach()
+        if t.dtype == torch.bfloat16:
+            t = t.float()
+        t = t.cpu() if t.device.type != "cpu" else t
+        arr = t.numpy()
+    else:
+        arr = volume
+    return np.ascontiguousarray(arr)
+
+
+def to_caller(arr: np.ndarray, spec: VolumeSpec, like: Any = None) -> Any:
+    """A result array in the caller's kind and on its device.
+
+    Args:
+        arr: host result.
+        spec: the validated input's description (kind and device).
+        like: the input volume; for torch results of a float input, its dtype is restored (bfloat16).
+    """
+    if spec.kind == "numpy":
+        return arr
+    import torch
+
+    t = torch.from_numpy(arr)
+    if like is not None and like.dtype == torch.bfloat16 and t.dtype == torch.float32:
+        t = t.to(torch.bfloat16)
+    return t.to(spec.device) if spec.device != "cpu" else t

@@ -1,0 +1,80 @@
+/*
+ * VMS shell (SPEC section 4): mark every cell that is the first hit of some pixel of some camera, then build the
+ * output volume. Compiled after first_hit.cl (same build options), whose setup_ray() and trace() it reuses.
+ *
+ * mask  uchar (B, D, H, W): 1 for kept cells. Set to 0 by the host, then only ever written with 1, so the races
+ *       between rays that hit the same cell are benign.
+ */
+
+/*
+ * shell_mark: one work-item per pixel (x, y) of one viewing camera and batch item b; sets the mask at its first
+ * hit. Global and local sizes, and all arguments but the last, as first_hit (first_hit.cl).
+ */
+__kernel void shell_mark(__global const uchar* labels, __global const uchar* pyr1, __global const uchar* pyr2,
+                         const float8 grid, const float16 cam, const int4 n, const int w, const int h,
+                         const int max_iter, __global uchar* mask)
+{
+    const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    if (x >= w || y >= h) return;
+    const size_t cells = (size_t)n.x * n.y * n.z;
+    const int4 n1 = ((n - 1) >> LOG_BLOCK) + 1;
+    const int4 n2 = ((n - 1) >> (2 * LOG_BLOCK)) + 1;
+    __global const uchar* m0 = labels + b * cells;
+    __global const uchar* m1 = pyr1 + (size_t)b * n1.x * n1.y * n1.z;
+    __global const uchar* m2 = (LEVELS > 2) ? pyr2 + (size_t)b * n2.x * n2.y * n2.z : pyr2;
+
+    Ray r;
+    int4 entry;
+    float t_lo, t_hi;
+    int plane;
+    Hit hit;
+    if (!setup_ray(x, y, grid, cam, n, &r, &entry, &t_lo, &t_hi, &plane)) return;
+    if (!trace(&r, entry, t_lo, t_hi, plane, m0, m1, m2, max_iter, &hit)) return;
+    mask[b * cells + ((size_t)hit.cell.z * n.y + hit.cell.y) * n.x + hit.cell.x] = 1;
+}
+
+/*
+ * shell_columns: the fast path for the grid's own camera at native resolution, whose pixel (i, j) looks
+ * straight down column (j, i) from the near plane (traversal.is_own_view): one work-item per column (i, j) and
+ * batch item b marks the column's first occupied cell, which is exactly that pixel's first hit.
+ *   global size (ceil(W / lx) lx, H, B), local size (lx, 1, 1)
+ *   labels uchar (B, D, H, W), mask uchar (B, D, H, W)
+ */
+__kernel void shell_columns(__global const uchar* labels, const int4 n, __global uchar* mask)
+{
+    const int i = get_global_id(0), j = get_global_id(1), b = get_global_id(2);
+    if (i >= n.x) return;
+    const size_t plane = (size_t)n.x * n.y;
+    const size_t base = b * plane * n.z + (size_t)j * n.x + i;
+    for (int k = 0; k < n.z; ++k) {
+        if (labels[base + k * plane]) {
+            mask[base + k * plane] = 1;
+            return;
+        }
+    }
+}
+
+/*
+ * shell_select_<bytes>: the output volume, on raw element bits (so one kernel per element size serves every
+ * dtype: integer labels, float16/32/64 scores). One work-item per element (cell, channel c, batch item b):
+ *   out[b, c, cell] = mask[b, cell] ? in[b, c, cell] : (c == 0 ? empty0 : empty1)
+ *   global size (ceil(cells / l) l, C, B), local size (l, 1, 1), cells = D * H * W
+ *   in, out  (B, C, D, H, W) elements of `bytes` bytes (C = 1 for labels), row-major
+ *   mask     uchar (B, D, H, W)
+ *   empty0, empty1  bit patterns of the removed cell's channel 0 and other channels: 0 and 0 for labels; the
+ *                   dtype's 0 and EMPTY_LOGIT for logits; its 1 and 0 for probabilities.
+ */
+#define SHELL_SELECT(NAME, T)                                                                                  \
+    __kernel void NAME(__global const T* in, __global const uchar* mask, __global T* out, const long cells,   \
+                       const T empty0, const T empty1)                                                         \
+    {                                                                                                          \
+        const long cell = get_global_id(0);                                                                    \
+        if (cell >= cells) return;                                                                             \
+        const long c = get_global_id(1), b = get_global_id(2), C = get_global_size(1);                        \
+        const long e = (b * C + c) * cells + cell;                                                             \
+        out[e] = mask[b * cells + cell] ? in[e] : (c == 0 ? empty0 : empty1);                                  \
+    }
+SHELL_SELECT(shell_select_1, uchar)
+SHELL_SELECT(shell_select_2, ushort)
+SHELL_SELECT(shell_select_4, uint)
+SHELL_SELECT(shell_select_8, ulong)
