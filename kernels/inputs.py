@@ -70,6 +70,17 @@ def _dtype_kind(x: Any) -> str:
     return np.asarray(x).dtype.kind
 
 
+def _all_finite(volume: Any) -> bool:
+    """Whether a float array holds no NaN or infinity, without an element-sized temporary: NaN propagates
+    through min and max, and an infinity is the min or the max."""
+    if is_torch(volume):
+        import torch
+
+        lo, hi = torch.aminmax(volume.detach().reshape(-1))
+        return bool(torch.isfinite(lo) & torch.isfinite(hi))  # one host synchronisation, needed for the error
+    return bool(np.isfinite(volume.min()) and np.isfinite(volume.max()))
+
+
 def inspect_volume(volume: Any, grid: FruxelGrid, threshold: float | None = None, probs: bool = False) -> VolumeSpec:
     """Validate a kernel input volume against a grid (SPEC section 2).
 
@@ -99,7 +110,8 @@ def inspect_volume(volume: Any, grid: FruxelGrid, threshold: float | None = None
         batched = len(shape) == 4
         if 0 in shape:
             raise VolumeError(f"volume is empty: shape {shape}")
-        if kind != "b":
+        if kind != "b" and str(volume.dtype).removeprefix("torch.") != "uint8":
+            # uint8 holds [0, 255] by type: no reduction, and no device synchronisation for CUDA tensors.
             lo, hi = volume.min(), volume.max()
             lo, hi = (lo.item(), hi.item()) if is_torch(volume) else (lo, hi)
             if lo < 0 or hi > MAX_LABEL:
@@ -112,7 +124,7 @@ def inspect_volume(volume: Any, grid: FruxelGrid, threshold: float | None = None
             raise VolumeError(f"float scores need at least 2 channels (0 = empty), got C = {shape[1]}")
         if shape[0] == 0:
             raise VolumeError("volume is empty: B = 0")
-        finite = bool(volume.isfinite().all()) if is_torch(volume) else bool(np.isfinite(volume).all())
+        finite = _all_finite(volume)
         if not finite:
             raise VolumeError("float scores contain NaN or infinite values")
         if threshold is not None and not (0.0 < float(threshold) <= 1.0):

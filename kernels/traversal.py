@@ -33,7 +33,9 @@ Ray
 4. Next crossing of each family: the boundary ahead is ``ib = i + (s_i > 0)`` (likewise jb, kb);
    ``t_u = (u_ib o_z - o_x) / (d_x - u_ib d_z)``, ``t_v = (v_jb o_z - o_y) / (d_y - v_jb d_z)``,
    ``t_z = (z_kb - o_z) / d_z``. Boundaries are computed from their index (``u_ib = -tu + ib * du``), never
-   accumulated.
+   accumulated. A u-boundary counts as ahead only when ``s_i (d_x - u_ib d_z) > 0`` (likewise for v), else its
+   crossing is +inf: the plane ``x = u z`` continues behind the apex (z < 0), and a ray from a camera behind
+   the apex meets it there at a t that would otherwise look like a crossing ahead.
 
 5. Loop, at most ``W + H + D + 3`` times: if the current cell is occupied, it is the hit: ``depth = t_entry``
    (``t_lo`` for the first cell), ``normal`` = the entry face's. Otherwise take the family with the smallest
