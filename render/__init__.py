@@ -1,0 +1,32 @@
+"""fruxel.render: show fruxel models, as trapezoid meshes in pyrender or as ray-cast images.
+
+* :mod:`fruxel.render.scene` — pyrender scenes: the OpenCV-to-pyrender camera conversion, mesh upload,
+  offscreen (EGL) renderers kept per image size.
+* :mod:`fruxel.render.raycast` — ``first_hit`` from the viewing camera, shaded per pixel (no mesh).
+* :mod:`fruxel.render.legend` — class legends and captions on images.
+* :mod:`fruxel.render.cli` — the ``fruxel-render`` command.
+* :mod:`fruxel.render.table1` — the visualisation benchmark (Table 1 of the paper, per-frame model updates).
+
+Importing this package imports neither pyrender nor torch nor a kernel backend; each is loaded when first used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__all__ = ["MeshStyle", "MeshView", "RaycastStyle", "raycast_image", "render_mesh"]
+
+_LAZY = {
+    "MeshStyle": ".scene",
+    "MeshView": ".scene",
+    "render_mesh": ".scene",
+    "RaycastStyle": ".raycast",
+    "raycast_image": ".raycast",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,309 @@
+"""Tests of the ``fruxel-render`` command: every mode on the bundled model, logits input, and bad input.
+
+Most runs call :func:`fruxel.render.cli.main` in this process (the renderer and the kernels stay warm, which
+keeps the suite fast); the tests about imports, exit status and stderr run the command as a subprocess.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fruxel.render.cli import default_camera, main
+from PIL import Image
+
+import fruxel
+from fruxel import kernels
+from fruxel.data import SAMPLE_ROOM
+
+SIZE = "96x72"
+BACKEND = "warp" if any(b.startswith("warp") for b in kernels.available_backends()) else "opencl"
+MODEL = fruxel.load(SAMPLE_ROOM)
+PALETTE = MODEL.classes.palette()
+WALL, FLOOR, FURNITURE = (MODEL.classes.index(n) for n in ("wall", "floor", "furniture"))
+HEAVY = ("torch", "warp", "pyrender", "pyopencl", "OpenGL")
+
+
+def run_cli(*argv: str) -> int:
+    return main([*map(str, argv)])
+
+
+def read_png(path: Path) -> np.ndarray:
+    assert path.is_file() and path.stat().st_size > 0
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def colours_present(image: np.ndarray) -> set[int]:
+    """Labels whose exact palette colour occurs in the image (flat shading)."""
+    flat = image.reshape(-1, 3)
+    return {c for c in range(1, len(PALETTE)) if np.any(np.all(flat == PALETTE[c], axis=1))}
+
+
+def foreground_share(image: np.ndarray) -> float:
+    return float(np.mean(np.any(image != 255, axis=-1)))
+
+
+def subprocess_cli(*argv: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    code = "import sys; from fruxel.render.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env, timeout=120)
+
+
+def error_lines(stderr: str) -> list[str]:
+    # Warp announces a missing CUDA driver on stderr on CPU-only machines; that line is not the command's.
+    return [line for line in stderr.splitlines() if line.strip() and "Warp CUDA warning" not in line]
+
+
+# ---------------------------------------------------------------------------------------------------- help
+def test_help_imports_no_heavy_module_and_is_quick() -> None:
+    code = (
+        "import sys\n"
+        "from fruxel.render.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
+        f"print('HEAVY=' + ','.join(m for m in {HEAVY!r} if m in sys.modules))\n"
+    )
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    elapsed = time.perf_counter() - t0
+    assert out.returncode == 0, out.stderr
+    assert "usage: fruxel-render" in out.stdout
+    assert out.stdout.strip().splitlines()[-1] == "HEAVY=", out.stdout.strip().splitlines()[-1]
+    # numpy and fruxel's core only; a torch / warp / pyrender import would take seconds.
+    assert elapsed < 5.0
+
+
+def test_console_script_is_installed() -> None:
+    exe = Path(sys.executable).with_name("fruxel-render")
+    if not exe.exists():
+        pytest.skip("fruxel-render is not installed in this environment (pip install -e .)")
+    out = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "--benchmark" in out.stdout
+
+
+# ---------------------------------------------------------------------------------------------------- modes
+@pytest.mark.parametrize(
+    ("shell", "meshing"),
+    [("none", "full"), ("none", "greedy"), ("own", "culled"), ("own", "greedy"), ("poses", "full"),
+     ("poses", "greedy"), ("view", "culled"), ("view", "greedy")],
+)
+def test_mesh_mode_draws_class_colours(tmp_path: Path, shell: str, meshing: str) -> None:
+    rc = run_cli("--backend", BACKEND, "--shell", shell, "--mesh", meshing, "--shading", "flat", "--no-legend",
+                 "--size", SIZE, "--out", tmp_path)
+    assert rc == 0
+    img = read_png(tmp_path / "sample_room_mesh.png")
+    assert img.shape == (72, 96, 3)
+    assert {WALL, FLOOR, FURNITURE} <= colours_present(img)
+
+
+def test_lit_mesh_with_legend_and_frustum(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert run_cli("--backend", BACKEND, "--size", "160x120", "--frustum", "--out", tmp_path) == 0
+    out = capsys.readouterr().out.split()
+    assert out == [str(tmp_path / "sample_room_mesh.png")]
+    img = read_png(tmp_path / "sample_room_mesh.png")
+    assert foreground_share(img) > 0.2
+    # Lit faces are darker than their class colour, but the legend's swatches carry the exact colours.
+    assert {WALL, FLOOR, FURNITURE} <= colours_present(img)
+
+
+@pytest.mark.parametrize("fog", [False, True])
+def test_raycast_mode(tmp_path: Path, fog: bool) -> None:
+    args = ["--backend", BACKEND, "--mode", "raycast", "--size", SIZE, "--out", tmp_path, "--no-legend"]
+    assert run_cli(*args, *(["--fog"] if fog else ["--shading", "flat"])) == 0
+    img = read_png(tmp_path / "sample_room_raycast.png")
+    assert img.shape == (72, 96, 3) and foreground_share(img) > 0.2
+    if not fog:
+        assert {WALL, FLOOR, FURNITURE} <= colours_present(img)
+
+
+def test_raycast_image_is_first_hit(tmp_path: Path) -> None:
+    assert run_cli("--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--size", SIZE,
+                   "--out", tmp_path) == 0
+    img = read_png(tmp_path / "sample_room_raycast.png")
+    hits = kernels.first_hit(MODEL.labels, MODEL.grid, default_camera(MODEL.grid, 96, 72), backend=BACKEND)
+    expected = np.where((hits.label != 0)[..., None], PALETTE[hits.label], 255)
+    assert np.array_equal(img, expected)
+
+
+def test_both_mode_side_by_side(tmp_path: Path) -> None:
+    assert run_cli("--backend", BACKEND, "--mode", "both", "--size", SIZE, "--out", tmp_path) == 0
+    img = read_png(tmp_path / "sample_room_both.png")
+    assert img.shape == (72, 2 * 96 + 2, 3)
+    assert foreground_share(img[:, :96]) > 0.2 and foreground_share(img[:, 98:]) > 0.2
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".ply"])
+def test_export(tmp_path: Path, suffix: str) -> None:
+    trimesh = pytest.importorskip("trimesh")
+    dest = tmp_path / f"room{suffix}"
+    assert run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path, "--export", dest) == 0
+    loaded = trimesh.load(dest, force="mesh", process=False)
+    assert len(loaded.faces) > 0
+    assert (tmp_path / "sample_room_mesh.png").is_file()
+
+
+def test_orbit_gif(tmp_path: Path) -> None:
+    assert run_cli("--backend", BACKEND, "--orbit", "3", "--size", SIZE, "--out", tmp_path) == 0
+    path = tmp_path / "sample_room_mesh_orbit.gif"
+    with Image.open(path) as gif:
+        assert gif.n_frames == 3
+        frames = []
+        for f in range(3):
+            gif.seek(f)
+            frames.append(np.asarray(gif.convert("RGB")))
+    assert all(foreground_share(f) > 0.1 for f in frames)
+    assert not np.array_equal(frames[0], frames[1])
+
+
+def test_orbit_mp4_without_ffmpeg_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("imageio_ffmpeg") is not None:
+        assert run_cli("--backend", BACKEND, "--orbit", "2", "--video", "mp4", "--size", SIZE, "--out", tmp_path) == 0
+        assert (tmp_path / "sample_room_mesh_orbit.mp4").stat().st_size > 0
+        return
+    assert run_cli("--backend", BACKEND, "--orbit", "2", "--video", "mp4", "--size", SIZE, "--out", tmp_path) == 2
+    err = capsys.readouterr().err
+    assert "imageio-ffmpeg" in err and not list(tmp_path.glob("*.mp4"))
+
+
+def test_camera_json_sets_view_and_size(tmp_path: Path) -> None:
+    cam = MODEL.grid.camera().scaled(1.5)
+    path = tmp_path / "cam.json"
+    path.write_text(cam.to_json())
+    assert run_cli("--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--camera", path,
+                   "--out", tmp_path) == 0
+    img = read_png(tmp_path / "sample_room_raycast.png")
+    assert img.shape == (cam.height, cam.width, 3)
+    # The grid's own camera sees the back wall straight ahead in the middle of the image.
+    assert tuple(img[cam.height // 3, cam.width // 2]) in {tuple(PALETTE[c]) for c in range(1, len(PALETTE))}
+
+
+# ---------------------------------------------------------------------------------------------------- logits
+def _logits(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """Float32 logits ``(C, D, H, W)`` whose argmax is ``labels``."""
+    rng = np.random.default_rng(0)
+    lg = rng.normal(0.0, 0.1, (n_classes, *labels.shape)).astype(np.float32)
+    np.put_along_axis(lg, labels[None].astype(np.int64), 3.0, axis=0)
+    return lg
+
+
+def test_npy_logits_with_sidecar_match_the_labels(tmp_path: Path) -> None:
+    lg = _logits(MODEL.labels, len(MODEL.classes))
+    np.save(tmp_path / "pred.npy", lg)
+    (tmp_path / "pred.json").write_text(json.dumps(MODEL.grid.to_dict()))
+    for name in ("pred.npy", None):
+        args = ["--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--size", SIZE,
+                "--out", tmp_path]
+        assert run_cli(*([tmp_path / name] if name else []), *args) == 0
+    assert np.array_equal(read_png(tmp_path / "pred_raycast.png"), read_png(tmp_path / "sample_room_raycast.png"))
+
+
+def test_npy_logits_mesh_with_grid_option(tmp_path: Path) -> None:
+    np.save(tmp_path / "bare.npy", _logits(MODEL.labels, len(MODEL.classes)))
+    g = MODEL.grid
+    spec = f"{g.width},{g.height},{g.depth},{g.z_near},{g.z_far},{g.hfov}"
+    assert run_cli(tmp_path / "bare.npy", "--grid", spec, "--backend", BACKEND, "--shading", "flat", "--no-legend",
+                   "--size", SIZE, "--out", tmp_path) == 0
+    assert {WALL, FLOOR, FURNITURE} <= colours_present(read_png(tmp_path / "bare_mesh.png"))
+
+
+def test_pt_dict_logits(tmp_path: Path) -> None:
+    torch = pytest.importorskip("torch")
+    lg = torch.from_numpy(_logits(MODEL.labels, len(MODEL.classes)))
+    torch.save({"logits": lg, "grid": MODEL.grid.to_dict(), "classes": MODEL.classes.to_dict()}, tmp_path / "p.pt")
+    assert run_cli(tmp_path / "p.pt", "--backend", BACKEND, "--mode", "both", "--size", SIZE, "--out", tmp_path) == 0
+    assert foreground_share(read_png(tmp_path / "p_both.png")) > 0.2
+
+
+# ---------------------------------------------------------------------------------------------------- errors
+def _one_error_line(rc: int, err: str, *words: str) -> None:
+    assert rc == 2
+    lines = error_lines(err)
+    assert len(lines) == 1, err
+    assert lines[0].startswith("fruxel-render: error: ")
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0]
+
+
+def test_missing_model(tmp_path: Path) -> None:
+    out = subprocess_cli(str(tmp_path / "nope.npz"), "--out", str(tmp_path))
+    _one_error_line(out.returncode, out.stderr, "nope.npz")
+    assert not list(tmp_path.glob("*.png"))
+
+
+def test_corrupt_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(SAMPLE_ROOM.read_bytes()[:300])
+    rc = run_cli(bad, "--out", tmp_path)
+    _one_error_line(rc, capsys.readouterr().err, "bad.npz")
+
+
+def test_corrupt_npy_and_missing_grid(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "junk.npy").write_bytes(b"\x93NUMPY garbage")
+    _one_error_line(run_cli(tmp_path / "junk.npy", "--out", tmp_path), capsys.readouterr().err, "junk.npy")
+    np.save(tmp_path / "bare.npy", np.zeros((7, 4, 4, 4), np.float32))
+    _one_error_line(run_cli(tmp_path / "bare.npy", "--out", tmp_path), capsys.readouterr().err, "--grid")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object))
+    _one_error_line(run_cli(tmp_path / "obj.npy", "--out", tmp_path), capsys.readouterr().err, "obj.npy")
+
+
+def test_logits_of_the_wrong_shape(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    np.save(tmp_path / "x.npy", np.zeros((7, 4, 4, 4), np.float32))
+    rc = run_cli(tmp_path / "x.npy", "--grid", "8,8,8,0.5,5,60", "--out", tmp_path)
+    _one_error_line(rc, capsys.readouterr().err, "(4, 4, 4)")
+
+
+def test_unknown_backend_and_bad_options() -> None:
+    out = subprocess_cli("--backend", "cuda-magic")
+    _one_error_line(out.returncode, out.stderr, "--backend", "cuda-magic")
+    out = subprocess_cli("--size", "big")
+    _one_error_line(out.returncode, out.stderr, "--size")
+
+
+def test_bad_camera_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = run_cli("--camera", '{"fx": 1}', "--out", tmp_path)
+    _one_error_line(rc, capsys.readouterr().err, "camera")
+
+
+def test_view_without_display() -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    out = subprocess_cli("--view", env=env)
+    _one_error_line(out.returncode, out.stderr, "display")
+
+
+def test_view_hands_a_lit_scene_to_the_viewer() -> None:
+    """With a display, --view builds the shell mesh with normals and a camera and opens pyrender's Viewer (a stub
+    here: no window can open in a test)."""
+    code = (
+        "from fruxel._compat import prepare_pyrender\n"
+        "prepare_pyrender(headless=True)\n"
+        "import pyrender\n"
+        "seen = {}\n"
+        "class Stub:\n"
+        "    def __init__(self, scene, **kw):\n"
+        "        prims = [p for m in scene.meshes for p in m.primitives]\n"
+        "        seen.update(n=len(prims), normals=all(p.normals is not None for p in prims),\n"
+        "                    camera=scene.main_camera_node is not None, size=kw['viewport_size'])\n"
+        "pyrender.Viewer = Stub\n"
+        "from fruxel.render.cli import main\n"
+        f"rc = main(['--view', '--size', '96x72', '--backend', {BACKEND!r}])\n"
+        "print('RESULT', rc, seen)\n"
+    )
+    env = dict(os.environ, DISPLAY=":99")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    line = next(x for x in out.stdout.splitlines() if x.startswith("RESULT"))
+    assert line == "RESULT 0 {'n': 1, 'normals': True, 'camera': True, 'size': (96, 72)}"
+
+
+def test_unwritable_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    rc = run_cli("--backend", BACKEND, "--mode", "raycast", "--size", SIZE, "--out", blocker / "sub")
+    _one_error_line(rc, capsys.readouterr().err, "cannot write")
