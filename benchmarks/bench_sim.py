@@ -1,0 +1,357 @@
+"""Simulator benchmark: samples per second of the data set generator and of the streaming data set.
+
+A sample is made end to end: room (``make_scene``), robot trajectory, mesh upload for ``fruxelize`` (once per
+room), pyrender image with augmentation, ``fruxelize`` of the grid, own-view truth; ``generate`` also compresses
+and writes the shards and the manifest.
+
+Modes (``--mode``, comma-separated):
+
+* ``generate``  — ``fruxel.train.sim.shards.generate`` into a temporary folder with ``--workers`` processes;
+* ``streaming`` — a ``StreamingDataset`` through ``streaming_loader`` (spawned DataLoader workers), batches of 8;
+* ``profile``   — one process, seconds per stage (no files), plus shard encoding.
+
+Rates: *steady* counts from the moment every worker has delivered (start-up excluded), *end to end* from the call
+to the last sample (process start-up, imports, EGL and Warp start included). Cases are ``SxG`` (image S^2,
+grid G^3), default ``256x64,512x128``.
+
+    python benchmarks/bench_sim.py                                   # this machine: writes sim-cpu.json
+    python benchmarks/bench_sim.py --tag h100 --mode profile,streaming,generate \\
+        --cases 128x64:2048,256x64:1024,512x128:512 --workers 16 --no-write      # on the H100: JSON only
+    python benchmarks/bench_sim.py --report                          # section + chart from every sim-*.json
+
+Results go to ``benchmarks/results/sim-{tag}.json``; unless ``--no-write``, the "## Simulator" section of
+BENCHMARKS.md and ``benchmarks/results/sim.png`` are rebuilt from all ``sim-*.json`` files there.
+
+Targets (from the issue): on the 2-core machine at least 10 samples/s at 256^2 with 64^3 and 2 samples/s at 512^2
+with 128^3; on the H100 machine at least 150 samples/s at 128^2 with 64^3 when streaming.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+CHART = RESULTS / "sim.png"
+SECTION = "## Simulator"
+
+TARGETS = {("cpu", "256x64"): 10.0, ("cpu", "512x128"): 2.0, ("h100", "128x64"): 150.0}
+"""Samples per second asked for, by (machine tag, case)."""
+TARGET_MODES = {"cpu": ("generate",), "h100": ("streaming",)}
+"""The modes each target is checked against."""
+
+
+def parse_case(text: str) -> tuple[int, int, int | None]:
+    """``"256x64"`` -> (image size 256, grid 64, None); ``"256x64:512"`` also fixes the sample count."""
+    m = re.fullmatch(r"(\d+)x(\d+)(?::(\d+))?", text.strip())
+    if not m:
+        raise SystemExit(f"bench_sim: a case is SxG or SxG:N, e.g. 256x64 or 256x64:512, got {text!r}")
+    return int(m.group(1)), int(m.group(2)), int(m.group(3)) if m.group(3) else None
+
+
+def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True) -> Any:
+    """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels."""
+    from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
+
+    from fruxel.grid import FruxelGrid
+
+    return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
+                     image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
+                     shard_size=shard_size, splits=(("train", samples),))
+
+
+# ---------------------------------------------------------------------------------------------------- measuring
+def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
+                   device: str | None) -> dict[str, Any]:
+    """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
+    from fruxel.train.sim.shards import generate
+
+    cfg = make_config(image, grid, samples, shard_size)
+    marks: list[tuple[float, int]] = []
+    with tempfile.TemporaryDirectory(prefix="bench_sim_") as out:
+        t0 = time.perf_counter()
+        generate(out, cfg, 0, workers=workers, backend=backend, device=device, progress=False,
+                 callback=lambda done, total: marks.append((time.perf_counter(), done)))
+        wall = time.perf_counter() - t0
+        size = sum(os.path.getsize(os.path.join(out, f)) for f in os.listdir(out))
+    return {"mode": "generate", **_rates(marks, t0, wall, samples, workers, workers),
+            "bytes_per_sample": size / samples}
+
+
+def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, backend: str | None,
+                    device: str | None) -> dict[str, Any]:
+    """Time iterating a ``StreamingDataset`` of ``samples`` samples with ``workers`` DataLoader workers."""
+    from fruxel.train.sim.dataset import StreamingDataset, streaming_loader
+
+    cfg = make_config(image, grid, samples, 64)
+    ds = StreamingDataset(cfg, "train", 0, backend=backend, device=device)
+    marks: list[tuple[float, int]] = []
+    t0 = time.perf_counter()
+    done = 0
+    loader = streaming_loader(ds, batch_size=batch, workers=workers, **({"prefetch_factor": 4} if workers else {}))
+    for b in loader:
+        done += int(b["index"].shape[0])
+        marks.append((time.perf_counter(), done))
+    wall = time.perf_counter() - t0
+    return {"mode": "streaming", "batch": batch, **_rates(marks, t0, wall, samples, workers, workers * batch)}
+
+
+def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int, workers: int,
+           need: int) -> dict[str, Any]:
+    """Steady rate from the first mark with ``need`` samples done (every worker has delivered once), end-to-end
+    rate from t0."""
+    need = max(1, need)
+    start = next(((t, n) for t, n in marks if n >= need), marks[0] if marks else (t0, 0))
+    end = marks[-1] if marks else (t0 + wall, samples)
+    steady = (end[1] - start[1]) / (end[0] - start[0]) if end[0] > start[0] and end[1] > start[1] else float("nan")
+    return {"workers": workers, "samples": samples, "wall_s": round(wall, 3), "steady_sps": round(steady, 2),
+            "end_to_end_sps": round(samples / wall, 2), "startup_s": round(start[0] - t0, 2)}
+
+
+def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None) -> dict[str, Any]:
+    """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
+    from fruxel.train.sim.shards import STAGES, SampleMaker, ShardSpec, encode_shard
+
+    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps())
+    sps = cfg.samples_per_scene
+    with SampleMaker(cfg, 0, backend=backend, device=device) as maker:
+        for i in range(sps):
+            maker.make("train", i)
+        maker.timings = dict.fromkeys(STAGES, 0.0)
+        t0 = time.perf_counter()
+        made = [maker.make("train", i) for i in range(sps, sps + samples)]
+        total = time.perf_counter() - t0
+        timings = dict(maker.timings)
+    t1 = time.perf_counter()
+    data = encode_shard(ShardSpec("train", 1, sps, samples), cfg, 0, made)
+    encode = time.perf_counter() - t1
+    ms = {k: round(v / samples * 1000, 2) for k, v in timings.items()}
+    ms["encode"] = round(encode / samples * 1000, 2)
+    ms["total_make"] = round(total / samples * 1000, 2)
+    return {"mode": "profile", "samples": samples, "ms_per_sample": ms, "bytes_per_sample": len(data) / samples,
+            "sps_one_process": round(samples / (total + encode), 2)}
+
+
+def cfg_sps() -> int:
+    """Samples per room of the default settings (the profile skips the first room as warm-up)."""
+    from fruxel.train.sim.config import SimConfig
+
+    return SimConfig().samples_per_scene
+
+
+# ---------------------------------------------------------------------------------------------------- machine
+def machine() -> dict[str, Any]:
+    """CPU model and cores, GPU (nvidia-smi), OpenGL renderer, library versions, load average."""
+    name = platform.processor() or platform.machine()
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
+        if m:
+            name = m.group(1).strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    gpu = ""
+    try:
+        gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, check=True, timeout=30).stdout.strip().splitlines()[0]
+    except (OSError, subprocess.CalledProcessError, subprocess.TimeoutExpired, IndexError):
+        pass
+    info: dict[str, Any] = {"cpu": f"{name}, {cores} cores", "gpu": gpu, "gl": gl_renderer(),
+                            "python": platform.python_version(), "load_before": os.getloadavg()[0]}
+    for mod in ("numpy", "torch", "warp", "pyrender", "trimesh"):
+        try:
+            m = __import__(mod)
+            info[mod] = getattr(m, "__version__", None) or getattr(getattr(m, "config", None), "version", "?")
+        except ImportError:
+            info[mod] = None
+    return info
+
+
+def gl_renderer() -> str:
+    """The OpenGL renderer string of an offscreen (EGL) context, e.g. ``llvmpipe (LLVM 15.0.7, 256 bits)``."""
+    code = ("from fruxel._compat import prepare_pyrender; prepare_pyrender(True); import pyrender; "
+            "s = pyrender.Scene(); s.add(pyrender.PerspectiveCamera(yfov=1.0)); "
+            "r = pyrender.OffscreenRenderer(8, 8); r.render(s); "
+            "from OpenGL.GL import glGetString, GL_RENDERER; print(glGetString(GL_RENDERER).decode()); r.delete()")
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        return out.stdout.strip().splitlines()[-1] if out.stdout.strip() else f"unknown ({out.stderr.strip()[-200:]})"
+    except (OSError, subprocess.TimeoutExpired) as e:
+        return f"unknown ({e})"
+
+
+# ---------------------------------------------------------------------------------------------------- report
+def _target(tag: str, case: str, mode: str) -> float | None:
+    if mode not in TARGET_MODES.get(tag, ()):
+        return None
+    return TARGETS.get((tag, case))
+
+
+def load_results() -> list[dict[str, Any]]:
+    """Every ``benchmarks/results/sim-*.json``, CPU first."""
+    runs = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("sim-*.json"))]
+    return sorted(runs, key=lambda r: (r["tag"] != "cpu", r["tag"]))
+
+
+def section(runs: list[dict[str, Any]]) -> str:
+    """The "## Simulator" Markdown section."""
+    lines = [SECTION, ""]
+    lines.append("`python benchmarks/bench_sim.py` (see its docstring for the H100 command). A sample is made end "
+                 "to end: room, robot trajectory, mesh upload (once per room of 16 samples), pyrender image with "
+                 "augmentation, `fruxelize`, own-view truth; `generate` also compresses and writes the shards. "
+                 "*Steady* excludes start-up (process spawn, imports, EGL and Warp initialisation); *end to end* "
+                 "includes it.")
+    lines.append("")
+    for run in runs:
+        m = run["machine"]
+        gpu = f", {m['gpu']}" if m.get("gpu") else ""
+        lines.append(f"- **{run['tag']}**: {m['cpu']}{gpu}; OpenGL: {m['gl']}; run {run['date']}; Python "
+                     f"{m['python']}, torch {m.get('torch')}, Warp {m.get('warp')}; load average before the run "
+                     f"{m.get('load_before', float('nan')):.2f}.")
+    lines += ["", "| machine | mode | image | grid | workers | samples | steady samples/s | end-to-end samples/s | "
+              "target | met |", "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for run in runs:
+        for r in run["results"]:
+            if r["mode"] == "profile":
+                continue
+            case = f"{r['image']}x{r['grid']}"
+            target = _target(run["tag"], case, r["mode"])
+            met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
+            lines.append(f"| {run['tag']} | {r['mode']} | {r['image']}^2 | {r['grid']}^3 | {r['workers']} | "
+                         f"{r['samples']} | {r['steady_sps']:.1f} | {r['end_to_end_sps']:.1f} | "
+                         f"{'' if target is None else f'>= {target:g}'} | {met} |")
+    profiles = [(run["tag"], r) for run in runs for r in run["results"] if r["mode"] == "profile"]
+    if profiles:
+        stages = ["scene", "trajectory", "upload", "render", "fruxelize", "own_view", "encode"]
+        lines += ["", "Milliseconds per sample and stage, one process (`--mode profile`; scene, trajectory and "
+                  "upload are per room, shared by its 16 samples):", "",
+                  "| machine | image | grid | " + " | ".join(stages) + " | samples/s | KiB/sample |",
+                  "| --- | ---: | ---: | " + " | ".join("---:" for _ in stages) + " | ---: | ---: |"]
+        for tag, r in profiles:
+            ms = r["ms_per_sample"]
+            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | " + " | ".join(f"{ms[s]:.1f}" for s in stages)
+                         + f" | {r['sps_one_process']:.1f} | {r['bytes_per_sample'] / 1024:.0f} |")
+    notes = [n for run in runs for n in run.get("notes", [])]
+    if notes:
+        lines += [""] + [f"- {n}" for n in notes]
+    lines += ["", "![simulator benchmark](benchmarks/results/sim.png)", ""]
+    return "\n".join(lines)
+
+
+def write_section(text: str, path: Path = BENCHMARKS_MD) -> None:
+    """Replace (or append) the "## Simulator" section of BENCHMARKS.md, leaving the other sections alone."""
+    header = "# Benchmarks\n\nMeasured results of the benchmarks in `benchmarks/`.\n"
+    old = path.read_text() if path.exists() else header
+    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
+    block = text.rstrip("\n") + "\n\n"
+    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
+    # Other benchmarks write their own sections of the same file; a rename keeps readers from seeing half of it.
+    tmp = path.with_name(f".{path.name}.sim.tmp")
+    tmp.write_text(new.rstrip("\n") + "\n")
+    os.replace(tmp, path)
+
+
+def chart(runs: list[dict[str, Any]], path: Path = CHART) -> None:
+    """Bars of steady samples/s per machine, mode and case, with the targets as ticks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bars = [(f"{run['tag']} {r['mode']}\n{r['image']}^2/{r['grid']}^3 x{r['workers']}", r["steady_sps"],
+             _target(run["tag"], f"{r['image']}x{r['grid']}", r["mode"]))
+            for run in runs for r in run["results"] if r["mode"] != "profile"]
+    if not bars:
+        return
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.3 * len(bars)), 3.8))
+    xs = range(len(bars))
+    ax.bar(xs, [b[1] for b in bars], color="#4e79a7")
+    for x, (_, v, target) in zip(xs, bars, strict=True):
+        ax.text(x, v, f"{v:.1f}", ha="center", va="bottom", fontsize=8)
+        if target is not None:
+            ax.plot([x - 0.4, x + 0.4], [target, target], color="#e15759", lw=2)
+    ax.set_xticks(list(xs), [b[0] for b in bars], fontsize=7)
+    ax.set_yscale("log")
+    ax.set_ylabel("samples / s (steady)")
+    ax.set_title("fruxel-sim throughput (red: target)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tag", default="cpu", help="machine tag of the results file sim-TAG.json (default cpu)")
+    p.add_argument("--mode", default="generate,profile", help="comma-separated: generate, streaming, profile")
+    p.add_argument("--cases", default="256x64,512x128",
+                   help="comma-separated SxG or SxG:N (image S^2, grid G^3, N samples)")
+    p.add_argument("--workers", type=int, default=2, help="processes for generate / DataLoader workers (default 2)")
+    p.add_argument("--seconds", type=float, default=40.0,
+                   help="aim for about this long per case and mode (sets the sample count; default 40)")
+    p.add_argument("--samples", type=int, default=None, help="fixed sample count instead of --seconds")
+    p.add_argument("--backend", default="warp", help="fruxelize backend (default warp)")
+    p.add_argument("--device", default=None, help="Warp device (default: CUDA when present, else CPU)")
+    p.add_argument("--note", action="append", default=[], help="a note to print under the table (repeatable)")
+    p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md or the chart")
+    p.add_argument("--report", action="store_true", help="only rebuild the section and chart from the JSON files")
+    p.add_argument("--json", default=None, help="also copy the JSON here (e.g. $OUT/sim-h100.json)")
+    args = p.parse_args(argv)
+    if args.report:
+        runs = load_results()
+        write_section(section(runs))
+        chart(runs)
+        print(section(runs))
+        return
+    modes = [m.strip() for m in args.mode.split(",") if m.strip()]
+    info = machine()
+    results: list[dict[str, Any]] = []
+    guess = {64: 12.0, 128: 3.0}
+    for case in args.cases.split(","):
+        image, grid, fixed = parse_case(case)
+        rate = guess.get(grid, 4.0) * max(1, args.workers) / 2
+        n = fixed or args.samples or max(32, int(rate * args.seconds) // 16 * 16)
+        for mode in modes:
+            print(f"bench_sim: {args.tag} {mode} {image}^2 / {grid}^3 ...", file=sys.stderr, flush=True)
+            if mode == "generate":
+                shard = max(16, min(64, n // (2 * max(1, args.workers)) // 16 * 16))
+                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device)
+            elif mode == "streaming":
+                r = bench_streaming(image, grid, n, args.workers, 8, args.backend, args.device)
+            elif mode == "profile":
+                r = bench_profile(image, grid, min(n, 64), args.backend, args.device)
+            else:
+                raise SystemExit(f"bench_sim: unknown mode {mode!r}")
+            r.update(image=image, grid=grid)
+            results.append(r)
+            print(json.dumps(r), flush=True)
+    run = {"tag": args.tag, "date": dt.date.today().isoformat(), "machine": info, "results": results,
+           "notes": args.note}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(run, indent=1) + "\n"
+    (RESULTS / f"sim-{args.tag}.json").write_text(text)
+    if args.json:
+        Path(args.json).write_text(text)
+    print(section([run]))
+    if not args.no_write:
+        runs = load_results()
+        write_section(section(runs))
+        chart(runs)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,349 @@
+"""Data sets of the simulator: deterministic shards, resume after a killed run, strict reading, streaming.
+
+Everything runs on tiny settings (64x64 images, 16^3 grids, a few samples per shard) so that the whole file
+takes well under a minute on two cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fruxel.train.sim.config import (
+    AugmentConfig,
+    ConfigError,
+    ImageConfig,
+    SimConfig,
+    parse_splits,
+    scale_splits,
+    scene_seed,
+)
+from fruxel.train.sim.shards import (
+    MANIFEST,
+    DatasetError,
+    Manifest,
+    SampleMaker,
+    ShardReader,
+    encode_shard,
+    generate,
+    shard_specs,
+)
+
+from fruxel.grid import FruxelGrid
+
+torch = pytest.importorskip("torch")
+from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch
+    ShardDataset,
+    StreamingDataset,
+    sample_tensors,
+    streaming_loader,
+    worker_range,
+)
+
+CONFIG = SimConfig(
+    grid=FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0),
+    image=ImageConfig(size=64),
+    samples_per_scene=3,
+    shard_size=2,
+    splits=(("train", 6), ("test", 2)),
+)
+SEED = 7
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(root.iterdir())}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An uninterrupted in-process generation of CONFIG with SEED."""
+    out = tmp_path_factory.mktemp("reference")
+    generate(str(out), CONFIG, SEED, progress=False)
+    return out
+
+
+def _copy(reference: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "copy"
+    shutil.copytree(reference, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- determinism
+def test_same_seed_same_bytes_across_runs_and_workers(reference: Path, tmp_path: Path) -> None:
+    files = _files(reference)
+    assert sorted(files) == ["manifest.json", "test-00000.npz", "train-00000.npz", "train-00001.npz",
+                             "train-00002.npz"]
+    # Two spawned workers render in other processes, with other OpenGL contexts and other object addresses.
+    again = tmp_path / "again"
+    generate(str(again), CONFIG, SEED, workers=2, progress=False)
+    assert _files(again) == files
+    other = tmp_path / "other"
+    generate(str(other), CONFIG.replace(splits=(("train", 2),)), SEED + 1, progress=False)
+    assert (other / "train-00000.npz").read_bytes() != files["train-00000.npz"]
+
+
+def test_manifest_records_the_data_set(reference: Path) -> None:
+    m = json.loads((reference / MANIFEST).read_text())
+    assert m["format"] == "fruxel-sim" and m["version"] == 1 and m["complete"] is True and m["seed"] == SEED
+    assert m["grid"] == CONFIG.grid.to_dict() and m["classes"] == CONFIG.classes.to_dict()
+    assert m["intrinsics"]["image"]["fx"] == pytest.approx(m["intrinsics"]["grid"]["fx"] * 64 / 16)
+    assert [s["count"] for s in m["splits"]["train"]["shards"]] == [2, 2, 2]
+    assert all(len(s["sha256"]) == 64 for sp in m["splits"].values() for s in sp["shards"])
+    assert SimConfig.from_dict(m["config"]) == CONFIG
+    loaded = Manifest.load(str(reference / MANIFEST))
+    assert loaded.to_json() == (reference / MANIFEST).read_text()
+
+
+def test_samples_are_a_function_of_seed_and_index() -> None:
+    # Asked out of order and in a fresh maker, a sample is the same; the room changes every 3 samples.
+    with SampleMaker(CONFIG, SEED) as a:
+        s4 = a.make("train", 4)
+        s0 = a.make("train", 0)
+    with SampleMaker(CONFIG, SEED) as b:
+        t0 = b.make("train", 0)
+        t4 = b.make("train", 4)
+    for x, y in ((s0, t0), (s4, t4)):
+        for name, arr in x.arrays().items():
+            np.testing.assert_array_equal(arr, y.arrays()[name], err_msg=name)
+    assert (s4.scene, s4.frame) == (1, 1) and s4.scene_seed == scene_seed(SEED, "train", 1)
+    assert s0.labels.shape == (16, 16, 16) and s0.image.shape == (64, 64, 3) and s0.labels.any()
+
+
+# ---------------------------------------------------------------------------------------------- resume
+def test_resume_after_a_killed_run(reference: Path, tmp_path: Path) -> None:
+    cfg = CONFIG.replace(splits=(("train", 24), ("test", 2)), shard_size=3)
+    args = ["--split", "train=24,test=2", "--shard-size", "3", "--image", "64", "--grid", "16",
+            "--samples-per-scene", "3", "--seed", str(SEED)]
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "fruxel.train.sim.cli", "generate", "--out", str(out), "-q", *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    recorded: list[str] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                m = json.loads((out / MANIFEST).read_text())
+            except (OSError, ValueError):
+                m = None
+            if m is not None:
+                recorded = [s["file"] for s in m["splits"]["train"]["shards"] if s["sha256"]]
+                if recorded:
+                    break
+            time.sleep(0.002)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    n_shards = len(shard_specs(cfg))
+    assert 0 < len(recorded) < n_shards, "the run must be killed after its first shard and before its last"
+    before = {f: os.stat(out / f) for f in recorded}
+    stale = out / ".train-00007.npz.0123456789ab.tmp"
+    stale.write_bytes(b"PK\x03\x04 half a shard")
+    generate(str(out), cfg, SEED, progress=False)
+    assert not stale.exists()
+    for f, st in before.items():
+        now = os.stat(out / f)
+        assert (now.st_ino, now.st_mtime_ns) == (st.st_ino, st.st_mtime_ns), f"{f} was rewritten"
+    full = tmp_path / "full"
+    generate(str(full), cfg, SEED, progress=False)
+    assert _files(out) == _files(full)
+    # A finished folder is a no-op to resume.
+    stamp = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+    generate(str(out), cfg, SEED, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == stamp
+
+
+def test_shard_written_before_the_manifest_update_is_adopted(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    m = json.loads((out / MANIFEST).read_text())
+    m["splits"]["train"]["shards"][1]["sha256"] = None
+    m["complete"] = False
+    (out / MANIFEST).write_text(json.dumps(m, indent=1) + "\n")
+    st = os.stat(out / "train-00001.npz")
+    generate(str(out), CONFIG, SEED, progress=False)
+    assert os.stat(out / "train-00001.npz").st_mtime_ns == st.st_mtime_ns
+    assert _files(out) == _files(reference)
+
+
+# ---------------------------------------------------------------------------------------------- refusal
+def _assert_refused(fn, path: Path, words: str) -> None:
+    with pytest.raises(DatasetError) as info:
+        fn()
+    assert str(path) in str(info.value) and words in str(info.value)
+    # One error, no chained traceback: either nothing was being handled, or the context is suppressed.
+    e = info.value
+    assert e.__cause__ is None and (e.__context__ is None or e.__suppress_context__)
+
+
+def test_truncated_shard_is_refused(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    shard = out / "train-00001.npz"
+    data = shard.read_bytes()
+    shard.write_bytes(data[: len(data) // 2])
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), shard, "SHA-256")
+    ds = ShardDataset(out, "train")
+    ds[0]
+    _assert_refused(lambda: ds[2], shard, "SHA-256")
+    # Without the hash check the damage is still found, by the zip and npy checks.
+    _assert_refused(lambda: ShardDataset(out, "train", verify=False)[2], shard, "corrupt")
+
+
+def test_foreign_shards_are_refused(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    shard = out / "train-00000.npz"
+    np.savez(shard, labels=np.zeros((16, 16, 16), np.uint8))
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), shard, "SHA-256")
+    _assert_refused(lambda: ShardDataset(out, "train", verify=False)[0], shard, "wrong members")
+    # A real shard in the wrong place: right structure, wrong meta.
+    shutil.copy(out / "train-00001.npz", shard)
+    _assert_refused(lambda: ShardDataset(out, "train", verify=False)[0], shard, "meta shard is 1, expected 0")
+    # Not yet recorded in the manifest: the file is read in full and refused.
+    m = json.loads((out / MANIFEST).read_text())
+    m["splits"]["train"]["shards"][0]["sha256"] = None
+    m["complete"] = False
+    (out / MANIFEST).write_text(json.dumps(m, indent=1) + "\n")
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), shard, "corrupt or foreign shard")
+    shard.write_bytes(b"not a zip at all")
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), shard, "not a zip archive")
+
+
+def test_object_arrays_are_refused_without_unpickling(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    spec = shard_specs(CONFIG)[0]
+    with SampleMaker(CONFIG, SEED) as maker:
+        samples = [maker.make("train", i) for i in spec.indices]
+    data = encode_shard(spec, CONFIG, SEED, samples)
+    import io
+    import zipfile
+
+    src = zipfile.ZipFile(io.BytesIO(data))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as dst:
+        for info in src.infolist():
+            body = src.read(info)
+            if info.filename == "pose_00000.npy":
+                tmp = io.BytesIO()
+                np.save(tmp, np.array([{"evil": 1}], dtype=object), allow_pickle=True)
+                body = tmp.getvalue()
+            dst.writestr(info, body)
+    path = out / spec.file
+    path.write_bytes(buf.getvalue())
+    reader = ShardReader(str(path), spec, CONFIG, SEED)
+    _assert_refused(lambda: reader.sample(0), path, "object array")
+    reader.close()
+
+
+def test_folder_of_other_settings_is_refused(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    other = CONFIG.replace(grid=FruxelGrid(width=16, height=16, depth=8, z_near=0.5, z_far=8.0, hfov=60.0))
+    _assert_refused(lambda: generate(str(out), other, SEED, progress=False), out / MANIFEST, "grid")
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED + 1, progress=False), out / MANIFEST, "seed")
+    m = json.loads((out / MANIFEST).read_text())
+    m["grid"]["depth"] = 32
+    (out / MANIFEST).write_text(json.dumps(m))
+    _assert_refused(lambda: ShardDataset(out, "train"), out / MANIFEST, "contradict")
+    m["version"] = 99
+    (out / MANIFEST).write_text(json.dumps(m))
+    _assert_refused(lambda: ShardDataset(out, "train"), out / MANIFEST, "version 99")
+
+
+def test_incomplete_data_set_is_refused_by_the_reader(reference: Path, tmp_path: Path) -> None:
+    out = _copy(reference, tmp_path)
+    m = json.loads((out / MANIFEST).read_text())
+    m["splits"]["test"]["shards"][0]["sha256"] = None
+    m["complete"] = False
+    (out / MANIFEST).write_text(json.dumps(m, indent=1) + "\n")
+    assert len(ShardDataset(out, "train")) == 6
+    with pytest.raises(DatasetError, match="incomplete"):
+        ShardDataset(out, "test")
+    with pytest.raises(DatasetError, match="no split named 'val'"):
+        ShardDataset(out, "val")
+
+
+# ---------------------------------------------------------------------------------------------- torch
+def test_shard_dataset_items(reference: Path) -> None:
+    ds = ShardDataset(reference, "train")
+    item = ds[5]
+    assert item["image"].shape == (3, 64, 64) and item["image"].dtype == torch.float32
+    assert 0.0 <= float(item["image"].min()) and float(item["image"].max()) <= 1.0
+    assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.int64
+    assert item["view_label"].shape == (16, 16) and item["view_depth"].dtype == torch.float32
+    assert item["pose"].shape == (4, 4) and int(item["index"]) == 5
+    np.testing.assert_allclose(item["K"].numpy(), CONFIG.image_camera().K)
+    # Own-view truth is the first occupied cell of each column.
+    lab = item["labels"].numpy()
+    first = np.where(lab.any(axis=0), np.take_along_axis(lab, (lab != 0).argmax(axis=0)[None], 0)[0], 0)
+    np.testing.assert_array_equal(item["view_label"].numpy(), first)
+    with pytest.raises(IndexError):
+        ds[6]
+
+
+def test_streaming_equals_shards(reference: Path) -> None:
+    ds = ShardDataset(reference, "train")
+    stream = StreamingDataset(CONFIG, "train", SEED)
+    got = list(stream.samples_numpy())
+    assert [s.index for s in got] == list(range(6))
+    for s in got:
+        ref = ds.sample(s.index)
+        for name, arr in s.arrays().items():
+            assert arr.tobytes() == ref.arrays()[name].tobytes(), (s.index, name)
+    stream.close()
+    tail = StreamingDataset(CONFIG, "train", SEED, start=4)
+    assert [s.index for s in tail.samples_numpy()] == [4, 5]
+    tail.close()
+
+
+def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
+    ds = ShardDataset(reference, "train")
+    loader = streaming_loader(StreamingDataset(CONFIG, "train", SEED), batch_size=2, workers=2)
+    seen = []
+    for batch in loader:
+        for b in range(batch["index"].shape[0]):
+            i = int(batch["index"][b])
+            seen.append(i)
+            ref = ds[i]
+            for name, t in ref.items():
+                assert torch.equal(batch[name][b], t), (i, name)
+    assert sorted(seen) == list(range(6))
+
+
+def test_worker_range_splits_whole_rooms() -> None:
+    for start, stop, n, workers in ((0, 10, 3, 2), (4, 23, 4, 3), (5, 6, 16, 4), (0, 100, 16, 16), (7, 7, 2, 2)):
+        parts = [worker_range(start, stop, n, w, workers) for w in range(workers)]
+        assert [i for p in parts for i in p] == list(range(start, stop))
+        # Every part but the first begins a room, so no room is split between two workers.
+        starts = [p.start for p in parts if len(p)]
+        assert all(s % n == 0 for s in starts[1:])
+
+
+def test_sample_tensors_keep_bytes(reference: Path) -> None:
+    s = ShardDataset(reference, "test").sample(1)
+    t = sample_tensors(s, CONFIG)
+    np.testing.assert_array_equal(np.rint(t["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8), s.image)
+
+
+# ---------------------------------------------------------------------------------------------- settings
+def test_config_round_trip_and_splits() -> None:
+    cfg = CONFIG.replace(image=ImageConfig(size=32, augment=AugmentConfig(enabled=False)))
+    assert SimConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert cfg.digest() != CONFIG.digest()
+    assert scale_splits(16000) == (("train", 15000), ("test", 1000))
+    assert sum(n for _, n in scale_splits(7)) == 7
+    assert parse_splits("train=3, val=2") == (("train", 3), ("val", 2))
+    for bad in ("train", "train=x", "train=0", "Train=3", "a=1,a=2"):
+        with pytest.raises(ConfigError):
+            parse_splits(bad)
+    with pytest.raises(ConfigError, match="multiple of the grid width"):
+        CONFIG.replace(grid=FruxelGrid(width=16, height=12, depth=8, z_near=0.5, z_far=8.0, hfov=60.0),
+                       image=ImageConfig(size=10))
+    wide = CONFIG.replace(grid=FruxelGrid(width=16, height=12, depth=8, z_near=0.5, z_far=8.0, hfov=70.0))
+    assert (wide.image_width, wide.image_height) == (64, 48)
+    assert wide.trajectory.mount.hfov == 70.0

@@ -1,0 +1,93 @@
+"""The ``fruxel-sim`` command line: help, generate, errors, preview."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fruxel.train.sim.cli import main
+from PIL import Image
+
+from fruxel.classes import DEFAULT_CLASSES
+
+TINY = ["--image", "32", "--grid", "16", "--samples-per-scene", "2"]
+
+
+def test_help_is_instant_and_lists_the_commands() -> None:
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "fruxel.train.sim.cli", "--help"], capture_output=True, text=True,
+                         check=True)
+    assert "generate" in out.stdout and "preview" in out.stdout
+    # No torch, pyrender or warp behind --help (a loaded 2-core machine still starts Python in ~1 s).
+    assert time.perf_counter() - t < 10
+    probe = ("import sys, fruxel.train.sim.cli; "
+             "print(sorted(m for m in ('torch', 'pyrender', 'warp') if m in sys.modules))")
+    mods = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert mods.stdout.strip() == "[]"
+    with pytest.raises(SystemExit) as e:
+        main(["generate", "--help"])
+    assert e.value.code == 0
+
+
+def test_generate_and_resume(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "ds"
+    args = ["generate", "--out", str(out), "--samples", "5", "--shard-size", "2", "--seed", "3", "-q", *TINY]
+    assert main(args) == 0
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["complete"] and {k: v["samples"] for k, v in m["splits"].items()} == {"train": 4, "test": 1}
+    assert m["image"] == {"width": 32, "height": 32} and m["grid"]["width"] == 16 and m["seed"] == 3
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+    assert len(stamps) == 3
+    assert main(args) == 0
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == stamps
+    capsys.readouterr()
+    # Another grid in the same folder is refused with one line naming the manifest.
+    assert main([*args[:-len(TINY)], "--image", "32", "--grid", "8", "--samples-per-scene", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "manifest.json" in err[0] and "other settings" in err[0]
+    # A corrupt shard is refused the same way.
+    shard = out / "train-00001.npz"
+    shard.write_bytes(shard.read_bytes()[:100])
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(shard) in err[0] and "SHA-256" in err[0]
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--split", "train=3,test"], "NAME=SAMPLES"),
+    (["--split", "train=3,test=1", "--samples", "5"], "does not match"),
+    (["--grid", "16x12x16", "--image", "10"], "multiple of the grid width"),
+    (["--z-near", "9"], "z_far must be > z_near"),
+])
+def test_bad_arguments_exit_2_with_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str],
+                                            words: str) -> None:
+    assert main(["generate", "--out", str(tmp_path / "x"), "-q", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fruxel-sim: error:") and words in err[0]
+
+
+def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["generate", "--out", str(f), "--samples", "2", "-q", *TINY]) == 2
+    assert "not a folder" in capsys.readouterr().err
+
+
+def test_preview_writes_a_contact_sheet(tmp_path: Path) -> None:
+    png = tmp_path / "sheet.png"
+    assert main(["preview", "--out", str(png), "--seed", "1", "--count", "2", "--image", "64", "--grid", "32"]) == 0
+    img = np.asarray(Image.open(png).convert("RGB"))
+    assert img.shape[0] > 2 * 64 and img.shape[1] >= 3 * 64
+    flat = img.reshape(-1, 3)
+    palette = DEFAULT_CLASSES.palette()
+    counts = {name: int((flat == palette[c]).all(axis=1).sum()) for c, name in enumerate(DEFAULT_CLASSES.names)}
+    # Own-view label panels are drawn in the exact class colours: every room has walls and a floor in view.
+    assert counts["wall"] > 100 and counts["floor"] > 100, counts
+    # The ray-cast panel shades the same colours with light: darker versions of wall and floor appear as well.
+    shaded = np.unique(flat, axis=0)
+    assert len(shaded) > 200

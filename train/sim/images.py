@@ -1,0 +1,374 @@
+"""Camera images of simulated rooms (pyrender offscreen, PBR materials) with appearance augmentation, and the
+preview contact sheet.
+
+Camera
+    The robot camera of :meth:`SimConfig.image_camera`: ``S x (S * H / W)`` pixels with the grid's field of view
+    and the robot's camera-to-world pose (OpenCV axes, world frame z up). pyrender gets the same intrinsics
+    (``IntrinsicsCamera``) and the OpenGL pose ``pose @ diag(1, -1, -1, 1)``; pixel ``(x, y)`` of the image then
+    covers ``[x, x + 1) x [y, y + 1)`` of :meth:`fruxel.Camera.project`, so the image lines up with the grid.
+
+Scene
+    Every :class:`SceneObject` becomes one pyrender mesh with a metallic-roughness material (base colour,
+    metallic, roughness; alpha < 1, the window glass, is blended), drawn with flat normals (the simulator's
+    solids are boxes and faceted shapes) and without face culling (asset meshes may be open or inside out).
+    The scene's lights become pyrender directional and point lights; no shadows.
+
+Augmentation (:class:`AugmentConfig`, one random generator per sample, values drawn in a fixed order whether
+or not a step is enabled, so that turning one off does not reshuffle the others)
+    before drawing: each light's intensity and colour, the ambient level, each object's base colour, and the
+    saturation of the object and background colours; after drawing, on the RGB image in [0, 1]: exposure
+    ``2 ** ev``, white balance (per-channel gains) and gamma (one lookup table per channel), then Gaussian noise
+    and rounding to uint8.
+
+Determinism: the same scene, pose and generator give the same bytes on the same machine and OpenGL driver
+(Mesa's llvmpipe is deterministic; the image bytes of one sample can differ between GL drivers, e.g. llvmpipe
+and NVIDIA, by rounding of the shading).
+
+One :class:`SceneRenderer` per process: it owns an OpenGL (EGL) context, which must not cross a ``fork``; the
+generator and the streaming data set start their workers with ``spawn``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose
+
+from .config import SimConfig
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+"""Rec. 601 weights: the grey value that saturation changes blend with."""
+
+
+def _pyrender() -> Any:
+    from fruxel._compat import prepare_pyrender
+
+    prepare_pyrender(headless=True)
+    import pyrender
+
+    return pyrender
+
+
+_ORDERED_SCENE: list[type] = []
+
+
+def _ordered_scene_class() -> type:
+    """A ``pyrender.Scene`` whose mesh and light nodes iterate in the order they were added.
+
+    pyrender keeps nodes in sets, ordered by object address, and draws meshes and sums lights in that order: the
+    same scene then gives images that differ in the last bit of a few pixels from run to run (light sums in
+    another order, coplanar faces resolved by another draw order). Fixed order makes the bytes reproducible.
+    """
+    if _ORDERED_SCENE:
+        return _ORDERED_SCENE[0]
+    pr = _pyrender()
+
+    class OrderedScene(pr.Scene):
+        def add_node(self, node: Any, parent_node: Any = None) -> None:
+            # pyrender's __init__ adds nodes before a subclass could set attributes up.
+            order = self.__dict__.setdefault("_insertion", {})
+            super().add_node(node, parent_node)
+            order[node] = len(order)
+
+        def _ordered(self, nodes: Any) -> list[Any]:
+            return sorted(nodes, key=self.__dict__.setdefault("_insertion", {}).__getitem__)
+
+        @property
+        def mesh_nodes(self) -> list[Any]:
+            return self._ordered(self._mesh_nodes)
+
+        @property
+        def point_light_nodes(self) -> list[Any]:
+            return self._ordered(self._point_light_nodes)
+
+        @property
+        def spot_light_nodes(self) -> list[Any]:
+            return self._ordered(self._spot_light_nodes)
+
+        @property
+        def directional_light_nodes(self) -> list[Any]:
+            return self._ordered(self._directional_light_nodes)
+
+        @property
+        def light_nodes(self) -> list[Any]:
+            return self._ordered(self._point_light_nodes | self._spot_light_nodes | self._directional_light_nodes)
+
+    _ORDERED_SCENE.append(OrderedScene)
+    return OrderedScene
+
+
+@dataclass
+class _Drawn:
+    """The pyrender side of one room, kept for all frames of a trajectory."""
+
+    scene: Any
+    """``pyrender.Scene``."""
+    camera: Any
+    """The camera node."""
+    materials: list[Any]
+    """One ``MetallicRoughnessMaterial`` per scene object, in object order."""
+    base_colours: np.ndarray
+    """``(M, 4)`` float64 RGBA base colours as generated."""
+    lights: list[Any]
+    """The light objects (``DirectionalLight`` / ``PointLight``), in the scene's order."""
+    light_colours: np.ndarray
+    """``(L, 3)`` float64 light colours as generated."""
+    light_intensities: np.ndarray
+    """``(L,)`` float64 light intensities as generated, times ``ImageConfig.light_scale``."""
+
+
+class SceneRenderer:
+    """Offscreen images of simulated rooms from the robot camera; one per process, reused across rooms.
+
+    Args:
+        config: supplies the image size, clip planes, background and augmentation ranges, and the grid's field
+            of view.
+
+    Use :meth:`set_scene` once per room, then :meth:`render` per pose; :meth:`close` (or ``with``) frees the
+    OpenGL context.
+    """
+
+    def __init__(self, config: SimConfig) -> None:
+        self.config = config
+        """The generator settings."""
+        self._pyrender = _pyrender()
+        self._renderer: Any = None
+        self._drawn: _Drawn | None = None
+        self._scene: Scene | None = None
+
+    # ------------------------------------------------------------------ rooms
+    def set_scene(self, scene: Scene) -> None:
+        """Upload a room (meshes, materials, lights); the previous room's GPU buffers are released on the next
+        draw."""
+        if self._scene is scene and self._drawn is not None:
+            return
+        pr = self._pyrender
+        img = self.config.image
+        ps = _ordered_scene_class()(bg_color=(*img.background, 1.0), ambient_light=np.zeros(3))
+        materials, colours = [], []
+        for obj in scene.objects:
+            colour = np.asarray(obj.color, dtype=np.float64)
+            mat = pr.MetallicRoughnessMaterial(
+                baseColorFactor=colour, metallicFactor=float(obj.metallic), roughnessFactor=float(obj.roughness),
+                alphaMode="BLEND" if colour[3] < 1.0 else "OPAQUE", doubleSided=True,
+            )
+            ps.add(pr.Mesh.from_trimesh(obj.mesh, material=mat, smooth=False), name=obj.name)
+            materials.append(mat)
+            colours.append(colour)
+        lights, lcol, lint = [], [], []
+        for light in scene.lights:
+            cls = pr.DirectionalLight if light.kind == "directional" else pr.PointLight
+            lo = cls(color=np.asarray(light.color, dtype=np.float64),
+                     intensity=float(light.intensity * img.light_scale))
+            ps.add(lo, pose=np.asarray(light.pose, dtype=np.float64))
+            lights.append(lo)
+            lcol.append(light.color)
+            lint.append(light.intensity * img.light_scale)
+        cam = self.config.image_camera()
+        node = ps.add(pr.IntrinsicsCamera(cam.fx, cam.fy, cam.cx, cam.cy, znear=img.clip_near, zfar=img.clip_far),
+                      pose=np.eye(4))
+        self._drawn = _Drawn(ps, node, materials, np.array(colours).reshape(-1, 4), lights,
+                             np.array(lcol, dtype=np.float64).reshape(-1, 3), np.array(lint, dtype=np.float64))
+        self._scene = scene
+
+    # ------------------------------------------------------------------ frames
+    def render(self, pose: Any, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The image of the current room from one camera pose.
+
+        Args:
+            pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
+            rng: the sample's augmentation generator (:func:`config.augment_rng`); None renders without
+                augmentation.
+
+        Returns:
+            ``(S * H / W, S, 3)`` uint8 RGB image.
+
+        Raises:
+            RuntimeError: no room was set.
+        """
+        if self._drawn is None:
+            raise RuntimeError("SceneRenderer.render() needs a room: call set_scene() first")
+        d = self._drawn
+        aug = self.config.image.augment
+        post = self._prepare(d, rng if aug.enabled else None)
+        d.scene.set_pose(d.camera, check_pose(pose) @ OPENCV_TO_OPENGL)
+        if self._renderer is None:
+            self._renderer = self._pyrender.OffscreenRenderer(self.config.image_width, self.config.image_height)
+        colour, _ = self._renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
+        return _camera_response(colour, post, rng if aug.enabled else None)
+
+    def _prepare(self, d: _Drawn, rng: np.random.Generator | None) -> dict[str, Any]:
+        """Set lights, ambient and object colours for one frame; returns the draws of the image-space steps."""
+        a = self.config.image.augment
+        n_l, n_m = len(d.lights), len(d.materials)
+        if rng is None:
+            for light, c, i in zip(d.lights, d.light_colours, d.light_intensities, strict=True):
+                light.color, light.intensity = c, float(i)
+            d.scene.ambient_light = np.full(3, float(np.mean(a.ambient)))
+            for mat, c in zip(d.materials, d.base_colours, strict=True):
+                mat.baseColorFactor = c
+            d.scene.bg_color = np.array([*self.config.image.background, 1.0])
+            return {}
+        scale = rng.uniform(*a.light_intensity, size=n_l)
+        tint = rng.uniform(-a.light_tint, a.light_tint, size=(n_l, 3))
+        ambient = rng.uniform(*a.ambient)
+        jitter = rng.uniform(-a.object_colour, a.object_colour, size=(n_m, 3))
+        post = {
+            "ev": rng.uniform(*a.exposure),
+            "gains": rng.uniform(1.0 - a.white_balance, 1.0 + a.white_balance, size=3),
+            "saturation": rng.uniform(*a.saturation),
+            "gamma": rng.uniform(*a.gamma),
+            "noise": rng.uniform(*a.noise),
+        }
+        for n, light in enumerate(d.lights):
+            light.color = np.clip(d.light_colours[n] + tint[n], 0.0, 1.0)
+            light.intensity = float(d.light_intensities[n] * scale[n])
+        d.scene.ambient_light = np.full(3, ambient)
+        # Saturation acts on the colours of the scene rather than on the image: the image steps then stay per
+        # channel (one lookup table), and for diffuse surfaces under near-white light the result is the same.
+        sat = post["saturation"]
+        for n, mat in enumerate(d.materials):
+            c = d.base_colours[n].copy()
+            c[:3] = _saturate(np.clip(c[:3] + jitter[n], 0.0, 1.0), sat)
+            mat.baseColorFactor = c
+        d.scene.bg_color = np.array([*_saturate(np.asarray(self.config.image.background, dtype=np.float64), sat),
+                                     1.0])
+        return post
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Free the OpenGL context and the room (idempotent)."""
+        if self._renderer is not None:
+            self._renderer.delete()
+            self._renderer = None
+        self._drawn = None
+        self._scene = None
+
+    def __enter__(self) -> SceneRenderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _camera_response(colour: np.ndarray, post: dict[str, Any], rng: np.random.Generator | None) -> np.ndarray:
+    """Exposure, white balance, gamma and noise on an ``(h, w, 3)`` uint8 image; returns ``(h, w, 3)`` uint8.
+
+    The first three act on each channel alone, so they are one 256-entry table per channel, computed in float64
+    from the draws and applied by indexing: a few milliseconds at 512^2 where float image arithmetic took tens.
+    """
+    rgb = np.ascontiguousarray(colour[..., :3], dtype=np.uint8)
+    if rng is None or not post:
+        return rgb
+    x = np.arange(256, dtype=np.float64) / 255.0
+    scale = 2.0 ** post["ev"] * post["gains"]
+    lut = np.rint(np.clip(x[None, :] * scale[:, None], 0.0, 1.0) ** post["gamma"] * 255.0).astype(np.uint8)
+    out = np.empty_like(rgb)
+    for c in range(3):
+        np.take(lut[c], rgb[..., c], out=out[..., c])
+    if post["noise"] > 0:
+        noise = rng.standard_normal(out.shape, dtype=np.float32) * np.float32(post["noise"] * 255.0)
+        noisy = out.astype(np.float32) + noise
+        np.clip(np.rint(noisy, out=noisy), 0.0, 255.0, out=noisy)
+        out = noisy.astype(np.uint8)
+    return out
+
+
+def _saturate(rgb: np.ndarray, factor: float) -> np.ndarray:
+    """Blend ``(..., 3)`` float RGB in [0, 1] with its grey value: ``factor`` 1 keeps it, 0 makes it grey."""
+    grey = rgb @ _LUMA.astype(np.float64)
+    return np.clip(grey[..., None] + factor * (rgb - grey[..., None]), 0.0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------------- preview
+def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
+    """A viewing camera beside the robot camera, for looking at a ground-truth volume in 3D.
+
+    In the grid frame (OpenCV axes, the robot camera at the origin looking down +z): it looks at the point on
+    the optical axis at the median depth ``d`` of the own-view depth image (the grid's middle depth when the
+    view is empty), from ``(0.5 d, -0.35 d, 0)``: to the right of and above the robot camera, so that the
+    volume's depth shows as parallax.
+
+    Args:
+        view_depth: ``(H, W)`` float own-view depth image, metres, 0 = empty.
+        config: supplies the grid.
+        size: width of the viewing image in pixels (the height follows the grid's aspect).
+    """
+    dep = np.asarray(view_depth, dtype=np.float64)
+    hit = dep[dep > 0]
+    grid = config.grid
+    d = float(np.median(hit)) if hit.size else 0.5 * (grid.z_near + grid.z_far)
+    height = max(1, round(size * grid.height / grid.width))
+    return Camera.look_at((0.5 * d, -0.35 * d, 0.0), (0.0, 0.0, d), width=size, height=height, hfov=grid.hfov)
+
+
+def _font(size: int) -> Any:
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:
+        return ImageFont.load_default()
+
+
+def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
+                  titles: Sequence[str]) -> np.ndarray:
+    """Compose preview panels into one image: a title row, one row per sample, a class legend.
+
+    Args:
+        rows: per sample, panels in column order as ``{title: (h, w, 3) uint8}``; every panel is scaled
+            (nearest neighbour) to the first panel's height.
+        names: class names (legend), label order.
+        palette: ``(C, 3)`` uint8 class colours.
+        titles: one caption per row (e.g. the split and sample index), drawn at the row's left.
+
+    Returns:
+        ``(h, w, 3)`` uint8 RGB sheet on a white background.
+    """
+    from PIL import Image, ImageDraw
+
+    pad, caption = 8, 18
+    panel_h = max(1, rows[0][next(iter(rows[0]))].shape[0])
+    scaled = []
+    for row in rows:
+        out = []
+        for title, img in row.items():
+            pil = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8))
+            w = max(1, round(pil.width * panel_h / pil.height))
+            out.append((title, np.asarray(pil.resize((w, panel_h), Image.NEAREST))))
+        scaled.append(out)
+    font = _font(13)
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    legend_w = pad + sum(30 + int(measure.textlength(n, font=font)) for n in names[1:])
+    titles_w = pad + max(int(measure.textlength(t, font=font)) for t in titles) + pad
+    width = max(pad + max(sum(p.shape[1] + pad for _, p in row) for row in scaled), legend_w, titles_w)
+    legend_h = caption + 2 * pad
+    height = pad + len(scaled) * (2 * caption + panel_h + pad) + legend_h
+    sheet = Image.new("RGB", (width, height), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    y = pad
+    for row, title in zip(scaled, titles, strict=True):
+        draw.text((pad, y), title, fill=(0, 0, 0), font=font)
+        y += caption
+        x = pad
+        for name, panel in row:
+            draw.text((x, y), name, fill=(60, 60, 60), font=font)
+            sheet.paste(Image.fromarray(panel), (x, y + caption))
+            x += panel.shape[1] + pad
+        y += caption + panel_h + pad
+    pal = np.asarray(palette, dtype=np.uint8)
+    x = pad
+    for c, name in enumerate(names):
+        if c == 0:
+            continue
+        draw.rectangle((x, y + 2, x + 14, y + 16), fill=tuple(int(v) for v in pal[c]), outline=(0, 0, 0))
+        draw.text((x + 20, y + 2), name, fill=(0, 0, 0), font=font)
+        x += 30 + int(draw.textlength(name, font=font))
+    return np.asarray(sheet).copy()
