@@ -9,7 +9,7 @@ env:
 	@bash scripts/setup_env.sh
 
 demo: env
-	.venv/bin/fruxel-render --out out
+	.venv/bin/fruxel-render --mode both --out out
 
 test: env
 	.venv/bin/python -m pytest
