@@ -73,6 +73,66 @@ def area_by_group(mesh: TriMesh) -> dict[tuple[int, int, int], float]:
     return out
 
 
+def own_view_shell(labels: np.ndarray) -> np.ndarray:
+    """The VMS shell from the grid's own camera (SPEC section 4): the first occupied cell of each column."""
+    occ = labels != 0
+    k = occ.argmax(axis=0)
+    jj, ii = np.nonzero(occ.any(axis=0))
+    out = np.zeros_like(labels)
+    out[k[jj, ii], jj, ii] = labels[k[jj, ii], jj, ii]
+    return out
+
+
+def canonical_triangles(mesh: TriMesh) -> list[tuple]:
+    """Triangles as (label, vertex coordinates) with the smallest vertex first, keeping the winding: sorted."""
+    tri = mesh.vertices[mesh.faces].astype(np.float64).tolist()
+    out = []
+    for lab, t in zip(mesh.labels.tolist(), tri, strict=True):
+        r = min(range(3), key=lambda q: t[q])
+        out.append((lab, tuple(map(tuple, t[r:] + t[:r]))))
+    return sorted(out)
+
+
+def culled_from_full(full: TriMesh) -> list[tuple]:
+    """The culled surface derived from the full mesh: the hexahedra's triangles whose reverse (the same
+    triangle of the neighbouring cell, wound the other way) is not in the mesh."""
+    tris = canonical_triangles(full)
+    positions = {t for _, t in tris}
+    return sorted((lab, t) for lab, t in tris if (t[0], t[2], t[1]) not in positions)
+
+
+def unit_faces(mesh: TriMesh, grid: FruxelGrid) -> list[tuple[int, int, int, int, int, int]]:
+    """Every quad of a culled or greedy mesh split back into cell faces, in index space: sorted
+    ``(label, normal array axis, plane index, facing sign, first index, second index)``, one per cell face.
+
+    Vertices are mapped back to their lattice indices by exact coordinates; two consecutive triangles make one
+    quad. Equal lists mean the same faces with no overlap and no gap.
+    """
+    kb, jb, ib = np.meshgrid(np.arange(grid.depth + 1), np.arange(grid.height + 1), np.arange(grid.width + 1),
+                             indexing="ij")
+    pts = grid.corner_points(kb, jb, ib).astype(np.float32).reshape(-1, 3)
+    index_of = {tuple(p): idx for p, idx in zip(pts.tolist(), np.stack([kb, jb, ib], -1).reshape(-1, 3).tolist(),
+                                                strict=True)}
+    assert len(index_of) == len(pts), "lattice points must be distinct"
+    lattice = np.array([index_of[tuple(v)] for v in mesh.vertices.tolist()], np.int64).reshape(-1, 3)
+    out = []
+    for q in range(mesh.n_faces // 2):
+        corners = lattice[mesh.faces[2 * q : 2 * q + 2].reshape(-1)]
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        flat_axes = np.flatnonzero(lo == hi)
+        assert flat_axes.size == 1, "a quad lies on one grid plane"
+        a = int(flat_axes[0])
+        b, c = (x for x in range(3) if x != a)
+        t = lattice[mesh.faces[2 * q]]
+        # The index space -> grid frame map keeps orientation, so the winding in index space gives the facing.
+        # (k, j, i) is a left-handed order of the xyz axes, hence the minus sign.
+        facing = -int(np.sign(np.cross(t[1] - t[0], t[2] - t[0])[a]))
+        for x in range(lo[b], hi[b]):
+            for y in range(lo[c], hi[c]):
+                out.append((int(mesh.labels[2 * q]), a, int(lo[a]), facing, x, y))
+    return sorted(out)
+
+
 @st.composite
 def volumes(draw, max_class: int = 4):
     w, h, d = draw(st.integers(1, 5)), draw(st.integers(1, 5)), draw(st.integers(1, 5))
@@ -228,6 +288,107 @@ def test_dense_and_sorted_vertex_keys_agree(monkeypatch):
                  (dense.colors, sorted_keys.colors), (dense.labels, sorted_keys.labels)):
         np.testing.assert_array_equal(a, b)
 
+
+# ---------------------------------------------------------------------------- exact faces, sparse shells
+def sparse_cases() -> list:
+    """Sparse inputs of the interactive path (own-view shells) and cells on the grid's edges and corners."""
+    rng = np.random.default_rng(5)
+    grid = FruxelGrid(width=9, height=7, depth=8, z_near=0.4, z_far=3.5, hfov=75.0)
+    cases = []
+    solid = rng.integers(0, 5, grid.shape).astype(np.uint8) * (rng.random(grid.shape) < 0.3)
+    cases.append(("shell of random cells", own_view_shell(solid), grid))
+    blocks = np.zeros(grid.shape, np.uint8)
+    blocks[5:, :, :] = 2
+    blocks[3:, 4:, 2:6] = 1
+    blocks[2, 1:3, 0] = 4
+    cases.append(("shell of blocks", own_view_shell(blocks), grid))
+    corners = np.zeros(grid.shape, np.uint8)
+    for k in (0, -1):
+        for j in (0, -1):
+            for i in (0, -1):
+                corners[k, j, i] = 1 + (k + j + i) % 4
+    corners[3, 0, :] = 3
+    corners[4, :, -1] = 2
+    cases.append(("grid corners and edges", corners, grid))
+    far = np.zeros(grid.shape, np.uint8)
+    far[-2:, 2:5, 3] = 1
+    cases.append(("last slices only", far, grid))
+    line = FruxelGrid(width=1, height=1, depth=6, z_near=0.5, z_far=2.0, hfov=40.0)
+    cases.append(("one column", np.array([0, 1, 1, 2, 0, 1], np.uint8).reshape(line.shape), line))
+    row = FruxelGrid(width=7, height=1, depth=1, z_near=0.5, z_far=2.0, hfov=40.0)
+    cases.append(("one row", np.array([1, 1, 0, 2, 2, 2, 1], np.uint8).reshape(row.shape), row))
+    return [pytest.param(labels, grid, id=name) for name, labels, grid in cases]
+
+
+@pytest.mark.parametrize("labels, grid", sparse_cases())
+def test_culled_faces_are_the_full_mesh_without_shared_faces(labels, grid):
+    full = mesh_labels(labels, grid, PALETTE, "full")
+    culled = mesh_labels(labels, grid, PALETTE, "culled")
+    assert canonical_triangles(culled) == culled_from_full(full)
+
+
+@pytest.mark.parametrize("labels, grid", sparse_cases())
+def test_greedy_rectangles_tile_exactly_the_culled_faces(labels, grid):
+    culled = mesh_labels(labels, grid, PALETTE, "culled")
+    greedy = mesh_labels(labels, grid, PALETTE, "greedy")
+    assert unit_faces(greedy, grid) == unit_faces(culled, grid)
+    assert greedy.n_faces <= culled.n_faces
+    assert signed_volume(greedy) == pytest.approx(occupied_volume(labels, grid), rel=1e-5)
+
+
+@FAST
+@given(volumes())
+def test_sparse_shell_meshes_are_exact(vol):
+    labels, grid = vol
+    shell = own_view_shell(labels)
+    full = mesh_labels(shell, grid, PALETTE, "full")
+    culled = mesh_labels(shell, grid, PALETTE, "culled")
+    greedy = mesh_labels(shell, grid, PALETTE, "greedy")
+    assert canonical_triangles(culled) == culled_from_full(full)
+    assert unit_faces(greedy, grid) == unit_faces(culled, grid)
+
+
+def test_full_vertices_of_a_sparse_volume_are_bit_identical_to_corner_points():
+    grid = FruxelGrid(width=6, height=5, depth=9, z_near=0.7, z_far=5.3, hfov=95.0)
+    labels = np.zeros(grid.shape, np.uint8)
+    labels[4, 0, 5] = 1
+    labels[6, 4, 0] = 2
+    labels[8, 2, 3] = 3
+    m = mesh_labels(labels, grid, PALETTE, "full")
+    k, j, i = np.nonzero(labels)
+    np.testing.assert_array_equal(m.vertices, grid.cell_corners(k, j, i).astype(np.float32).reshape(-1, 3))
+
+
+@pytest.mark.parametrize("mode", ["culled", "greedy"])
+@pytest.mark.parametrize("path", ["sorted", "unique"])
+def test_vertex_key_paths_agree(monkeypatch, mode, path):
+    grid = FruxelGrid(width=7, height=6, depth=5, z_near=0.5, z_far=2.0, hfov=60.0)
+    labels = own_view_shell(np.random.default_rng(9).integers(0, 5, grid.shape).astype(np.uint8))
+    dense = mesh_labels(labels, grid, PALETTE, mode)
+    monkeypatch.setattr(fmesh, "_DENSE_KEY_LIMIT", 0)
+    if path == "unique":
+        # Too few bits to pack key and position: the de-duplication falls back to np.unique.
+        monkeypatch.setattr(fmesh, "_SORT_KEY_BITS", 0)
+    other = mesh_labels(labels, grid, PALETTE, mode)
+    for a, b in ((dense.vertices, other.vertices), (dense.faces, other.faces),
+                 (dense.colors, other.colors), (dense.labels, other.labels)):
+        np.testing.assert_array_equal(a, b)
+
+
+
+@pytest.mark.parametrize("mode", ["culled", "greedy"])
+def test_sparse_and_dense_face_search_agree(monkeypatch, mode):
+    grid = FruxelGrid(width=8, height=7, depth=6, z_near=0.5, z_far=2.5, hfov=60.0)
+    rng = np.random.default_rng(13)
+    for labels in (rng.integers(0, 5, grid.shape).astype(np.uint8),
+                   own_view_shell(rng.integers(0, 5, grid.shape).astype(np.uint8) * (rng.random(grid.shape) < 0.2))):
+        meshes = []
+        # Factor 0 always looks up the occupied cells' neighbours; a huge one always uses whole-grid masks.
+        for factor in (0, 10**9):
+            monkeypatch.setattr(fmesh, "_SPARSE_FACES_FACTOR", factor)
+            meshes.append(mesh_labels(labels, grid, PALETTE, mode))
+        for field in ("vertices", "faces", "colors", "labels"):
+            np.testing.assert_array_equal(getattr(meshes[0], field), getattr(meshes[1], field))
 
 def test_empty_volume_gives_empty_mesh():
     grid = FruxelGrid(width=3, height=3, depth=3, z_near=0.5, z_far=2.0, hfov=60.0)
