@@ -1,0 +1,497 @@
+"""Kernel benchmark: first_hit and shell on every backend, against an Embree ray caster on the full mesh.
+
+Model: :func:`scenes.room_volume` (128^3, 25 % occupied) seen by :func:`scenes.oblique_camera` at 512^2.
+Measured per backend (median of ``--repeat`` runs after one warm-up; the very first call, which compiles the
+kernels or loads them from the backend's cache, is reported on its own):
+
+* ``first_hit``: labels ``(128, 128, 128)`` uint8, one 512 x 512 oblique view;
+* ``shell 6 poses``: the same volume, :func:`fruxel.kernels.orbit_cameras` (6 poses, 512 x 512);
+* ``own-view shell``: ``(4, 7, 128, 128, 128)`` float32 logits from the grid's own camera (the column path);
+* on CUDA only, ``first_hit`` at 256^3 @ 1024^2.
+
+The peer, in the same run: Open3D's ``RaycastingScene`` (Embree) on the ``full`` trapezoid mesh
+(:func:`fruxel.mesh.mesh_labels`), timed as BVH build + first cast (what a changing volume costs per frame),
+and cast alone; the mesh build itself is timed too. Where Open3D is missing, trimesh's embreex intersector is
+the peer; where neither is installed, the peer is skipped. The peer's first hits are checked against the
+backends' (share of pixels with the same cell), so both sides answer the same question.
+
+Run ``python benchmarks/bench_kernels.py`` (``--backends opencl warp-cpu``, ``--sizes 128 256``,
+``--repeat N``, ``--out PREFIX``, ``--device cuda:0``, ``--no-write``). Writes ``PREFIX.json`` and
+``PREFIX.png`` (default ``benchmarks/results/kernels``) and re-renders the "## Kernels" section of
+BENCHMARKS.md from every ``benchmarks/results/kernels*.json``, so runs on other machines (e.g. an H100, with
+``--out benchmarks/results/kernels-h100``) add their own table instead of replacing this one.
+
+Open3D: ``pip install 'fruxel[bench]'`` (open3d 0.20; on Debian its wheel also needs ``libusb-1.0-0``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import importlib
+import json
+import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import scenes  # noqa: E402
+from fruxel.kernels import available_backends, first_hit, orbit_cameras, shell  # noqa: E402
+
+from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
+from fruxel.grid import FruxelGrid  # noqa: E402
+from fruxel.mesh import mesh_labels  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+RESULTS = ROOT / "benchmarks" / "results"
+SECTION = "## Kernels"
+
+TARGETS = {
+    ("opencl", "first_hit", 128): ("<= 20 ms", lambda ms: ms <= 20.0),
+    ("warp-cpu", "first_hit", 128): ("<= 80 ms", lambda ms: ms <= 80.0),
+    ("opencl", "shell 6 poses", 128): ("<= 150 ms", lambda ms: ms <= 150.0),
+}
+"""Targets from the issue, per (backend, operation, n). H100 targets are added by the lead."""
+SPEEDUP_TARGET = ("opencl", 150.0)
+"""OpenCL first_hit at least this many times faster than the Embree peer including its BVH rebuild."""
+
+
+# ---------------------------------------------------------------------------------------------- machine
+
+
+def cpu_name() -> str:
+    """CPU model from lscpu, else platform's."""
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
+        if m:
+            return m.group(1).strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return platform.processor() or platform.machine()
+
+
+def gpu_name() -> str | None:
+    """Name of the first NVIDIA GPU, or None."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, check=True, timeout=20).stdout.strip()
+        return out.splitlines()[0] if out else None
+    except (OSError, subprocess.CalledProcessError, subprocess.TimeoutExpired):
+        return None
+
+
+def _version(name: str) -> str | None:
+    try:
+        from importlib.metadata import version
+
+        return version(name)
+    except Exception:  # noqa: BLE001 - a missing or odd distribution just has no version
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU, cores, GPU, OpenCL device, date and package versions."""
+    cl_device = None
+    try:
+        import pyopencl as cl
+
+        cl_device = "; ".join(f"{p.name}: {d.name}" for p in cl.get_platforms() for d in p.get_devices())
+    except Exception:  # noqa: BLE001 - no OpenCL here
+        pass
+    return {
+        "cpu": cpu_name(),
+        "cores": os.cpu_count(),
+        "gpu": gpu_name(),
+        "opencl_devices": cl_device,
+        "date": dt.date.today().isoformat(),
+        "load_average_1min_at_start": os.getloadavg()[0],
+        "python": platform.python_version(),
+        "versions": {n: _version(n) for n in ("numpy", "warp-lang", "pyopencl", "pocl-binary-distribution",
+                                               "open3d", "embreex", "trimesh", "torch")},
+    }
+
+
+# ---------------------------------------------------------------------------------------------- timing
+
+
+def _sync(device: str | None) -> None:
+    if device and device.startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def time_call(fn: Callable[[], Any], repeat: int, device: str | None = None) -> dict[str, float]:
+    """First-call time, then the median (and min) of ``repeat`` calls after one warm-up, in milliseconds."""
+    t0 = time.perf_counter()
+    fn()
+    _sync(device)
+    first = (time.perf_counter() - t0) * 1e3
+    fn()
+    _sync(device)
+    runs = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        runs.append((time.perf_counter() - t0) * 1e3)
+    return {"first_ms": first, "median_ms": statistics.median(runs), "min_ms": min(runs), "runs": len(runs)}
+
+
+def _device_volume(volume: np.ndarray, device: str | None) -> Any:
+    """The volume where the backend reads it: a CUDA tensor for CUDA devices, else the numpy array."""
+    if device and device.startswith("cuda"):
+        import torch
+
+        return torch.from_numpy(volume).to(device)
+    return volume
+
+
+def _cells(hits: Any) -> np.ndarray:
+    c = hits.cell
+    return c.detach().cpu().numpy() if hasattr(c, "detach") else np.asarray(c)
+
+
+def logits_batch(n: int, batch: int = 4, channels: int = 7) -> np.ndarray:
+    """``(batch, channels, n, n, n)`` float32 logits whose argmax is ``room_volume(n, seed=b)`` for item b."""
+    out = np.empty((batch, channels, n, n, n), np.float32)
+    rng = np.random.default_rng(1)
+    for b in range(batch):
+        lab, _ = scenes.room_volume(n, seed=b)
+        out[b] = rng.standard_normal((channels, n, n, n), dtype=np.float32)
+        top = out[b].max(axis=0)
+        np.put_along_axis(out[b], lab[None].astype(np.int64), (top + 2.0)[None], axis=0)
+    return out
+
+
+def bench_backend(name: str, labels: np.ndarray, grid: FruxelGrid, image: int, repeat: int,
+                  device: str | None, logits: np.ndarray | None) -> list[dict[str, Any]]:
+    """Rows for one backend and grid size: first_hit, and at 128^3 the two shells."""
+    n = grid.width
+    dev = device if name.startswith("warp") and device else None
+    backend = "warp" if dev else name
+    vol = _device_volume(labels, dev)
+    cam = scenes.oblique_camera(grid, image)
+    rows = []
+    t = time_call(lambda: first_hit(vol, grid, cam, backend=backend, device=dev), repeat, dev)
+    hits = _cells(first_hit(vol, grid, cam, backend=backend, device=dev))
+    rows.append({"backend": name, "op": "first_hit", "n": n, "image": image, **t,
+                 "hit_fraction": float((hits >= 0).mean())})
+    if n == 128:
+        cams = orbit_cameras(grid, 6, width=image, height=image)
+        t = time_call(lambda: shell(vol, grid, cams, backend=backend, device=dev), max(3, repeat // 2), dev)
+        rows.append({"backend": name, "op": "shell 6 poses", "n": n, "image": image, **t})
+        if logits is not None:
+            lv = _device_volume(logits, dev)
+            own = grid.camera()
+            t = time_call(lambda: shell(lv, grid, own, backend=backend, device=dev), max(3, repeat // 2), dev)
+            rows.append({"backend": name, "op": "own-view shell", "n": n, "image": n,
+                         "volume": list(logits.shape), **t})
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------- peer
+
+
+def _open3d() -> Any:
+    try:
+        return importlib.import_module("open3d")
+    except Exception:  # noqa: BLE001 - missing, or its native libraries fail to load
+        return None
+
+
+def bench_peer(labels: np.ndarray, grid: FruxelGrid, image: int, repeat: int,
+               reference_cells: np.ndarray | None) -> dict[str, Any] | None:
+    """Embree on the full trapezoid mesh: mesh build, BVH build + first cast, cast alone (milliseconds)."""
+    t0 = time.perf_counter()
+    mesh = mesh_labels(labels, grid, DEFAULT_CLASSES.palette(), mode="full")
+    mesh_ms = (time.perf_counter() - t0) * 1e3
+    cam = scenes.oblique_camera(grid, image)
+    o, d = cam.rays()
+    rays = np.concatenate([o, d], axis=-1).reshape(-1, 6).astype(np.float32)
+    cells = np.flatnonzero(labels)
+    o3d = _open3d()
+    if o3d is not None:
+        vertices = o3d.core.Tensor(mesh.vertices)
+        triangles = o3d.core.Tensor(mesh.faces.astype(np.uint32))
+        rays_t = o3d.core.Tensor(rays)
+
+        def build_and_cast() -> tuple[Any, Any]:
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(vertices, triangles)
+            return scene, scene.cast_rays(rays_t)
+
+        builds, casts = [], []
+        prim = None
+        for _ in range(max(2, repeat // 3)):
+            t0 = time.perf_counter()
+            scene, ans = build_and_cast()
+            prim = ans["primitive_ids"].numpy()
+            builds.append((time.perf_counter() - t0) * 1e3)
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            scene.cast_rays(rays_t)["t_hit"].numpy()
+            casts.append((time.perf_counter() - t0) * 1e3)
+        name = f"Open3D {o3d.__version__} RaycastingScene (Embree)"
+        miss = prim == o3d.t.geometry.RaycastingScene.INVALID_ID
+    else:
+        try:
+            import trimesh
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+        except Exception:  # noqa: BLE001 - neither peer is installed
+            return None
+        tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False, validate=False)
+        builds, casts = [], []
+        for _ in range(max(2, repeat // 3)):
+            t0 = time.perf_counter()
+            inter = RayMeshIntersector(tm)
+            tri = inter.intersects_first(rays[:, :3], rays[:, 3:])
+            builds.append((time.perf_counter() - t0) * 1e3)
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            inter.intersects_first(rays[:, :3], rays[:, 3:])
+            casts.append((time.perf_counter() - t0) * 1e3)
+        prim = tri
+        miss = tri < 0
+        name = "trimesh + embreex (Embree)"
+    peer_cells = np.where(miss, -1, cells[np.where(miss, 0, prim).astype(np.int64) // 12])
+    agree = None
+    if reference_cells is not None:
+        agree = float(np.mean(peer_cells == reference_cells.reshape(-1)))
+    return {
+        "peer": name,
+        "triangles": mesh.n_faces,
+        "mesh_build_ms": mesh_ms,
+        "build_and_first_cast_ms": statistics.median(builds),
+        "cast_ms": statistics.median(casts),
+        "agreement_with_backend": agree,
+    }
+
+
+# ---------------------------------------------------------------------------------------------- report
+
+
+def bar_chart(result: dict[str, Any], path: Path) -> None:
+    """Horizontal bars of median milliseconds per (backend, operation), the peer's beside them, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels, values, colours = [], [], []
+    palette = {"opencl": "#1f77b4", "warp-cpu": "#2ca02c", "warp-cuda": "#d62728"}
+    for r in result["rows"]:
+        what = f"(4, 7, {r['n']}^3) logits" if r["op"] == "own-view shell" else f"{r['n']}^3 @ {r['image']}^2"
+        labels.append(f"{r['backend']}: {r['op']} {what}")
+        values.append(r["median_ms"])
+        colours.append(palette.get(r["backend"], "#7f7f7f"))
+    peer = result.get("peer")
+    if peer:
+        labels += ["Embree peer: BVH build + cast 128^3", "Embree peer: cast alone 128^3"]
+        values += [peer["build_and_first_cast_ms"], peer["cast_ms"]]
+        colours += ["#ff7f0e", "#ffbb78"]
+    fig, ax = plt.subplots(figsize=(9, 0.45 * len(labels) + 1.2))
+    y = np.arange(len(labels))[::-1]
+    ax.barh(y, values, color=colours)
+    for yy, v in zip(y, values, strict=True):
+        ax.text(v * 1.05, yy, f"{v:.1f} ms", va="center", fontsize=8)
+    ax.set_yticks(y, labels, fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("milliseconds (median), log scale")
+    m = result["machine"]
+    ax.set_title(f"fruxel kernels on {m['cpu']} ({m['cores']} cores){' + ' + m['gpu'] if m['gpu'] else ''}",
+                 fontsize=9)
+    ax.set_xlim(right=max(values) * 4)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def ratios(result: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Peer time / backend first_hit time at 128^3 (how many times faster the backend is)."""
+    peer = result.get("peer")
+    out = {}
+    if not peer:
+        return out
+    for r in result["rows"]:
+        if r["op"] == "first_hit" and r["n"] == 128:
+            out[r["backend"]] = {
+                "vs_build_and_cast": peer["build_and_first_cast_ms"] / r["median_ms"],
+                "vs_mesh_build_and_cast": (peer["mesh_build_ms"] + peer["build_and_first_cast_ms"]) / r["median_ms"],
+                "vs_cast": peer["cast_ms"] / r["median_ms"],
+            }
+    return out
+
+
+def table(result: dict[str, Any]) -> str:
+    """Markdown table of one result file."""
+    lines = ["| backend | operation | grid | image | first call (ms) | median (ms) | min (ms) | target |",
+             "| --- | --- | --- | --- | ---: | ---: | ---: | --- |"]
+    for r in result["rows"]:
+        tgt = TARGETS.get((r["backend"], r["op"], r["n"]))
+        mark = ""
+        if tgt:
+            mark = f"{tgt[0]}: {'met' if tgt[1](r['median_ms']) else 'missed'}"
+        img = f"{r['image']}^2" if r["op"] != "own-view shell" else "own camera, B=4, C=7 float32 logits"
+        lines.append(f"| {r['backend']} | {r['op']} | {r['n']}^3 | {img} | {r['first_ms']:.1f} | "
+                     f"{r['median_ms']:.1f} | {r['min_ms']:.1f} | {mark} |")
+    peer = result.get("peer")
+    if peer:
+        lines.append(f"| {peer['peer']} | full mesh build (numpy) | 128^3 | | | {peer['mesh_build_ms']:.1f} | | |")
+        lines.append(f"| {peer['peer']} | BVH build + first cast | 128^3 | 512^2 | | "
+                     f"{peer['build_and_first_cast_ms']:.1f} | | |")
+        lines.append(f"| {peer['peer']} | cast alone | 128^3 | 512^2 | | {peer['cast_ms']:.1f} | | |")
+    return "\n".join(lines)
+
+
+def section(results: list[dict[str, Any]]) -> str:
+    """The "## Kernels" section of BENCHMARKS.md from every result file."""
+    parts = [SECTION, "",
+             "`python benchmarks/bench_kernels.py` (see its docstring). Model: `benchmarks/scenes.py` "
+             "`room_volume(128)` (25 % occupied: walls, floor, window, door, furniture blocks, a sculpture "
+             "blob), viewed by `oblique_camera` at 512 x 512. Times are medians after one warm-up; "
+             "\"first call\" includes compiling the kernels or loading them from the backend's cache. "
+             "The Embree peer is timed in the same run on the `full` trapezoid mesh (12 triangles per "
+             "occupied cell); \"incl. rebuild\" means BVH build + cast, what the peer pays per frame when the "
+             "volume changes, as it does for every network output.",
+             ""]
+    speed_name, speed_target = SPEEDUP_TARGET
+    for res in results:
+        m = res["machine"]
+        gpu = f", GPU {m['gpu']}" if m.get("gpu") else ""
+        parts += [f"### {m['cpu']}, {m['cores']} cores{gpu} ({m['date']})", ""]
+        if "load_average_1min_at_start" in m:
+            parts += [f"1-minute load average {m['load_average_1min_at_start']:.1f} at the start and "
+                      f"{m.get('load_average_1min_at_end', float('nan')):.1f} at the end of the run (the machine is "
+                      f"shared: a load above the core count means the numbers are pessimistic).", ""]
+        if res.get("note"):
+            parts += [res["note"], ""]
+        parts += [table(res), ""]
+        peer = res.get("peer")
+        if peer:
+            agree = peer.get("agreement_with_backend")
+            agree_txt = f"; its first hits name the same cell as the backends' on {agree:.4%} of pixels" if (
+                agree is not None) else ""
+            parts += [f"Peer: {peer['peer']}, {peer['triangles']:,} triangles{agree_txt}.", ""]
+            rs = res.get("ratios", {})
+            if rs:
+                parts += ["| backend | x faster than peer incl. BVH rebuild | incl. mesh + BVH rebuild | "
+                          "vs. peer cast alone |", "| --- | ---: | ---: | ---: |"]
+                for b, r in rs.items():
+                    mark = ""
+                    if b == speed_name:
+                        ok = r["vs_build_and_cast"] >= speed_target
+                        mark = f" (target >= {speed_target:.0f}x: {'met' if ok else 'missed'})"
+                    parts.append(f"| {b} | {r['vs_build_and_cast']:.1f}x{mark} | {r['vs_mesh_build_and_cast']:.1f}x | "
+                                 f"{r['vs_cast']:.2f}x |")
+                parts.append("")
+        v = m.get("versions", {})
+        parts += ["Versions: " + ", ".join(f"{k} {val}" for k, val in v.items() if val) + ".", ""]
+        chart = res.get("chart")
+        if chart:
+            parts += [f"![kernel benchmark]({chart})", ""]
+    parts += ["Targets (from the issue): OpenCL first_hit <= 20 ms and Warp CPU <= 80 ms at 128^3 @ 512^2; "
+              "OpenCL >= 150x faster than Embree including its BVH rebuild; shell over 6 poses <= 150 ms on "
+              "OpenCL. H100 targets: to be filled in by the lead.", ""]
+    return "\n".join(parts)
+
+
+def write_section(text: str, path: Path = BENCHMARKS_MD) -> None:
+    """Replace (or append) the "## Kernels" section, leaving the rest of the file as it is."""
+    old = path.read_text() if path.exists() else "# Benchmarks\n"
+    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
+    if pattern.search(old):
+        new = pattern.sub(lambda _: text.rstrip() + "\n\n", old, count=1)
+    else:
+        new = old.rstrip() + "\n\n" + text.rstrip() + "\n"
+    path.write_text(new.rstrip() + "\n")
+
+
+# ---------------------------------------------------------------------------------------------- main
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--backends", nargs="+", default=None, help="available_backends() names (default: all)")
+    ap.add_argument("--sizes", nargs="+", type=int, default=None,
+                    help="grid sizes n (image 4n); default 128, plus 256 when a CUDA backend runs")
+    ap.add_argument("--repeat", type=int, default=10, help="timed runs per measurement")
+    ap.add_argument("--out", default=str(RESULTS / "kernels"), help="prefix of the .json and .png written")
+    ap.add_argument("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default per backend name")
+    ap.add_argument("--no-peer", action="store_true", help="skip the Embree peer")
+    ap.add_argument("--no-write", action="store_true", help="do not write files or BENCHMARKS.md")
+    ap.add_argument("--note", default=None, help="a line printed under this machine's heading in BENCHMARKS.md")
+    args = ap.parse_args(argv)
+
+    avail = available_backends()
+    names = args.backends or avail
+    for n in names:
+        if n not in avail:
+            ap.error(f"backend {n!r} is not available here; available: {avail}")
+    sizes = args.sizes or ([128, 256] if any(n == "warp-cuda" for n in names) else [128])
+    result: dict[str, Any] = {"machine": machine_info(), "config": vars(args), "rows": [], "note": args.note}
+    print(f"machine: {result['machine']['cpu']} x{result['machine']['cores']}, GPU {result['machine']['gpu']}")
+    first_cells = None
+    for n in sizes:
+        labels, grid = scenes.room_volume(n)
+        result.setdefault("scenes", {})[str(n)] = scenes.describe(labels)
+        logits = logits_batch(n) if n == 128 else None
+        for name in names:
+            if n > 128 and name != "warp-cuda":
+                continue
+            device = args.device or ("cuda" if name == "warp-cuda" else "cpu" if name == "warp-cpu" else None)
+            rows = bench_backend(name, labels, grid, 4 * n, args.repeat, device, logits)
+            for r in rows:
+                print(f"{name:10s} {r['op']:15s} {n}^3 @ {r['image']}^2: first {r['first_ms']:9.1f} ms, "
+                      f"median {r['median_ms']:9.2f} ms")
+            result["rows"] += rows
+            if n == 128 and first_cells is None:
+                dev = device if name.startswith("warp") else None
+                first_cells = _cells(first_hit(labels, grid, scenes.oblique_camera(grid, 512),
+                                               backend="warp" if dev else name, device=dev))
+        if n == 128 and not args.no_peer:
+            peer = bench_peer(labels, grid, 512, args.repeat, first_cells)
+            if peer is None:
+                print("peer: neither open3d nor embreex is installed; skipped")
+            else:
+                result["peer"] = peer
+                print(f"peer {peer['peer']}: mesh {peer['mesh_build_ms']:.1f} ms, BVH build + first cast "
+                      f"{peer['build_and_first_cast_ms']:.1f} ms, cast {peer['cast_ms']:.1f} ms, agreement "
+                      f"{peer['agreement_with_backend']}")
+    result["machine"]["load_average_1min_at_end"] = os.getloadavg()[0]
+    result["ratios"] = ratios(result)
+    print()
+    print(table(result))
+    for b, r in result["ratios"].items():
+        print(f"{b}: {r['vs_build_and_cast']:.1f}x faster than the peer incl. BVH rebuild, "
+              f"{r['vs_cast']:.2f}x vs its cast alone")
+    if not args.no_write:
+        out = Path(args.out)
+        png = out.with_suffix(".png")
+        bar_chart(result, png)
+        try:
+            result["chart"] = str(png.resolve().relative_to(ROOT))
+        except ValueError:
+            result["chart"] = str(png)
+        out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=str))
+        files = sorted(RESULTS.glob("kernels*.json"))
+        write_section(section([json.loads(f.read_text()) for f in files]))
+        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {BENCHMARKS_MD.name}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
