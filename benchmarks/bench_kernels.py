@@ -46,10 +46,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import scenes  # noqa: E402
-from fruxel.kernels import available_backends, first_hit, orbit_cameras, shell  # noqa: E402
 
 from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
 from fruxel.grid import FruxelGrid  # noqa: E402
+from fruxel.kernels import available_backends, first_hit, orbit_cameras, shell  # noqa: E402
 from fruxel.mesh import mesh_labels  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

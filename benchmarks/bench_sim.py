@@ -63,9 +63,8 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
 
 def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True) -> Any:
     """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels."""
-    from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
-
     from fruxel.grid import FruxelGrid
+    from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),

@@ -21,13 +21,13 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
 from fruxel.kernels import orbit_cameras
 from fruxel.kernels.cl import first_hit, occupancy, shell
 from fruxel.kernels.cl.runtime import get_runtime, host_array
 from fruxel.kernels.inputs import inspect_volume
-
-from fruxel.camera import Camera
-from fruxel.grid import FruxelGrid
 
 
 def room(n: int = 128, seed: int = 0) -> tuple[FruxelGrid, np.ndarray]:

@@ -37,8 +37,9 @@ def orbit_cameras(
         m: number of cameras, >= 1.
         layout: ``"orbit"``: azimuths spread evenly over ``azimuth_span`` degrees centred on the front, at one
             ``elevation``. ``"sphere"``: a Fibonacci spiral over the whole sphere.
-        radius: distance from the centre, metres; default 1.2 times the bounding box's diagonal, so that every
-            camera sees the whole grid with a 60 degree field of view.
+        radius: distance from the centre, metres. The default puts the box's bounding sphere inside the
+            narrower of the horizontal and vertical fields of view with a 10% margin, so that every camera sees
+            the whole grid whatever the image's aspect.
         elevation: degrees above the grid's horizontal plane, for ``"orbit"``.
         azimuth_span: degrees, for ``"orbit"``; 360 places cameras all round.
         width, height, hfov: image size and horizontal field of view of each camera.
@@ -53,7 +54,13 @@ def orbit_cameras(
         raise CameraError(f"m must be a positive integer, got {m}")
     box = grid.bounds()
     centre = box.mean(axis=0)
-    r = 1.2 * float(np.linalg.norm(box[1] - box[0])) if radius is None else float(radius)
+    if radius is None:
+        half_h = math.radians(hfov) / 2.0
+        half_v = math.atan(math.tan(half_h) * height / width)
+        sphere = 0.5 * float(np.linalg.norm(box[1] - box[0]))
+        r = 1.1 * sphere / math.sin(min(half_h, half_v))
+    else:
+        r = float(radius)
     if not (math.isfinite(r) and r > 0):
         raise CameraError(f"radius must be > 0, got {radius}")
     if layout == "orbit":

@@ -16,14 +16,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
 from fruxel.kernels import EMPTY_LOGIT, Hits, available_backends
 from fruxel.kernels import first_hit as _kernels_first_hit
 from fruxel.kernels import shell as _kernels_shell
 from fruxel.kernels.inputs import check_cameras, inspect_volume, is_torch
 from fruxel.kernels.registry import get_backend, split_name
-
-from fruxel.camera import Camera
-from fruxel.grid import FruxelGrid
 
 from .reference import (
     brute_first_hit_bounds,

@@ -24,10 +24,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from fruxel.kernels import traversal
 
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import traversal
 
 # Entry kinds recorded per ray; the normal is built from the kind and the plane's boundary value.
 _ENTRY_U, _ENTRY_V, _ENTRY_Z, _ENTRY_INSIDE = 0, 1, 2, 3

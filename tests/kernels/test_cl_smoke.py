@@ -13,10 +13,10 @@ import importlib
 
 import numpy as np
 import pytest
-from fruxel.kernels import EMPTY_LOGIT, VolumeError
 
 from fruxel.camera import Camera, CameraError
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import EMPTY_LOGIT, VolumeError
 
 cl = pytest.importorskip("fruxel.kernels.cl")
 if not cl.is_available():  # pragma: no cover - only without an OpenCL device

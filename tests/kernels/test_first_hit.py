@@ -8,13 +8,13 @@ import math
 
 import numpy as np
 import pytest
-from fruxel.kernels import first_hit as _kernels_first_hit
-from fruxel.kernels import shell as _kernels_shell
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import first_hit as _kernels_first_hit
+from fruxel.kernels import shell as _kernels_shell
 
 from .conftest import (
     BACKENDS,

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fruxel.kernels import BackendError, fruxelize
-from fruxel.kernels.fruxelize import MAX_CROSSINGS, MeshError, MeshSet, own_view_truth, prepare_meshes
 
 from fruxel.camera import Camera, CameraError
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import BackendError, fruxelize
+from fruxel.kernels.fruxelize import MAX_CROSSINGS, MeshError, MeshSet, own_view_truth, prepare_meshes
 
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("warp")

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import importlib
 
-import fruxel.kernels as kernels
 import numpy as np
 import pytest
-from fruxel.kernels import BackendError, BackendUnavailable, VolumeError
-from fruxel.kernels import registry as reg
 
 import fruxel
+import fruxel.kernels as kernels
 from fruxel.camera import Camera, CameraError
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import BackendError, BackendUnavailable, VolumeError
+from fruxel.kernels import registry as reg
 
 from .conftest import BACKENDS, REAL_BACKENDS, first_hit, shell
 

@@ -16,10 +16,9 @@ import pytest
 pytest.importorskip("trimesh")
 pytest.importorskip("rtree")
 
-from fruxel.kernels import orbit_cameras  # noqa: E402
-
 from fruxel.camera import Camera  # noqa: E402
 from fruxel.grid import FruxelGrid  # noqa: E402
+from fruxel.kernels import orbit_cameras  # noqa: E402
 
 from .conftest import BACKENDS, first_hit, hits_numpy, random_camera, random_labels  # noqa: E402
 from .reference import edge_distance  # noqa: E402

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fruxel.kernels import EMPTY_LOGIT, orbit_cameras
 
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
+from fruxel.kernels import EMPTY_LOGIT, orbit_cameras
 
 from .conftest import (
     BACKENDS,

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fruxel.render.cli import default_camera, main
 from PIL import Image
 
 import fruxel
 from fruxel import kernels
 from fruxel.data import SAMPLE_ROOM
+from fruxel.render.cli import default_camera, main
 
 SIZE = "96x72"
 BACKEND = "warp" if any(b.startswith("warp") for b in kernels.available_backends()) else "opencl"

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from fruxel.render.legend import draw_caption, draw_legend, present_labels
 
 from fruxel import DEFAULT_CLASSES
+from fruxel.render.legend import draw_caption, draw_legend, present_labels
 
 PALETTE = DEFAULT_CLASSES.palette()
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fruxel.kernels import Hits
-from fruxel.render.cli import default_camera
-from fruxel.render.raycast import RaycastStyle, first_hits, fog_range, lambert, raycast_image, shade, to_numpy
 
 import fruxel
 from fruxel.data import SAMPLE_ROOM
+from fruxel.kernels import Hits
+from fruxel.render.cli import default_camera
+from fruxel.render.raycast import RaycastStyle, first_hits, fog_range, lambert, raycast_image, shade, to_numpy
 from fruxel.shading import shade_hits
 
 MODEL = fruxel.load(SAMPLE_ROOM)

@@ -5,6 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+import fruxel
+from fruxel import Camera, kernels
+from fruxel.data import SAMPLE_ROOM
+from fruxel.mesh import mesh_labels
 from fruxel.render.cli import default_camera
 from fruxel.render.raycast import RaycastStyle, first_hits, shade
 from fruxel.render.scene import (
@@ -18,11 +23,6 @@ from fruxel.render.scene import (
     renderers,
     vertex_arrays,
 )
-
-import fruxel
-from fruxel import Camera, kernels
-from fruxel.data import SAMPLE_ROOM
-from fruxel.mesh import mesh_labels
 
 MODEL = fruxel.load(SAMPLE_ROOM)
 PALETTE = MODEL.classes.palette()

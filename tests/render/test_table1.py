@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fruxel.render import table1
-from fruxel.render.table1 import SECTION, Table1Config, format_table, record, room_volume, run, update_markdown
 
 import fruxel
 from fruxel.data import SAMPLE_ROOM
+from fruxel.render import table1
+from fruxel.render.table1 import SECTION, Table1Config, format_table, record, room_volume, run, update_markdown
 
 MODEL = fruxel.load(SAMPLE_ROOM)
 

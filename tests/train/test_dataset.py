@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from fruxel.grid import FruxelGrid
 from fruxel.train.sim.config import (
     AugmentConfig,
     ConfigError,
@@ -36,8 +38,6 @@ from fruxel.train.sim.shards import (
     generate,
     shard_specs,
 )
-
-from fruxel.grid import FruxelGrid
 
 torch = pytest.importorskip("torch")
 from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch

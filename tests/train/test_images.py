@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from fruxel.grid import FruxelGrid
 from fruxel.kernels.fruxelize import fruxelize, own_view_truth
 from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig, augment_rng
 from fruxel.train.sim.images import SceneRenderer, _camera_response, contact_sheet, second_camera
 from fruxel.train.sim.scene import FreeSpace, Scene, SceneObject, boxes, make_scene
-
-from fruxel.grid import FruxelGrid
 
 trimesh = pytest.importorskip("trimesh")
 

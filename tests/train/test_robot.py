@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+
+from fruxel.camera import Camera, check_pose
 from fruxel.train.sim import (
     CameraMount,
     FreeSpace,
@@ -19,8 +21,6 @@ from fruxel.train.sim import (
     simulate,
     trajectory_from_commands,
 )
-
-from fruxel.camera import Camera, check_pose
 
 
 @pytest.mark.parametrize(("mass", "b_friction", "dt"), [(20.0, 50.0, 0.1), (3.0, 7.5, 0.02), (50.0, 5.0, 0.5)])

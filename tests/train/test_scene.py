@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from fruxel.train.sim import (
     DOOR,
     FLOOR,

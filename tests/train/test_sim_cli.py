@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fruxel.train.sim.cli import main
 from PIL import Image
 
 from fruxel.classes import DEFAULT_CLASSES
+from fruxel.train.sim.cli import main
 
 TINY = ["--image", "32", "--grid", "16", "--samples-per-scene", "2"]
 

@@ -148,9 +148,9 @@ def _preview(args: argparse.Namespace) -> int:
     import io
 
     import numpy as np
-    from fruxel.kernels import first_hit
     from PIL import Image
 
+    from fruxel.kernels import first_hit
     from fruxel.shading import shade_hits
 
     from .images import contact_sheet, second_camera
@@ -184,11 +184,10 @@ def _preview(args: argparse.Namespace) -> int:
 
 
 def _expected_errors() -> tuple[type[BaseException], ...]:
-    from fruxel.kernels import BackendError, BackendUnavailable, VolumeError
-
     from fruxel.camera import CameraError
     from fruxel.classes import ClassTableError
     from fruxel.grid import GridError
+    from fruxel.kernels import BackendError, BackendUnavailable, VolumeError
 
     from .config import ConfigError
     from .robot import TrajectoryError
