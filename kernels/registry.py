@@ -146,3 +146,11 @@ def resolve(backend: str | None, device: str | None, volume: Any = None) -> tupl
     if device is None and is_cuda_data(volume):
         device = str(volume.device)
     return mod, mod.resolve_device(device)
+
+
+def describe(backend: str | None = None, device: str | None = None, volume: Any = None) -> str:
+    """Name of the backend and device that :func:`resolve` picks for these arguments, for captions and logs:
+    ``"opencl"``, ``"warp-cpu"``, ``"warp-cuda:0"``."""
+    mod, dev = resolve(backend, device, volume)
+    name = next(n for n, info in BACKENDS.items() if info.module == mod.__name__)
+    return f"{name}-{dev}" if name == "warp" and dev else name

@@ -512,10 +512,7 @@ class FrameRenderer:
     def _backend_name(self) -> str:
         from fruxel import kernels
 
-        if self.opts.backend is not None:
-            return self.opts.backend
-        names = kernels.available_backends()
-        return names[0] if names else "?"
+        return kernels.registry.describe(self.opts.backend, self.opts.device, self.inp.volume)
 
     def image(self, camera: Camera) -> np.ndarray:
         """The image of the chosen mode, with legend (and captions for ``"both"``): ``(h, w', 3)`` uint8."""
