@@ -20,21 +20,26 @@ from typing import Any
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
+from .fruxelize import fruxelize
 from .inputs import EMPTY_LOGIT, Hits, VolumeError
 from .poses import orbit_cameras
 from .registry import BackendError, BackendUnavailable, available_backends, get_backend, resolve
+from .soft import SoftHits, soft_first_hit
 
 __all__ = [
     "EMPTY_LOGIT",
     "BackendError",
     "BackendUnavailable",
     "Hits",
+    "SoftHits",
     "VolumeError",
     "available_backends",
     "first_hit",
+    "fruxelize",
     "get_backend",
     "orbit_cameras",
     "shell",
+    "soft_first_hit",
 ]
 
 

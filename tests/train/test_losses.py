@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+
+from fruxel.grid import FruxelGrid
 from fruxel.kernels import available_backends, first_hit
 from fruxel.kernels.soft import SoftHits
 from fruxel.train.losses import (
@@ -20,8 +22,6 @@ from fruxel.train.losses import (
     shell_cross_entropy,
     visible_weighted_voxel_ce,
 )
-
-from fruxel.grid import FruxelGrid
 
 BACKENDS = available_backends()
 C = 3

@@ -1,0 +1,172 @@
+"""OpenCL backend of ``soft_first_hit``: the forward and backward kernels of :file:`soft_first_hit.cl`.
+
+The algorithm, its backward recursion and the step tape are those of :mod:`fruxel.kernels.wp.soft_first_hit`;
+the ray set-up is :file:`first_hit.cl`'s (compiled first), so both operations visit the same cells. Programs are
+built once per context and per (scalar type, number of classes). Data travels as host arrays: on PoCL (the CPU)
+they are used in place through ``USE_HOST_PTR`` buffers, elsewhere copied. Gradients are scattered with
+compare-and-swap adds, so float rounding may differ from run to run where rays share a cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
+
+from .. import traversal
+from . import occupancy
+from .runtime import Runtime, cl, defines, get_runtime, source
+
+TAPE_STEPS_PER_WORD = 16
+"""Steps per uint32 word of the step tape (2 bits each)."""
+
+_SOURCE = occupancy.TRACE_SOURCE + "\n" + source(__file__)
+
+
+def torch_device(device: str | None) -> Any:
+    """The torch device the kernels' data is staged on: always the CPU (host arrays; zero-copy on PoCL)."""
+    import torch
+
+    return torch.device("cpu")
+
+
+@dataclass(eq=False)
+class SavedRays:
+    """Per-ray record of a forward pass for the backward pass (device buffers, kept alive by this object)."""
+
+    device: str | None
+    """OpenCL device selector of the runtime that ran the forward."""
+    state: Any
+    """``(R, 4)`` int32 buffer: cells on the ray and ``(i, j, k)`` of the last one."""
+    log_t: Any
+    """``(R,)`` buffer of the scalar type: log-transmittance after the last non-saturated cell."""
+    tape: Any
+    """``(R, words)`` uint32 buffer: the step tape."""
+    words: int
+    """Tape words per ray."""
+    cams: list[Camera]
+    """The cameras, in slot order."""
+
+
+def _kernel(rt: Runtime, name: str, real: np.dtype, nc: int) -> Any:
+    opts = occupancy.trace_options() + defines(REAL_DOUBLE=int(real == np.float64), NC=nc, SPW=TAPE_STEPS_PER_WORD)
+    return rt.kernel(_SOURCE, name, opts)
+
+
+def _dims(grid: FruxelGrid) -> np.ndarray:
+    return np.array([grid.width, grid.height, grid.depth, 1], np.int32)
+
+
+def _global(cam: Camera, batch: int) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+    return occupancy.trace_global(cam, batch), (*occupancy.TRACE_LOCAL, 1)
+
+
+def _host(t: Any, real: np.dtype) -> np.ndarray:
+    """A torch CPU tensor as a C-contiguous numpy array of ``real`` (no copy when it already is one)."""
+    return np.ascontiguousarray(t.detach().numpy(), dtype=real)
+
+
+def _real(rt: Runtime, t: Any) -> np.dtype:
+    import torch
+
+    if t.dtype == torch.float64:
+        if not rt.has_fp64:
+            raise TypeError(f"OpenCL device {rt.device.name!r} has no float64 (cl_khr_fp64); pass float32 input")
+        return np.dtype(np.float64)
+    return np.dtype(np.float32)
+
+
+def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
+            device: str | None = None) -> tuple[Any, ...]:
+    """Run the forward kernel; arguments and results as :func:`fruxel.kernels.wp.soft_first_hit.forward`.
+
+    Args:
+        probs: ``(B, C, D, H, W)`` torch float32/float64 CPU tensor, contiguous: class probabilities, channel 0 =
+            empty.
+        grid: the volume's grid.
+        cameras: N cameras of one image size.
+        save: keep what :func:`backward` needs.
+        device: OpenCL device selector (:func:`.runtime.resolve_device`).
+
+    Returns:
+        ``(acc (B, N, C-1, h, w), miss (B, N, h, w), dsum (B, N, h, w), saved)``: torch CPU tensors of ``probs``'
+        dtype, and a :class:`SavedRays` or None.
+    """
+    import torch
+
+    rt = get_runtime(device)
+    real = _real(rt, probs)
+    b, c = probs.shape[0], probs.shape[1]
+    h, w = cameras[0].height, cameras[0].width
+    n_cam = len(cameras)
+    acc = torch.empty((b, n_cam, c - 1, h, w), dtype=probs.dtype)
+    miss = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
+    dsum = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
+    rays = b * n_cam * h * w
+    words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD)
+    with rt.lock:
+        k = _kernel(rt, "soft_first_hit_forward", real, c - 1)
+        p_buf = rt.input("soft_probs", _host(probs, real))
+        outs = [(rt.output(name, a.numpy()), a.numpy()) for name, a in
+                (("soft_acc", acc), ("soft_miss", miss), ("soft_dsum", dsum))]
+        if save:
+            # Fresh buffers, not the runtime's pool: several forward passes may await their backward at once.
+            flags = cl.mem_flags.READ_WRITE
+            state = cl.Buffer(rt.context, flags, rays * 16)
+            log_t = cl.Buffer(rt.context, flags, rays * real.itemsize)
+            tape = cl.Buffer(rt.context, flags, rays * words * 4)
+        else:
+            state = log_t = tape = rt.scratch("soft_dummy", 16)
+        for slot, cam in enumerate(cameras):
+            k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam), _dims(grid),
+              np.int32(w), np.int32(h), np.int32(traversal.max_steps(grid)), np.int32(slot), np.int32(n_cam),
+              np.int32(save), np.int32(words), *(buf for buf, _ in outs), state, log_t, tape)
+        # Waits for the kernels (the call's one host synchronisation): the results are torch tensors.
+        rt.fetch(outs)
+    saved = SavedRays(device, state, log_t, tape, words, list(cameras)) if save else None
+    return acc, miss, dsum, saved
+
+
+def backward(probs: Any, grid: FruxelGrid, saved: SavedRays, g_acc: Any, g_miss: Any, g_dsum: Any,
+             out: Any = None) -> Any:
+    """Run the backward kernel; arguments and result as :func:`fruxel.kernels.wp.soft_first_hit.backward`
+    (torch CPU tensors; ``out``, when given, contiguous)."""
+    import torch
+
+    rt = get_runtime(saved.device)
+    real = _real(rt, probs)
+    b, c = probs.shape[0], probs.shape[1]
+    cams = saved.cams
+    h, w = cams[0].height, cams[0].width
+    grad = torch.zeros(probs.shape, dtype=probs.dtype) if out is None else out
+    with rt.lock:
+        k = _kernel(rt, "soft_first_hit_backward", real, c - 1)
+        p_buf = rt.input("soft_probs", _host(probs, real))
+        gbufs = [rt.input(name, _host(g, real)) for name, g in
+                 (("soft_g_acc", g_acc), ("soft_g_miss", g_miss), ("soft_g_dsum", g_dsum))]
+        host = grad.numpy()
+        if rt.zero_copy:
+            g_buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+        else:
+            g_buf = rt.scratch("soft_grad", host.nbytes)
+            cl.enqueue_copy(rt.queue, g_buf, host, is_blocking=False)  # what the kernel adds into
+        for slot, cam in enumerate(cams):
+            own = traversal.is_own_view(cam, grid)
+            k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam), _dims(grid),
+              np.int32(w), np.int32(h), np.int32(slot), np.int32(len(cams)), np.int32(own), np.int32(saved.words),
+              saved.state, saved.log_t, saved.tape, *gbufs, g_buf)
+        # Waits for the kernels (the call's one host synchronisation): the gradient is a torch tensor.
+        rt.fetch([(g_buf, host)])
+    return grad
+
+
+def soft_first_hit(scores: Any, grid: FruxelGrid, cameras: Any, *, device: str | None = None,
+                   probs: bool = False) -> Any:
+    """:func:`fruxel.kernels.soft_first_hit` on this backend (``device``: ``None``, ``"cpu"`` or ``"gpu"``)."""
+    from ..soft import soft_first_hit as _public
+
+    return _public(scores, grid, cameras, backend="opencl", device=device, probs=probs)

@@ -1,0 +1,287 @@
+"""Shell-aware losses: losses on what a camera will see of a predicted fruxel volume, free of any network.
+
+Every loss takes the network's output as plain tensors, so any training loop can use them:
+
+* :func:`shell_cross_entropy`: cross-entropy of ``soft_first_hit``'s expected class distribution (channel 0 =
+  miss) against the ``first_hit`` labels of the ground truth from the same cameras;
+* :func:`depth_l1`: L1 between the expected first-hit depth (given a hit) and the ground-truth first-hit depth,
+  on the pixels where the ground truth hits;
+* :func:`visible_weighted_voxel_ce`: per-cell cross-entropy, weighted up on the ground truth's
+  visible shell (:func:`fruxel.kernels.shell`) and down elsewhere;
+* :class:`ShellLoss`: the three together from the grid's own view plus K random novel poses per batch, with the
+  ground-truth side (``first_hit``, ``shell``, no gradient) computed on the fly.
+
+Frames: volumes are NCDHW in the grid frame (SPEC sections 1-2); images are ``(B, N, h, w)`` per camera; depths
+are metres along each viewing camera's z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+import fruxel.kernels as fk
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
+from fruxel.kernels.soft import SoftHits, soft_first_hit_groups
+
+
+# ---------------------------------------------------------------------------------------------- losses
+def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: float = 1e-6,
+                        mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Cross-entropy of the expected first-hit class distribution against first-hit labels.
+
+    Args:
+        soft: :class:`~fruxel.kernels.soft.SoftHits` of the prediction, ``classes`` ``(B, N, C, h, w)``.
+        target_labels: ``(B, N, h, w)`` integer ``first_hit`` labels of the ground truth from the same cameras
+            (0 = miss), values in ``[0, C)``.
+        eps: added to the probability before the log, so that a confidently wrong pixel keeps a finite loss and a
+            gradient (``-log(p + eps) <= -log(eps)``).
+        mask: optional ``(B, N, h, w)`` bool, the pixels that count (all when None).
+
+    Returns:
+        Scalar tensor: the mean of ``-log(p[label] + eps)`` over the counted pixels (0 when none count).
+    """
+    p = soft.classes.gather(2, target_labels.long().unsqueeze(2)).squeeze(2)
+    nll = -torch.log(p + eps)
+    if mask is None:
+        return nll.mean()
+    m = mask.to(nll.dtype)
+    return (nll * m).sum() / m.sum().clamp_min(1.0)
+
+
+def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.Tensor, *,
+             scale: float = 1.0) -> torch.Tensor:
+    """L1 between the expected first-hit depth given a hit and the ground-truth first-hit depth.
+
+    ``soft.depth`` is ``sum_m w_m t_m / sum_m w_m``: it says where the surface is, independently of how likely a
+    hit is (which :func:`shell_cross_entropy` trains), and its gradient with respect to the logits stays bounded
+    where the hit probability is small.
+
+    Args:
+        soft: :class:`~fruxel.kernels.soft.SoftHits` of the prediction, ``depth`` ``(B, N, h, w)``.
+        target_depth: ``(B, N, h, w)`` ground-truth ``first_hit`` depth, metres (viewing camera z).
+        target_hit_mask: ``(B, N, h, w)`` bool, pixels where the ground truth hits; only these count.
+        scale: factor on the absolute error, e.g. ``1 / (z_far - z_near)`` for a unit-free loss.
+
+    Returns:
+        Scalar tensor: ``scale * mean |depth - target_depth|`` over the ground-truth hits (0 when there are none).
+    """
+    m = target_hit_mask.to(soft.depth.dtype)
+    err = (soft.depth - target_depth.to(soft.depth.dtype)).abs() * m
+    return scale * err.sum() / m.sum().clamp_min(1.0)
+
+
+def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor,
+                                         shell_mask: torch.Tensor, *, weight_visible: float = 1.0,
+                                         weight_other: float = 0.1, log_probs: bool = False) -> torch.Tensor:
+    """Per-cell cross-entropy with a weight per cell from the ground truth's visible shell.
+
+    Args:
+        scores: ``(B, C, D, H, W)`` logits (or log-probabilities with ``log_probs=True``), channel 0 = empty.
+        target_labels: ``(B, D, H, W)`` integer ground-truth labels in ``[0, C)``.
+        shell_mask: ``(B, D, H, W)`` bool, cells of the ground truth's shell (``fruxel.kernels.shell(...) != 0``).
+        weight_visible: weight of a shell cell.
+        weight_other: weight of every other cell (empty space and hidden interiors).
+        log_probs: ``scores`` are log-probabilities already (saves a second log-softmax).
+
+    Returns:
+        Scalar tensor: ``sum(weight * ce) / sum(weight)``.
+    """
+    s = scores if scores.dtype in (torch.float32, torch.float64) else scores.float()
+    target = target_labels.long()
+    ce = F.nll_loss(s, target, reduction="none") if log_probs else F.cross_entropy(s, target, reduction="none")
+    w = torch.where(shell_mask, weight_visible, weight_other).to(ce.dtype)
+    return (w * ce).sum() / w.sum().clamp_min(torch.finfo(ce.dtype).tiny)
+
+
+# ---------------------------------------------------------------------------------------------- poses
+def random_poses(grid: FruxelGrid, k: int, generator: np.random.Generator, *, width: int = 128, height: int = 128,
+                 hfov: float = 60.0, azimuth: tuple[float, float] = (-60.0, 60.0),
+                 elevation: tuple[float, float] = (5.0, 40.0),
+                 distance: tuple[float, float] = (0.9, 1.3)) -> list[Camera]:
+    """K random viewing cameras around the grid, each looking at the centre of its bounding box.
+
+    Angles follow :func:`fruxel.kernels.orbit_cameras`: azimuth 0 is the grid's own viewing side (the camera
+    stands towards -z), elevation lifts the camera towards -y (up). The distance is a factor on the orbit's
+    default radius, 1.2 times the bounding box's diagonal.
+
+    Args:
+        grid: the grid to look at.
+        k: number of cameras, >= 0.
+        generator: numpy random generator (seeded by the caller).
+        width, height, hfov: image size in pixels and horizontal field of view in degrees.
+        azimuth, elevation: ranges in degrees, drawn uniformly.
+        distance: range of the radius factor, drawn uniformly.
+
+    Returns:
+        k cameras with ``(4, 4)`` camera-to-grid poses.
+    """
+    box = grid.bounds()
+    centre = box.mean(axis=0)
+    radius = 1.2 * float(np.linalg.norm(box[1] - box[0]))
+    cams = []
+    for _ in range(k):
+        az = math.radians(generator.uniform(*azimuth))
+        el = math.radians(generator.uniform(*elevation))
+        r = radius * generator.uniform(*distance)
+        d = np.array([math.sin(az) * math.cos(el), -math.sin(el), -math.cos(az) * math.cos(el)])
+        cams.append(Camera.look_at(centre + r * d, centre, up=(0.0, -1.0, 0.0), width=width, height=height,
+                                   hfov=hfov))
+    return cams
+
+
+def group_by_size(cameras: list[Camera]) -> list[list[Camera]]:
+    """Cameras grouped by image size, in order of first appearance (one ``soft_first_hit`` group per size)."""
+    groups: dict[tuple[int, int], list[Camera]] = {}
+    for c in cameras:
+        groups.setdefault((c.width, c.height), []).append(c)
+    return list(groups.values())
+
+
+# ---------------------------------------------------------------------------------------------- combined
+@dataclass(frozen=True)
+class ShellLossConfig:
+    """Settings of :class:`ShellLoss`."""
+
+    own_view: bool = True
+    """Include the grid's own camera at native resolution (pixel (x, y) looks down column (y, x))."""
+    novel_views: int = 2
+    """K: random novel poses drawn per batch (shared by the batch's volumes)."""
+    novel_size: tuple[int, int] = (128, 128)
+    """``(width, height)`` of each novel view, pixels."""
+    novel_hfov: float = 60.0
+    """Horizontal field of view of the novel views, degrees."""
+    azimuth: tuple[float, float] = (-60.0, 60.0)
+    """Range of the novel views' azimuth, degrees (0 = the grid's own viewing side)."""
+    elevation: tuple[float, float] = (5.0, 40.0)
+    """Range of the novel views' elevation above the grid's horizontal plane, degrees."""
+    distance: tuple[float, float] = (0.9, 1.3)
+    """Range of the novel views' distance, as a factor on 1.2 times the grid's bounding-box diagonal."""
+    weight_shell: float = 1.0
+    """Weight of :func:`shell_cross_entropy` in the total."""
+    weight_depth: float = 1.0
+    """Weight of :func:`depth_l1` (unit-free: the error is divided by ``z_far - z_near``) in the total."""
+    weight_voxel: float = 1.0
+    """Weight of :func:`visible_weighted_voxel_ce` in the total."""
+    weight_visible: float = 1.0
+    """Per-cell weight of the ground truth's shell cells in the voxel cross-entropy."""
+    weight_other: float = 0.1
+    """Per-cell weight of all other cells in the voxel cross-entropy."""
+    eps: float = 1e-6
+    """Added to the expected class probability in :func:`shell_cross_entropy`."""
+    seed: int = 0
+    """Seed of the novel poses' generator (a :class:`ShellLoss` draws new poses at every call)."""
+    backend: str | None = None
+    """Kernel backend (``"warp"``, ``"opencl"``, an ``available_backends`` name, or None for the best)."""
+    device: str | None = None
+    """Warp device, or None to follow the data."""
+
+
+@dataclass(frozen=True)
+class ShellLossTerms:
+    """What :class:`ShellLoss` computed for one batch."""
+
+    total: torch.Tensor
+    """Scalar: the weighted sum of the three terms."""
+    shell_ce: torch.Tensor
+    """Scalar: :func:`shell_cross_entropy`, mean over every pixel of every camera."""
+    depth: torch.Tensor
+    """Scalar: :func:`depth_l1` over the ground truth's hits of every camera, unit-free."""
+    voxel: torch.Tensor
+    """Scalar: :func:`visible_weighted_voxel_ce`."""
+    cameras: list[Camera]
+    """The cameras used, own view first."""
+
+
+class ShellLoss:
+    """Shell-aware losses of predicted logits against a ground-truth label volume, from the grid's own view plus
+    K random novel poses per call (seeded; new poses at every call).
+
+    Args:
+        grid: the volumes' grid.
+        config: settings; defaults of :class:`ShellLossConfig` when None.
+    """
+
+    def __init__(self, grid: FruxelGrid, config: ShellLossConfig | None = None) -> None:
+        self.grid = grid
+        self.config = config or ShellLossConfig()
+        self.generator = np.random.default_rng(self.config.seed)
+
+    def cameras(self) -> list[Camera]:
+        """The cameras of the next batch: the own view (if configured) and K newly drawn novel poses."""
+        c = self.config
+        cams = [self.grid.camera()] if c.own_view else []
+        w, h = c.novel_size
+        cams += random_poses(self.grid, c.novel_views, self.generator, width=w, height=h, hfov=c.novel_hfov,
+                             azimuth=c.azimuth, elevation=c.elevation, distance=c.distance)
+        if not cams:
+            raise ValueError("ShellLoss needs the own view or at least one novel view")
+        return cams
+
+    def targets(self, labels: torch.Tensor, cameras: list[Camera]) -> tuple[list[tuple[Any, ...]], torch.Tensor]:
+        """The ground-truth side (no gradient): per camera group ``(labels (B, N, h, w) int64, depth
+        (B, N, h, w), hit (B, N, h, w) bool)`` from ``first_hit``, and the shell mask ``(B, D, H, W)`` bool."""
+        c = self.config
+        out = []
+        with torch.no_grad():
+            for group in group_by_size(cameras):
+                hits = [fk.first_hit(labels, self.grid, cam, backend=c.backend, device=c.device) for cam in group]
+                lab = torch.stack([torch.as_tensor(h.label) for h in hits], dim=1).long()
+                depth = torch.stack([torch.as_tensor(h.depth) for h in hits], dim=1)
+                out.append((lab, depth, lab > 0))
+            mask = torch.as_tensor(fk.shell(labels, self.grid, cameras, backend=c.backend, device=c.device)) != 0
+        return out, mask
+
+    def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
+                 cameras: list[Camera] | None = None) -> ShellLossTerms:
+        """The three losses and their weighted total for one batch: :meth:`targets` then :meth:`losses`.
+
+        Args:
+            logits: ``(B, C, D, H, W)`` predicted logits (any float dtype; bfloat16 is computed in float32), on the
+                CPU or CUDA; gradients flow back to them.
+            labels: ``(B, D, H, W)`` integer ground-truth labels in ``[0, C)`` (uint8 is cheapest), same device.
+            cameras: the viewing cameras; None draws them with :meth:`cameras`.
+
+        Returns:
+            :class:`ShellLossTerms`.
+        """
+        cams = self.cameras() if cameras is None else list(cameras)
+        targets, shell_mask = self.targets(labels, cams)
+        return self.losses(logits, labels, cams, targets, shell_mask)
+
+    def losses(self, logits: torch.Tensor, labels: torch.Tensor, cameras: list[Camera],
+               targets: list[tuple[Any, ...]], shell_mask: torch.Tensor) -> ShellLossTerms:
+        """The differentiable part, from ground-truth targets computed beforehand (e.g. by a data loader).
+
+        Args:
+            logits: as for :meth:`__call__`.
+            labels: as for :meth:`__call__` (the voxel cross-entropy's targets).
+            cameras: the cameras :meth:`targets` was given.
+            targets, shell_mask: what :meth:`targets` returned for ``labels`` and ``cameras``.
+
+        Returns:
+            :class:`ShellLossTerms`.
+        """
+        c = self.config
+        s = logits if logits.dtype in (torch.float32, torch.float64) else logits.float()
+        # One log-softmax serves both the voxel cross-entropy and, exponentiated, the kernels' probabilities.
+        log_p = torch.log_softmax(s, dim=1)
+        soft = soft_first_hit_groups(log_p.exp(), self.grid, group_by_size(cameras), backend=c.backend,
+                                     device=c.device, probs=True)
+        pixels = sum(t[0].numel() for t in targets)
+        hits = sum(t[2].sum() for t in targets).clamp_min(1)
+        shell_ce = sum(shell_cross_entropy(h, t[0], eps=c.eps) * (t[0].numel() / pixels)
+                       for h, t in zip(soft, targets, strict=True))
+        scale = 1.0 / (self.grid.z_far - self.grid.z_near)
+        depth = sum(depth_l1(h, t[1], t[2], scale=scale) * (t[2].sum() / hits)
+                    for h, t in zip(soft, targets, strict=True))
+        voxel = visible_weighted_voxel_ce(log_p, labels, shell_mask, weight_visible=c.weight_visible,
+                                          weight_other=c.weight_other, log_probs=True)
+        total = c.weight_shell * shell_ce + c.weight_depth * depth + c.weight_voxel * voxel
+        return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras))
