@@ -8,6 +8,8 @@ to ask :func:`is_available` stays cheap.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from typing import Any
 
 from .runtime import cuda_available, is_available, resolve_device, unavailable_reason
@@ -22,3 +24,20 @@ def __getattr__(name: str) -> Any:
     if name in _OPERATIONS:
         return getattr(importlib.import_module(_OPERATIONS[name], __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+class _Backend(types.ModuleType):
+    """The package binds each operation's function, never its module, to the operation's name.
+
+    Importing submodule ``.first_hit`` (by the hook above, or directly by any import of
+    ``fruxel.kernels.wp.first_hit``) makes the import system set the package attribute ``first_hit`` to the
+    submodule, which would shadow the function for every later caller.
+    """
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in _OPERATIONS and isinstance(value, types.ModuleType):
+            value = getattr(value, name, value)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Backend

@@ -1,0 +1,119 @@
+"""``first_hit`` on Warp: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
+
+One call: labels from the volume (one launch for scores, none for uint8 labels), the coarse pyramid (one launch),
+then one thread per pixel and batch item walks its ray (:func:`~fruxel.kernels.traverse.trace_ray`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fruxel.grid import FruxelGrid
+
+from ..inputs import Hits, VolumeError, check_cameras, inspect_volume
+from . import traverse
+from .arrays import Workspace, compute_device
+from .occupancy import occupancy
+from .runtime import warp
+from .traverse import CameraInfo, GridInfo, camera_arg, face_normal, grid_info, pixel_ray, trace_ray
+
+wp = warp()
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def trace_first_hit_kernel(
+    labels: wp.array2d(dtype=wp.uint8),
+    pyramid: wp.array2d(dtype=wp.uint8),
+    grid: GridInfo,
+    camera: CameraInfo,
+    label: wp.array3d(dtype=wp.int32),
+    cell: wp.array3d(dtype=wp.int64),
+    depth: wp.array3d(dtype=wp.float32),
+    normal: wp.array3d(dtype=wp.vec3),
+):
+    """Trace one pixel's ray to its first occupied cell.
+
+    Launch: ``(B, h, w)``, one thread per batch item and pixel (x fastest, so a warp shares a row of rays).
+
+    Args:
+        labels: ``(B, N)`` uint8 labels, flat cell index ``(k * H + j) * W + i``, 0 = empty.
+        pyramid: ``(B, bd * bh * bw + sd * sh * sw)`` uint8 block and super-block flags.
+        grid: the grid.
+        camera: the viewing camera (pose camera-to-grid).
+        label: ``(B, h, w)`` int32 output: the hit cell's label, 0 on a miss.
+        cell: ``(B, h, w)`` int64 output: the hit cell's flat index, -1 on a miss.
+        depth: ``(B, h, w)`` float32 output: ray parameter (= viewing-camera z) of the entry point, 0 on a miss.
+        normal: ``(B, h, w)`` vec3 output: unit entry-face normal, grid frame, facing the camera; zero on a miss.
+    """
+    b, y, x = wp.tid()
+    d = pixel_ray(camera, x, y)
+    n, t, family, boundary, s = trace_ray(labels, pyramid, b, grid, camera.origin, d)
+    if n < 0:
+        label[b, y, x] = 0
+        cell[b, y, x] = wp.int64(-1)
+        depth[b, y, x] = 0.0
+        normal[b, y, x] = wp.vec3(0.0)
+    else:
+        label[b, y, x] = int(labels[b, n])
+        cell[b, y, x] = wp.int64(n)
+        depth[b, y, x] = t
+        normal[b, y, x] = face_normal(grid, family, boundary, s, d)
+
+
+def first_hit(
+    volume: Any,
+    grid: FruxelGrid,
+    camera: Any,
+    *,
+    device: str | None = None,
+    threshold: float | None = None,
+    probs: bool = False,
+) -> Hits:
+    """First occupied cell along each pixel's ray; see :func:`fruxel.kernels.first_hit`.
+
+    Args:
+        volume: labels ``(D, H, W)`` / ``(B, D, H, W)`` or scores ``(B, C, D, H, W)``; numpy or torch, CPU or CUDA.
+            Torch tensors on the compute device are read in place, and the kernels run on torch's current stream.
+        grid: the volume's grid.
+        camera: one :class:`fruxel.Camera`.
+        device: Warp device; None follows the data (a CUDA tensor's device, else CUDA when present, else CPU).
+        threshold: occupancy threshold on ``1 - p(empty)`` for scores; None: argmax rule.
+        probs: scores are probabilities.
+
+    Returns:
+        :class:`~fruxel.kernels.Hits` in the caller's kind of array, on the caller's device; ``(B, h, w)`` fields
+        for batched volumes, ``(h, w)`` otherwise.
+
+    Raises:
+        VolumeError, fruxel.CameraError: bad input, before any device work.
+        BackendError, BackendUnavailable: an unknown or absent device.
+    """
+    spec = inspect_volume(volume, grid, threshold, probs)
+    cams = check_cameras(camera)
+    if len(cams) != 1:
+        raise VolumeError(f"first_hit takes one camera, got {len(cams)}")
+    cam = cams[0]
+    g = grid_info(grid)
+    ws = Workspace.like(volume, compute_device(volume, device))
+
+    labels, pyramid = occupancy(ws, volume, spec, grid)
+    dims = (spec.batch, cam.height, cam.width)
+    label = ws.empty(dims, wp.int32)
+    cell = ws.empty(dims, wp.int64)
+    depth = ws.empty(dims, wp.float32)
+    normal = ws.empty(dims, wp.vec3)
+    ws.launch(
+        trace_first_hit_kernel,
+        dims,
+        [labels, pyramid, g, camera_arg(cam), label, cell, depth, normal],
+        block_dim=traverse.TRACE_BLOCK_DIM,
+    )
+    lead = dims if spec.batched else dims[1:]
+    return Hits(
+        label=ws.result(label, shape=lead),
+        cell=ws.result(cell, shape=lead),
+        depth=ws.result(depth, shape=lead),
+        normal=ws.result(normal, shape=(*lead, 3)),
+    )
+

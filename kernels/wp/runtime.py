@@ -1,0 +1,115 @@
+"""Warp runtime: importing and initialising NVIDIA Warp once, and naming its devices.
+
+Warp is imported lazily, on the first question asked here, so that ``import fruxel.kernels`` never pays for it.
+Initialisation is quiet (``wp.config.quiet``): the backend is a library and prints nothing.
+
+Device names follow Warp's: ``"cpu"``, ``"cuda:0"``, ``"cuda:1"``; ``"cuda"`` means the current CUDA device.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cache
+from types import ModuleType
+from typing import Any
+
+from ..registry import BackendError, BackendUnavailable
+
+_DEVICE_NAME = re.compile(r"^(cpu|cuda)(?::(\d+))?$")
+
+
+@cache
+def _load() -> tuple[ModuleType | None, str]:
+    """Import and initialise Warp once: ``(warp module, "")``, or ``(None, why not)``."""
+    try:
+        import warp as wp
+    except ImportError as e:
+        return None, f"warp-lang is not importable ({e}); install it with: pip install 'fruxel[warp]'"
+    try:
+        wp.config.quiet = True  # Warp < 1.10; later versions use log levels
+        level = getattr(wp.config, "log_level", None)
+        if level is not None:
+            # Silence the start-up banner and, on CPU-only machines, the missing-driver warning.
+            wp.config.log_level = wp.LOG_ERROR
+        wp.init()
+        if level is not None:
+            # Start-up is over: keep Warp's real warnings, drop its per-module "load took" notes.
+            wp.config.log_level = max(level, wp.LOG_WARNING)
+    except Exception as e:  # noqa: BLE001 - any failure of a native library start-up means "unavailable"
+        return None, f"Warp failed to initialise: {type(e).__name__}: {e}"
+    return wp, ""
+
+
+def warp() -> ModuleType:
+    """The initialised ``warp`` module.
+
+    Raises:
+        BackendUnavailable: Warp is missing or failed to initialise.
+    """
+    wp, reason = _load()
+    if wp is None:
+        raise BackendUnavailable(reason)
+    return wp
+
+
+def cpu_available() -> bool:
+    """True when Warp can build CPU kernels (its LLVM/Clang library is present; stripped installations lack it)."""
+    wp = _load()[0]
+    return wp is not None and wp.is_cpu_available()
+
+
+def is_available() -> bool:
+    """True when Warp imports, initialises and has a device it can build kernels for (CPU or CUDA)."""
+    return cpu_available() or cuda_available()
+
+
+def unavailable_reason() -> str:
+    """Why :func:`is_available` is False, with an install hint; empty when Warp is available."""
+    wp, reason = _load()
+    if wp is None:
+        return reason
+    if not is_available():
+        return "Warp finds no CUDA device and cannot build CPU kernels (its LLVM/Clang library is missing)"
+    return ""
+
+
+def cuda_available() -> bool:
+    """True when Warp sees at least one CUDA device."""
+    wp = _load()[0]
+    return wp is not None and wp.get_cuda_device_count() > 0
+
+
+def resolve_device(device: Any = None) -> str:
+    """Normalise a device request to a Warp device name.
+
+    Args:
+        device: ``"cpu"``, ``"cuda"`` (the current CUDA device), ``"cuda:N"``, a ``torch.device`` or a
+            ``warp.Device``; None picks ``"cuda:0"`` when a CUDA device exists, else ``"cpu"``.
+
+    Returns:
+        ``"cpu"`` or ``"cuda:N"``.
+
+    Raises:
+        BackendUnavailable: Warp is missing, or CUDA is asked for on a machine without a CUDA device.
+        BackendError: a name that is no device, or a CUDA ordinal that does not exist here.
+    """
+    wp = warp()
+    if device is None:
+        return "cuda:0" if cuda_available() else resolve_device("cpu")
+    name = str(device)
+    m = _DEVICE_NAME.match(name)
+    if m is None:
+        raise BackendError(f"unknown Warp device {name!r}; use 'cpu', 'cuda' or 'cuda:N'")
+    if m.group(1) == "cpu":
+        if m.group(2) is not None:
+            raise BackendError(f"unknown Warp device {name!r}; the CPU device is 'cpu'")
+        if not wp.is_cpu_available():
+            raise BackendUnavailable("Warp's CPU device needs its LLVM/Clang library, which this installation lacks")
+        return "cpu"
+    count = wp.get_cuda_device_count()
+    if count == 0:
+        raise BackendUnavailable(f"Warp device {name!r} requested, but Warp finds no CUDA device here; use 'cpu'")
+    ordinal = wp.get_cuda_device().ordinal if m.group(2) is None else int(m.group(2))
+    if ordinal >= count:
+        raise BackendError(f"Warp device {name!r} does not exist: {count} CUDA device(s), cuda:0..cuda:{count - 1}")
+    return f"cuda:{ordinal}"

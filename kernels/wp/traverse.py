@@ -1,0 +1,600 @@
+"""Warp functions for the ray traversal of :mod:`fruxel.kernels.traversal`, shared by every Warp kernel that walks
+rays (``first_hit``, ``shell``, and ``soft_first_hit``'s clip / entry / step).
+
+Each function implements one numbered step of ``traversal.py`` and says which. Everything is float32 and in the
+grid frame (OpenCV axes, metres); the ray parameter ``t`` is depth in the viewing camera because the camera-frame
+direction has z = 1.
+
+Empty-space skipping (the "Empty-space skipping" paragraph of traversal.py) uses a two-level occupancy pyramid:
+blocks of ``BLOCK`` cells and super-blocks of ``SUPER`` blocks along each axis (index space; the last box of an
+axis may be partial). :func:`trace_ray` walks one level at a time, cells, blocks or super-blocks, each exactly as
+step 5 walks cells: the next crossing of each family is the far side of the current box, ties in the order u, v,
+z. Box boundaries are cell boundaries with the same index, and every crossing comes from one expression
+(:func:`crossing`), so a boundary's crossing is bit-identical on every level: a coarse walk meets the boundaries
+of its level in exactly the order, ties included, in which the plain cell loop would.
+
+The walk keeps one cell index per family. A step on any level moves the stepped family to the first cell of the
+next box, which is where the plain loop stands at that crossing. The other families may lag inside their current
+boxes (the plain loop would have crossed some of their finer planes meanwhile, all inside empty boxes); on the way
+down through a crossing ``(t, f)`` into an occupied box, each family but ``f`` is advanced past the finer
+crossings that the plain loop takes before ``(t, f)`` (``t_g < t``, or ``t_g == t`` and ``g`` before ``f`` in the
+tie order), at most ``BLOCK - 1`` of them per level, without leaving the box. On the cell level the state is then
+the plain loop's, so the hits are the same.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from functools import lru_cache
+from typing import Any
+
+from fruxel.camera import Camera
+from fruxel.grid import FruxelGrid
+
+from .. import traversal
+from .arrays import Packed
+from .runtime import warp
+
+wp = warp()
+
+# ``@wp.func`` forced inline (CUDA ``__forceinline__``): the walk's helpers take the grid struct by value, which a
+# call that is not inlined would copy on every step. Warp before inline hints leaves it to the compilers.
+try:
+    inline_func = wp.func(inline=True)
+except TypeError:
+    inline_func = wp.func
+
+BLOCK = wp.constant(traversal.BLOCK)
+if traversal.BLOCK & (traversal.BLOCK - 1):
+    raise ImportError(f"the Warp walk shifts by log2(BLOCK): BLOCK must be a power of two, got {traversal.BLOCK}")
+BLOCK_SHIFT = wp.constant(traversal.BLOCK.bit_length() - 1)
+SUPER_BLOCKS = traversal.BLOCK
+"""Edge of a super-block (the pyramid's second level), in blocks: ``BLOCK * SUPER_BLOCKS`` cells. Equal to BLOCK,
+so that every level has the same number of children per parent along an axis."""
+SUPER = wp.constant(SUPER_BLOCKS)
+SUPER_SHIFT = wp.constant((traversal.BLOCK * SUPER_BLOCKS).bit_length() - 1)
+PARENT_SHIFT = wp.constant(BLOCK_SHIFT)
+"""log2 of the children per parent box along an axis, the same for cells in blocks and blocks in super-blocks."""
+LEVEL_SUPERS = wp.constant(2)
+"""The walk's levels: 0 cells, 1 blocks, 2 super-blocks."""
+FAMILY_U = wp.constant(traversal.FAMILY_U)
+FAMILY_V = wp.constant(traversal.FAMILY_V)
+FAMILY_Z = wp.constant(traversal.FAMILY_Z)
+NO_FAMILY = wp.constant(-1)
+"""Entry face of a ray that starts inside the frustum (no clip plane crossed)."""
+
+# Clip planes in the order of step 1; PLANE_NONE: the ray starts inside the frustum.
+PLANE_NONE = wp.constant(-1)
+PLANE_LEFT = wp.constant(0)
+PLANE_RIGHT = wp.constant(1)
+PLANE_TOP = wp.constant(2)
+PLANE_BOTTOM = wp.constant(3)
+PLANE_NEAR = wp.constant(4)
+PLANE_FAR = wp.constant(5)
+
+TRACE_BLOCK_DIM = 128
+"""CUDA threads per block of the kernels that walk rays (their state takes many registers)."""
+
+# Largest cell count per batch item: cell indices are int32 inside the kernels.
+MAX_CELLS = 2**31 - 1
+
+
+@wp.struct
+class GridInfo:
+    """Grid constants for the kernels (from :func:`fruxel.kernels.traversal.grid_params`), passed by value."""
+
+    u0: wp.float32
+    """``u_0 = -tu``, the left boundary of u = x / z (``u_W = -u_0``)."""
+    v0: wp.float32
+    """``v_0 = -tv``, the top boundary of v = y / z (``v_H = -v_0``)."""
+    du: wp.float32
+    """Column width in u."""
+    dv: wp.float32
+    """Row height in v."""
+    z_near: wp.float32
+    """Near plane, metres."""
+    dz: wp.float32
+    """Slice thickness, metres."""
+    z_far: wp.float32
+    """Far plane, metres."""
+    width: wp.int32
+    """W, cells along i (u)."""
+    height: wp.int32
+    """H, cells along j (v)."""
+    depth: wp.int32
+    """D, cells along k (z)."""
+    blocks_u: wp.int32
+    """Pyramid blocks along i, ``ceil(W / BLOCK)``."""
+    blocks_v: wp.int32
+    """Pyramid blocks along j, ``ceil(H / BLOCK)``."""
+    blocks_z: wp.int32
+    """Pyramid blocks along k, ``ceil(D / BLOCK)``."""
+    supers_u: wp.int32
+    """Super-blocks along i, ``ceil(blocks_u / SUPER)``."""
+    supers_v: wp.int32
+    """Super-blocks along j, ``ceil(blocks_v / SUPER)``."""
+    supers_z: wp.int32
+    """Super-blocks along k, ``ceil(blocks_z / SUPER)``."""
+    supers_offset: wp.int32
+    """Where the super-block flags start in a pyramid row: the number of blocks, ``bd * bh * bw``."""
+
+
+@wp.struct
+class CameraInfo:
+    """Viewing camera constants (from :func:`fruxel.kernels.traversal.camera_params`), passed by value."""
+
+    fx: wp.float32
+    fy: wp.float32
+    cx: wp.float32
+    cy: wp.float32
+    rotation: wp.mat33
+    """Camera-to-grid rotation."""
+    origin: wp.vec3
+    """Optical centre, grid frame."""
+    width: wp.int32
+    """Image width, pixels."""
+    height: wp.int32
+    """Image height, pixels."""
+
+
+if (CameraInfo.ctype.width.offset, CameraInfo.ctype.height.offset) != (64, 68):
+    raise ImportError("CameraInfo must lay out camera_params' 16 float32 first, then width and height")
+
+
+def blocks(n: int) -> int:
+    """Number of pyramid blocks covering ``n`` cells along one axis (the last one may be partial)."""
+    return -(-n // traversal.BLOCK)
+
+
+def supers(n: int) -> int:
+    """Number of super-blocks covering ``n`` cells along one axis."""
+    return -(-blocks(n) // SUPER_BLOCKS)
+
+
+@lru_cache(maxsize=64)
+def pyramid_size(grid: FruxelGrid) -> int:
+    """Flags per batch item in the pyramid: blocks then super-blocks, ``bd * bh * bw + sd * sh * sw``."""
+    return math.prod(pyramid_shape(grid)) + math.prod(supers_shape(grid))
+
+
+def pyramid_shape(grid: FruxelGrid) -> tuple[int, int, int]:
+    """First pyramid level ``(bd, bh, bw) = (ceil(D / BLOCK), ceil(H / BLOCK), ceil(W / BLOCK))``."""
+    return blocks(grid.depth), blocks(grid.height), blocks(grid.width)
+
+
+def supers_shape(grid: FruxelGrid) -> tuple[int, int, int]:
+    """Second pyramid level ``(sd, sh, sw) = (ceil(bd / SUPER), ceil(bh / SUPER), ceil(bw / SUPER))``."""
+    return supers(grid.depth), supers(grid.height), supers(grid.width)
+
+
+@lru_cache(maxsize=64)
+def grid_info(grid: FruxelGrid) -> GridInfo:
+    """The :class:`GridInfo` of ``grid`` (cached: grids are immutable and hashable; the struct is never mutated).
+
+    Raises:
+        ValueError: a grid of more than ``MAX_CELLS`` cells, beyond the kernels' int32 cell indices.
+    """
+    if grid.n_cells > MAX_CELLS:
+        raise ValueError(f"the Warp kernels take grids of at most {MAX_CELLS} cells, got {grid.n_cells}")
+    p = traversal.grid_params(grid)
+    g = GridInfo()
+    g.u0, g.v0, g.du, g.dv, g.z_near, g.dz, g.z_far = (float(x) for x in p[:7])
+    g.width, g.height, g.depth = grid.width, grid.height, grid.depth
+    g.blocks_v, g.blocks_u = blocks(grid.height), blocks(grid.width)
+    g.blocks_z = blocks(grid.depth)
+    g.supers_u, g.supers_v, g.supers_z = supers(grid.width), supers(grid.height), supers(grid.depth)
+    g.supers_offset = g.blocks_u * g.blocks_v * g.blocks_z
+    return g
+
+
+def camera_arg(camera: Camera) -> Packed:
+    """``camera``'s :class:`CameraInfo` as a launch argument, packed directly: the struct's layout is
+    :func:`~fruxel.kernels.traversal.camera_params` (16 float32) followed by width and height (int32)."""
+    c = CameraInfo.ctype()
+    p = traversal.camera_params(camera)
+    ctypes.memmove(ctypes.addressof(c), p.ctypes.data, p.nbytes)
+    c.width, c.height = camera.width, camera.height
+    return Packed(c)
+
+
+def camera_info(camera: Camera) -> CameraInfo:
+    """The :class:`CameraInfo` of ``camera``."""
+    p = traversal.camera_params(camera)
+    c = CameraInfo()
+    c.fx, c.fy, c.cx, c.cy = (float(x) for x in p[:4])
+    c.rotation = wp.mat33(*(float(x) for x in p[4:13]))
+    c.origin = wp.vec3(*(float(x) for x in p[13:16]))
+    c.width, c.height = camera.width, camera.height
+    return c
+
+
+# ---------------------------------------------------------------------------------------------- ray
+@inline_func
+def pixel_ray(cam: CameraInfo, x: int, y: int) -> wp.vec3:
+    """Direction of pixel ``(x, y)``'s ray in the grid frame, unnormalised (camera-frame z = 1); its origin is
+    ``cam.origin``."""
+    dc = wp.vec3((float(x) + 0.5 - cam.cx) / cam.fx, (float(y) + 0.5 - cam.cy) / cam.fy, 1.0)
+    return cam.rotation @ dc
+
+
+# ---------------------------------------------------------------------------------------------- step 1: clip
+@inline_func
+def clip_half_space(a: float, b: float, t_lo: float, t_hi: float, plane: int, which: int):
+    """Step 1 for one half-space ``n . p + c >= 0`` with ``a = n . d``, ``b = n . o + c``.
+
+    Returns:
+        The updated ``(t_lo, t_hi, plane)``; ``plane`` becomes ``which`` when this half-space raises ``t_lo``
+        strictly. A ray parallel to the plane and outside gets ``t_hi = -inf`` (a miss).
+    """
+    if a == 0.0:
+        if b < 0.0:
+            return t_lo, -wp.inf, plane
+    elif a > 0.0:
+        t = -b / a
+        if t > t_lo:
+            return t, t_hi, which
+    else:
+        return t_lo, wp.min(t_hi, -b / a), plane
+    return t_lo, t_hi, plane
+
+
+@inline_func
+def clip_ray(g: GridInfo, o: wp.vec3, d: wp.vec3):
+    """Step 1: clip the ray ``o + t d`` (t >= 0) to the frustum.
+
+    Returns:
+        ``(t_lo, t_hi, plane)``: the parameter interval inside the frustum and the clip plane the ray enters
+        through (``PLANE_NONE`` when it starts inside). The ray misses when ``t_lo >= t_hi``.
+    """
+    t_lo = wp.float32(0.0)
+    t_hi = float(wp.inf)
+    plane = int(PLANE_NONE)
+    # left (1, 0, -u_0), right (-1, 0, u_W), top (0, 1, -v_0), bottom (0, -1, v_H), u_W = -u_0, v_H = -v_0
+    t_lo, t_hi, plane = clip_half_space(d[0] - g.u0 * d[2], o[0] - g.u0 * o[2], t_lo, t_hi, plane, PLANE_LEFT)
+    t_lo, t_hi, plane = clip_half_space(-d[0] - g.u0 * d[2], -o[0] - g.u0 * o[2], t_lo, t_hi, plane, PLANE_RIGHT)
+    t_lo, t_hi, plane = clip_half_space(d[1] - g.v0 * d[2], o[1] - g.v0 * o[2], t_lo, t_hi, plane, PLANE_TOP)
+    t_lo, t_hi, plane = clip_half_space(-d[1] - g.v0 * d[2], -o[1] - g.v0 * o[2], t_lo, t_hi, plane, PLANE_BOTTOM)
+    # near (0, 0, 1) with c = -z_near, far (0, 0, -1) with c = z_far
+    t_lo, t_hi, plane = clip_half_space(d[2], o[2] - g.z_near, t_lo, t_hi, plane, PLANE_NEAR)
+    t_lo, t_hi, plane = clip_half_space(-d[2], g.z_far - o[2], t_lo, t_hi, plane, PLANE_FAR)
+    return t_lo, t_hi, plane
+
+
+# ---------------------------------------------------------------------------------------------- step 2: entry
+@inline_func
+def floor_index(x: float, n: int) -> int:
+    """``floor(x)`` clamped to ``[0, n - 1]``; NaN gives 0."""
+    f = wp.floor(x)
+    if f >= float(n - 1):
+        return n - 1
+    if f >= 0.0:
+        return int(f)
+    return 0
+
+
+@inline_func
+def entry_cell(g: GridInfo, o: wp.vec3, d: wp.vec3, t: float, plane: int) -> wp.vec3i:
+    """Step 2: the cell ``(i, j, k)`` the ray enters at parameter ``t`` through clip plane ``plane``; the entry
+    plane's own index is set exactly."""
+    p = o + t * d
+    i = floor_index((p[0] / p[2] - g.u0) / g.du, g.width)
+    j = floor_index((p[1] / p[2] - g.v0) / g.dv, g.height)
+    k = floor_index((p[2] - g.z_near) / g.dz, g.depth)
+    if plane == PLANE_LEFT:
+        i = 0
+    elif plane == PLANE_RIGHT:
+        i = g.width - 1
+    elif plane == PLANE_TOP:
+        j = 0
+    elif plane == PLANE_BOTTOM:
+        j = g.height - 1
+    elif plane == PLANE_NEAR:
+        k = 0
+    elif plane == PLANE_FAR:
+        k = g.depth - 1
+    return wp.vec3i(i, j, k)
+
+
+@inline_func
+def entry_face(g: GridInfo, plane: int):
+    """The entry face of clip plane ``plane`` as ``(family, boundary index, sign)`` for :func:`face_normal`:
+    minus the plane's unit normal is the fine-plane normal of that boundary crossed with that sign."""
+    if plane == PLANE_LEFT:
+        return FAMILY_U, 0, 1
+    if plane == PLANE_RIGHT:
+        return FAMILY_U, g.width, -1
+    if plane == PLANE_TOP:
+        return FAMILY_V, 0, 1
+    if plane == PLANE_BOTTOM:
+        return FAMILY_V, g.height, -1
+    if plane == PLANE_NEAR:
+        return FAMILY_Z, 0, 1
+    if plane == PLANE_FAR:
+        return FAMILY_Z, g.depth, -1
+    return NO_FAMILY, 0, 0
+
+
+# ---------------------------------------------------------------------------------------------- step 3: signs
+@inline_func
+def sign_of(x: float) -> int:
+    """-1, 0 or 1."""
+    if x > 0.0:
+        return 1
+    if x < 0.0:
+        return -1
+    return 0
+
+
+@inline_func
+def step_signs(o: wp.vec3, d: wp.vec3) -> wp.vec3i:
+    """Step 3: ``(s_i, s_j, s_k)``, constant along the ray; 0 means that family is never crossed."""
+    return wp.vec3i(sign_of(d[0] * o[2] - d[2] * o[0]), sign_of(d[1] * o[2] - d[2] * o[1]), sign_of(d[2]))
+
+
+# ---------------------------------------------------------------------------------------------- step 4: crossings
+@inline_func
+def select(family: int, a: Any, b: Any, c: Any):
+    """``a``, ``b`` or ``c`` for family u, v or z, without a branch (selects keep the walk free of divergence)."""
+    return wp.where(family == FAMILY_U, a, wp.where(family == FAMILY_V, b, c))
+
+
+@inline_func
+def crossing(g: GridInfo, o: wp.vec3, d: wp.vec3, family: int, boundary: int, s: int) -> float:
+    """Step 4: ``t`` where the ray crosses plane ``boundary`` of ``family`` moving with sign ``s``; +inf when it
+    never does. Boundaries come from their index (``w = w_0 + boundary * dw``), never accumulated.
+
+    u and v: ``t = (w o_z - o_a) / (d_a - w d_z)`` for the plane ``a = w z`` (a = x or y). The crossing exists only
+    where the ray approaches the plane, ``s (d_a - w d_z) > 0``: ``a - w z`` is linear in t and must change sign
+    in the direction of motion, else the root lies behind the apex (the ray's u converges short of the plane).
+    z: ``t = (w - o_z) / d_z``, the same expression with ``o_z``, ``d_z`` replaced by 1, 0, which is exact.
+    One branch-free expression for all three families makes every crossing of a plane bit-identical wherever it
+    is computed (the block walk relies on that).
+    """
+    side = wp.where(family == FAMILY_Z, 0.0, 1.0)
+    w = select(family, g.u0, g.v0, g.z_near) + float(boundary) * select(family, g.du, g.dv, g.dz)
+    den = select(family, d[0], d[1], d[2]) - w * (side * d[2])
+    num = w * wp.where(family == FAMILY_Z, 1.0, o[2]) - select(family, o[0], o[1], o[2])
+    return wp.where(float(s) * den > 0.0, num / den, wp.inf)
+
+
+@inline_func
+def boundary_ahead(index: int, s: int) -> int:
+    """Step 4: the boundary in front of cell ``index`` moving with sign ``s``, ``index + (s > 0)``."""
+    if s > 0:
+        return index + 1
+    return index
+
+
+@inline_func
+def boundary_behind(index: int, s: int) -> int:
+    """The boundary a ray moving with sign ``s`` crossed to enter cell ``index``."""
+    if s > 0:
+        return index
+    return index + 1
+
+
+@inline_func
+def pick_family(tu: float, tv: float, tz: float) -> int:
+    """Step 5: the family with the smallest next crossing, ties in the order u, v, z."""
+    return wp.where(tu <= wp.min(tv, tz), FAMILY_U, wp.where(tv <= tz, FAMILY_V, FAMILY_Z))
+
+
+@inline_func
+def precedes(t_a: float, family_a: int, t_b: float, family_b: int) -> bool:
+    """Whether the plain loop takes crossing ``(t_a, family_a)`` before ``(t_b, family_b)``."""
+    return t_a < t_b or (t_a == t_b and family_a < family_b)
+
+
+@inline_func
+def box_boundary(index: int, s: int, shift: int, n: int) -> int:
+    """The cell boundary in front of the box (``2^shift`` cells per box, ``n`` cells on the axis) that holds cell
+    ``index``, moving with sign ``s``; shift 0 gives :func:`boundary_ahead`."""
+    if s > 0:
+        return wp.min(((index >> shift) + 1) << shift, n)
+    return (index >> shift) << shift
+
+
+@inline_func
+def next_box(index: int, s: int, shift: int) -> int:
+    """The first cell a ray moving with sign ``s`` enters in the box after the one holding cell ``index``."""
+    if s > 0:
+        return ((index >> shift) + 1) << shift
+    return ((index >> shift) << shift) - 1
+
+
+@inline_func
+def last_in_box(index: int, s: int, shift: int, n: int) -> int:
+    """The last cell, moving with sign ``s``, of the box (``2^shift`` cells) that holds cell ``index``."""
+    if s > 0:
+        return wp.min(((index >> shift) + 1) << shift, n) - 1
+    return (index >> shift) << shift
+
+
+@inline_func
+def level_shift(level: int) -> int:
+    """log2 of a level's box edge in cells: 0 for cells, then blocks, then super-blocks."""
+    return wp.where(level == 0, 0, wp.where(level == 1, BLOCK_SHIFT, SUPER_SHIFT))
+
+
+@inline_func
+def box_occupied(pyramid: wp.array2d(dtype=wp.uint8), b: int, g: GridInfo, level: int, i: int, j: int, k: int) -> bool:
+    """Whether the block (level 1) or super-block (level 2) holding cell ``(k, j, i)`` holds an occupied cell."""
+    if level == 1:
+        flat = ((k >> BLOCK_SHIFT) * g.blocks_v + (j >> BLOCK_SHIFT)) * g.blocks_u + (i >> BLOCK_SHIFT)
+        return int(pyramid[b, flat]) != 0
+    flat = ((k >> SUPER_SHIFT) * g.supers_v + (j >> SUPER_SHIFT)) * g.supers_u + (i >> SUPER_SHIFT)
+    return int(pyramid[b, g.supers_offset + flat]) != 0
+
+
+@inline_func
+def catch_up(
+    g: GridInfo,
+    o: wp.vec3,
+    d: wp.vec3,
+    family: int,
+    index: int,
+    s: int,
+    shift: int,
+    n: int,
+    t_next: float,
+    t: float,
+    f: int,
+):
+    """Advance one family on a level (boxes of ``2^shift`` cells; ``index`` a cell of the current box, ``t_next``
+    the crossing of its far side) past every crossing of that level the plain loop takes before crossing
+    ``(t, f)``, without leaving the parent box (``2^(shift + 2)`` cells) just entered.
+
+    Returns:
+        The new ``(index, t_next)``: the first cell of the box reached (or ``index`` unchanged), and its crossing.
+    """
+    last = last_in_box(index, s, shift + PARENT_SHIFT, n) >> shift
+    while (index >> shift) != last and precedes(t_next, family, t, f):
+        index = next_box(index, s, shift)
+        t_next = crossing(g, o, d, family, box_boundary(index, s, shift, n), s)
+    return index, t_next
+
+
+# ---------------------------------------------------------------------------------------------- step 5: the loop
+@inline_func
+def trace_ray(
+    labels: wp.array2d(dtype=wp.uint8),
+    pyramid: wp.array2d(dtype=wp.uint8),
+    b: int,
+    g: GridInfo,
+    o: wp.vec3,
+    d: wp.vec3,
+):
+    """Steps 1-5 with empty-space skipping: the first occupied cell along the ray ``o + t d`` in batch item ``b``.
+
+    One walk on three levels (cells, blocks, super-blocks), with one state per family: the cell index ``i, j, k``
+    and the next crossing ``cu, cv, cz`` of the far side of the current box on the current level. A step on a
+    level moves the stepped family's cell index to the first cell of the next box, which is where the plain loop
+    stands at that crossing; the other families' cell indices lie in their current boxes but may lag inside them,
+    until a descent catches them up (see the module docstring). After each step the walk goes up while the step
+    entered an empty parent box, and down (catching up) while the current box is occupied; on the cell level an
+    occupied cell is the hit. Every walk ends: each step moves one index one way, and leaving the index range or
+    the clipped segment is a miss.
+
+    Args:
+        labels: ``(B, D * H * W)`` uint8 labels, flat cell index ``(k * H + j) * W + i``; 0 = empty.
+        pyramid: ``(B, bd * bh * bw + sd * sh * sw)`` uint8: block flags (:func:`pyramid_shape`, flat
+            ``(bk * bh + bj) * bw + bi``), then super-block flags (:func:`supers_shape`, flat likewise) from
+            ``g.supers_offset``; nonzero where the box holds an occupied cell.
+        b: batch item.
+        g: the grid.
+        o: ray origin, grid frame.
+        d: ray direction, grid frame, unnormalised.
+
+    Returns:
+        ``(cell, t, family, boundary, sign)``: the flat index of the hit cell (-1 on a miss), the ``t`` where the
+        ray enters it, and its entry face for :func:`face_normal` (``NO_FAMILY`` when the ray starts inside it).
+    """
+    t_lo, t_hi, plane = clip_ray(g, o, d)
+    if t_lo >= t_hi:
+        return wp.int32(-1), wp.float32(0.0), int(NO_FAMILY), wp.int32(0), wp.int32(0)
+    c = entry_cell(g, o, d, t_lo, plane)
+    i = c[0]
+    j = c[1]
+    k = c[2]
+    ef, eb, es = entry_face(g, plane)
+    t_entry = t_lo
+    s = step_signs(o, d)
+    si = s[0]
+    sj = s[1]
+    sk = s[2]
+
+    # Start on the super-block level; the first pass of the loop descends as far as the boxes are occupied.
+    level = int(LEVEL_SUPERS)
+    shift = int(SUPER_SHIFT)
+    cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+    cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+    cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+    t = t_lo
+    f = int(NO_FAMILY)
+    cell = wp.int32(-1)
+    while True:
+        if level == 0:
+            n = (k * g.height + j) * g.width + i
+            if int(labels[b, n]) != 0:
+                cell = n
+                break
+        elif box_occupied(pyramid, b, g, level, i, j, k):
+            # Down one level at the last crossing (t, f): the stepped family stands at its box's first cell,
+            # the others catch up inside the box just entered. Then look at the new box again.
+            level -= 1
+            shift = level_shift(level)
+            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+            if f >= 0:
+                if f != FAMILY_U:
+                    i, cu = catch_up(g, o, d, FAMILY_U, i, si, shift, g.width, cu, t, f)
+                if f != FAMILY_V:
+                    j, cv = catch_up(g, o, d, FAMILY_V, j, sj, shift, g.height, cv, t, f)
+                if f != FAMILY_Z:
+                    k, cz = catch_up(g, o, d, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
+            continue
+
+        # One step on the current level: across an empty box, or (level 0) to the next cell.
+        f = pick_family(cu, cv, cz)
+        old = wp.int32(0)
+        if f == FAMILY_U:
+            t = cu
+            old = i
+            i = next_box(i, si, shift)
+            if t >= t_hi or i < 0 or i >= g.width:
+                break
+            es = si
+            eb = boundary_behind(i, si)
+            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+        elif f == FAMILY_V:
+            t = cv
+            old = j
+            j = next_box(j, sj, shift)
+            if t >= t_hi or j < 0 or j >= g.height:
+                break
+            es = sj
+            eb = boundary_behind(j, sj)
+            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+        else:
+            t = cz
+            old = k
+            k = next_box(k, sk, shift)
+            if t >= t_hi or k < 0 or k >= g.depth:
+                break
+            es = sk
+            eb = boundary_behind(k, sk)
+            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+        t_entry = t
+        ef = f
+        # Up while the step entered an empty parent box (a parent that did not change is still occupied).
+        new = select(f, i, j, k)
+        while level < LEVEL_SUPERS:
+            up = level_shift(level + 1)
+            if (old >> up) == (new >> up) or box_occupied(pyramid, b, g, level + 1, i, j, k):
+                break
+            level += 1
+            shift = up
+            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+    return cell, t_entry, ef, eb, es
+
+
+@inline_func
+def face_normal(g: GridInfo, family: int, boundary: int, s: int, d: wp.vec3) -> wp.vec3:
+    """Unit normal of an entry face, grid frame, facing the camera (``dot(n, d) < 0``).
+
+    u-plane ``u``: ``-s (1, 0, -u) / |.|``; v-plane: ``-s (0, 1, -v) / |.|``; z-plane: ``(0, 0, -s)``; a ray that
+    starts inside its hit cell (``NO_FAMILY``): ``-d / |d|``.
+    """
+    if family == FAMILY_U:
+        w = g.u0 + float(boundary) * g.du
+        return -float(s) * wp.normalize(wp.vec3(1.0, 0.0, -w))
+    if family == FAMILY_V:
+        w = g.v0 + float(boundary) * g.dv
+        return -float(s) * wp.normalize(wp.vec3(0.0, 1.0, -w))
+    if family == FAMILY_Z:
+        return wp.vec3(0.0, 0.0, -float(s))
+    return -wp.normalize(d)
