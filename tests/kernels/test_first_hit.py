@@ -31,7 +31,6 @@ from .conftest import (
     random_labels,
     region_of_cells,
     scores_from_labels,
-    shell,
 )
 from .reference import near_edge, ref_first_hit, ref_labels_from_scores
 
@@ -426,18 +425,25 @@ def test_torch_in_torch_out(backend: str) -> None:
 @pytest.mark.gpu
 @pytest.mark.skipif("warp-cuda" not in REAL_BACKENDS, reason="needs Warp on a CUDA device")
 def test_cuda_tensor_in_cuda_tensor_out() -> None:
-    """A CUDA tensor stays on its device (backend chosen by default), with the CPU backend's values."""
+    """A CUDA tensor stays on its device (backend chosen by default), with the reference's values.
+
+    Compared with the numpy reference rather than warp-cpu: GPU machines may carry a Warp without its CPU
+    compiler.
+    """
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(71)
     grid = random_grid(rng)
     labels = np.stack([random_labels(rng, grid) for _ in range(2)])
     cam = random_camera(rng, grid, "front", size=(48, 36))
-    want = hits_numpy(first_hit("warp-cpu", labels, grid, cam))
     hits = _kernels_first_hit(torch.from_numpy(labels).cuda(), grid, cam)
     assert hits.cell.is_cuda and hits.depth.dtype == torch.float32
     got = hits_numpy(hits)
-    np.testing.assert_array_equal(got["cell"], want["cell"])
-    np.testing.assert_allclose(got["depth"], want["depth"], rtol=1e-5, atol=1e-6)
+    for b in range(len(labels)):
+        assert_agree({k: v[b] for k, v in got.items()}, labels[b], grid, cam, what=f"item {b}")
     kept = _kernels_shell(torch.from_numpy(labels).cuda(), grid, [cam])
     assert kept.is_cuda
-    np.testing.assert_array_equal(kept.cpu().numpy(), shell("warp-cpu", labels, grid, [cam]))
+    kept = kept.cpu().numpy()
+    assert np.all((kept == 0) | (kept == labels))
+    for b in range(len(labels)):
+        # The shell keeps every first hit: the reference sees through it what CUDA saw in the full volume.
+        assert_agree({k: v[b] for k, v in got.items()}, kept[b], grid, cam, what=f"shell item {b}")
