@@ -91,7 +91,7 @@ def available_backends() -> list[str]:
     cl = _try("opencl")
     if wp is not None and wp.cuda_available():
         out.append("warp-cuda")
-    if wp is not None:
+    if wp is not None and wp.cpu_available():
         out.append("warp-cpu")
     if cl is not None:
         out.append("opencl")
@@ -135,7 +135,7 @@ def resolve(backend: str | None, device: str | None, volume: Any = None) -> tupl
             backend = "warp"
         elif _try("opencl") is not None:
             backend = "opencl"
-        elif wp is not None:
+        elif wp is not None and wp.cpu_available():
             backend = "warp"
         else:
             raise BackendUnavailable(

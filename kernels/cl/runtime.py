@@ -78,6 +78,11 @@ def unavailable_reason() -> str:
     return _devices()[2]
 
 
+def cpu_available() -> bool:
+    """True when an OpenCL CPU device exists (registry contract, same name in every backend)."""
+    return bool(_devices()[1])
+
+
 def cuda_available() -> bool:
     """Always False: this backend never runs on CUDA itself (registry contract, used to rank backends)."""
     return False

@@ -12,9 +12,9 @@ import sys
 import types
 from typing import Any
 
-from .runtime import cuda_available, is_available, resolve_device, unavailable_reason
+from .runtime import cpu_available, cuda_available, is_available, resolve_device, unavailable_reason
 
-__all__ = ["cuda_available", "first_hit", "is_available", "resolve_device", "shell", "soft_first_hit",
+__all__ = ["cpu_available", "cuda_available", "first_hit", "is_available", "resolve_device", "shell", "soft_first_hit",
            "unavailable_reason"]
 
 _OPERATIONS = {"first_hit": ".first_hit", "shell": ".shell", "soft_first_hit": ".soft_first_hit"}
