@@ -200,10 +200,10 @@ def test_bad_input_raises_before_work() -> None:
     ]
     for vol, kw in bad:
         with pytest.raises(VolumeError):
-            first_hit(vol, GRID, cam, backend="warp", device="cpu", **kw)
+            first_hit(vol, GRID, cam, backend="warp", **kw)
     with pytest.raises(VolumeError):
-        shell(lab, GRID, [], backend="warp", device="cpu")
+        shell(lab, GRID, [], backend="warp")
     with pytest.raises(VolumeError):
-        first_hit(lab, GRID, [cam, cam], backend="warp", device="cpu")
+        first_hit(lab, GRID, [cam, cam], backend="warp")
     with pytest.raises(BackendError):
         first_hit(lab, GRID, cam, backend="warp", device="tpu")
