@@ -8,13 +8,42 @@ fails only for the user who asks for it, with an install hint.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
 from typing import Any
 
-OPERATIONS = ("first_hit", "shell")
-"""Functions every backend module defines, with identical signatures (see ``fruxel.kernels``)."""
+OPERATIONS = ("first_hit", "shell", "soft_first_hit")
+"""Functions every backend package exposes, with identical signatures (see ``fruxel.kernels``); each lives in the
+backend's submodule of the same name, beside its kernel source."""
+
+
+class _BackendPackage(types.ModuleType):
+    """Module type of a backend package: each operation's *function* under the operation's name, imported on
+    first use.
+
+    The import system binds a package attribute to a submodule when the submodule is first imported (by first
+    use here, or by any ``import fruxel.kernels.wp.first_hit``), which would hide the function of the same name;
+    ``__setattr__`` keeps the function instead.
+    """
+
+    def __getattr__(self, name: str) -> Any:
+        if name in OPERATIONS:
+            return getattr(importlib.import_module(f"{self.__name__}.{name}"), name)
+        raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in OPERATIONS and isinstance(value, types.ModuleType):
+            value = getattr(value, name, value)
+        super().__setattr__(name, value)
+
+
+def backend_package(name: str) -> None:
+    """Turn the package ``name`` (a backend's ``__init__`` passes ``__name__``) into a backend package: its
+    :data:`OPERATIONS` resolve lazily to the functions of its submodules of the same names."""
+    sys.modules[name].__class__ = _BackendPackage
 
 
 class BackendUnavailable(RuntimeError):

@@ -7,37 +7,10 @@ to ask :func:`is_available` stays cheap.
 
 from __future__ import annotations
 
-import importlib
-import sys
-import types
-from typing import Any
-
+from ..registry import backend_package
 from .runtime import cpu_available, cuda_available, is_available, resolve_device, unavailable_reason
 
 __all__ = ["cpu_available", "cuda_available", "first_hit", "is_available", "resolve_device", "shell", "soft_first_hit",
            "unavailable_reason"]
 
-_OPERATIONS = {"first_hit": ".first_hit", "shell": ".shell", "soft_first_hit": ".soft_first_hit"}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _OPERATIONS:
-        return getattr(importlib.import_module(_OPERATIONS[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-class _Backend(types.ModuleType):
-    """The package binds each operation's function, never its module, to the operation's name.
-
-    Importing submodule ``.first_hit`` (by the hook above, or directly by any import of
-    ``fruxel.kernels.wp.first_hit``) makes the import system set the package attribute ``first_hit`` to the
-    submodule, which would shadow the function for every later caller.
-    """
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if name in _OPERATIONS and isinstance(value, types.ModuleType):
-            value = getattr(value, name, value)
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Backend
+backend_package(__name__)

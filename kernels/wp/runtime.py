@@ -8,7 +8,12 @@ Device names follow Warp's: ``"cpu"``, ``"cuda:0"``, ``"cuda:1"``; ``"cuda"`` me
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
+import sys
+import tempfile
+from collections.abc import Iterator
 from functools import cache
 from types import ModuleType
 from typing import Any
@@ -16,6 +21,36 @@ from typing import Any
 from ..registry import BackendError, BackendUnavailable
 
 _DEVICE_NAME = re.compile(r"^(cpu|cuda)(?::(\d+))?$")
+
+# Printed by Warp's native library, straight to file descriptor 2, on every machine without an NVIDIA driver
+# (no log level reaches it). On such machines the missing GPU is expected, so the line is noise.
+_NO_DRIVER_NOTE = "Could not find or load the NVIDIA CUDA driver"
+
+
+@contextlib.contextmanager
+def _without_no_driver_note() -> Iterator[None]:
+    """Capture what native code writes to stderr meanwhile, and pass it on without Warp's missing-driver line."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        # stderr is no real file (an embedding host, a test capture): nothing to filter at the descriptor.
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as cap:
+        os.dup2(cap.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, fd)
+            os.close(saved)
+            cap.seek(0)
+            lines = cap.read().decode(errors="replace").splitlines(keepends=True)
+            kept = "".join(ln for ln in lines if _NO_DRIVER_NOTE not in ln)
+            if kept:
+                sys.stderr.write(kept)
 
 
 @cache
@@ -31,7 +66,8 @@ def _load() -> tuple[ModuleType | None, str]:
         if level is not None:
             # Silence the start-up banner and, on CPU-only machines, the missing-driver warning.
             wp.config.log_level = wp.LOG_ERROR
-        wp.init()
+        with _without_no_driver_note():
+            wp.init()
         if level is not None:
             # Start-up is over: keep Warp's real warnings, drop its per-module "load took" notes.
             wp.config.log_level = max(level, wp.LOG_WARNING)
