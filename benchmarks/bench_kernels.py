@@ -27,14 +27,9 @@ Open3D: ``pip install 'fruxel[bench]'`` (open3d 0.20; on Debian its wheel also n
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import importlib
 import json
-import os
-import platform
-import re
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -45,6 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import common  # noqa: E402
 import scenes  # noqa: E402
 
 from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
@@ -52,9 +48,6 @@ from fruxel.grid import FruxelGrid  # noqa: E402
 from fruxel.kernels import available_backends, first_hit, orbit_cameras, shell  # noqa: E402
 from fruxel.mesh import mesh_labels  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
-RESULTS = ROOT / "benchmarks" / "results"
 SECTION = "## Kernels"
 
 TARGETS = {
@@ -74,37 +67,6 @@ SPEEDUP_TARGET = ("opencl", 150.0)
 # ---------------------------------------------------------------------------------------------- machine
 
 
-def cpu_name() -> str:
-    """CPU model from lscpu, else platform's."""
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
-        if m:
-            return m.group(1).strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or platform.machine()
-
-
-def gpu_name() -> str | None:
-    """Name of the first NVIDIA GPU, or None."""
-    try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                             text=True, check=True, timeout=20).stdout.strip()
-        return out.splitlines()[0] if out else None
-    except (OSError, subprocess.CalledProcessError, subprocess.TimeoutExpired):
-        return None
-
-
-def _version(name: str) -> str | None:
-    try:
-        from importlib.metadata import version
-
-        return version(name)
-    except Exception:  # noqa: BLE001 - a missing or odd distribution just has no version
-        return None
-
-
 def machine_info() -> dict[str, Any]:
     """CPU, cores, GPU, OpenCL device, date and package versions."""
     cl_device = None
@@ -114,17 +76,11 @@ def machine_info() -> dict[str, Any]:
         cl_device = "; ".join(f"{p.name}: {d.name}" for p in cl.get_platforms() for d in p.get_devices())
     except Exception:  # noqa: BLE001 - no OpenCL here
         pass
-    return {
-        "cpu": cpu_name(),
-        "cores": os.cpu_count(),
-        "gpu": gpu_name(),
-        "opencl_devices": cl_device,
-        "date": dt.date.today().isoformat(),
-        "load_average_1min_at_start": os.getloadavg()[0],
-        "python": platform.python_version(),
-        "versions": {n: _version(n) for n in ("numpy", "warp-lang", "pyopencl", "pocl-binary-distribution",
-                                               "open3d", "embreex", "trimesh", "torch")},
-    }
+    info = common.machine_info(("numpy", "warp-lang", "pyopencl", "pocl-binary-distribution", "open3d", "embreex",
+                                "trimesh", "torch"))
+    info["load_average_1min_at_start"] = info.pop("load_average")
+    info["opencl_devices"] = cl_device
+    return info
 
 
 # ---------------------------------------------------------------------------------------------- timing
@@ -139,19 +95,7 @@ def _sync(device: str | None) -> None:
 
 def time_call(fn: Callable[[], Any], repeat: int, device: str | None = None) -> dict[str, float]:
     """First-call time, then the median (and min) of ``repeat`` calls after one warm-up, in milliseconds."""
-    t0 = time.perf_counter()
-    fn()
-    _sync(device)
-    first = (time.perf_counter() - t0) * 1e3
-    fn()
-    _sync(device)
-    runs = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        runs.append((time.perf_counter() - t0) * 1e3)
-    return {"first_ms": first, "median_ms": statistics.median(runs), "min_ms": min(runs), "runs": len(runs)}
+    return common.time_calls(fn, repeat, sync=lambda: _sync(device), warmup=1)
 
 
 def _device_volume(volume: np.ndarray, device: str | None) -> Any:
@@ -289,11 +233,7 @@ def bench_peer(labels: np.ndarray, grid: FruxelGrid, image: int, repeat: int,
 
 def bar_chart(result: dict[str, Any], path: Path) -> None:
     """Horizontal bars of median milliseconds per (backend, operation), the peer's beside them, log scale."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = common.pyplot()
     labels, values, colours = [], [], []
     palette = {"opencl": "#1f77b4", "warp-cpu": "#2ca02c", "warp-cuda": "#d62728"}
     for r in result["rows"]:
@@ -318,10 +258,7 @@ def bar_chart(result: dict[str, Any], path: Path) -> None:
     ax.set_title(f"fruxel kernels on {m['cpu']} ({m['cores']} cores){' + ' + m['gpu'] if m['gpu'] else ''}",
                  fontsize=9)
     ax.set_xlim(right=max(values) * 4)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=110)
 
 
 def ratios(result: dict[str, Any]) -> dict[str, dict[str, float]]:
@@ -418,17 +355,6 @@ def section(results: list[dict[str, Any]]) -> str:
     return "\n".join(parts)
 
 
-def write_section(text: str, path: Path = BENCHMARKS_MD) -> None:
-    """Replace (or append) the "## Kernels" section, leaving the rest of the file as it is."""
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
-    if pattern.search(old):
-        new = pattern.sub(lambda _: text.rstrip() + "\n\n", old, count=1)
-    else:
-        new = old.rstrip() + "\n\n" + text.rstrip() + "\n"
-    path.write_text(new.rstrip() + "\n")
-
-
 # ---------------------------------------------------------------------------------------------- main
 
 
@@ -438,7 +364,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--sizes", nargs="+", type=int, default=None,
                     help="grid sizes n (image 4n); default 128, plus 256 when a CUDA backend runs")
     ap.add_argument("--repeat", type=int, default=10, help="timed runs per measurement")
-    ap.add_argument("--out", default=str(RESULTS / "kernels"), help="prefix of the .json and .png written")
+    ap.add_argument("--out", default=str(common.RESULTS / "kernels"), help="prefix of the .json and .png written")
     ap.add_argument("--device", default=None, help="Warp device (cpu, cuda, cuda:N); default per backend name")
     ap.add_argument("--no-peer", action="store_true", help="skip the Embree peer")
     ap.add_argument("--no-write", action="store_true", help="do not write files or BENCHMARKS.md")
@@ -480,7 +406,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 print(f"peer {peer['peer']}: mesh {peer['mesh_build_ms']:.1f} ms, BVH build + first cast "
                       f"{peer['build_and_first_cast_ms']:.1f} ms, cast {peer['cast_ms']:.1f} ms, agreement "
                       f"{peer['agreement_with_backend']}")
-    result["machine"]["load_average_1min_at_end"] = os.getloadavg()[0]
+    result["machine"]["load_average_1min_at_end"] = common.load_average()
     result["ratios"] = ratios(result)
     print()
     print(table(result))
@@ -492,13 +418,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         png = out.with_suffix(".png")
         bar_chart(result, png)
         try:
-            result["chart"] = str(png.resolve().relative_to(ROOT))
+            result["chart"] = str(png.resolve().relative_to(common.ROOT))
         except ValueError:
             result["chart"] = str(png)
         out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=str))
-        files = sorted(RESULTS.glob("kernels*.json"))
-        write_section(section([json.loads(f.read_text()) for f in files]))
-        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {BENCHMARKS_MD.name}")
+        files = sorted(common.RESULTS.glob("kernels*.json"))
+        common.replace_section(common.BENCHMARKS_MD, SECTION, section([json.loads(f.read_text()) for f in files]))
+        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")
     return result
 
 

@@ -36,15 +36,8 @@ then copy ``losses-cuda-b16-scene.json`` and ``.png`` into ``benchmarks/results/
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import os
-import platform
-import re
-import statistics
-import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -54,6 +47,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import common  # noqa: E402
 import scenes  # noqa: E402
 
 from fruxel.grid import FruxelGrid  # noqa: E402
@@ -67,9 +61,6 @@ from fruxel.train.losses import (  # noqa: E402
     shell_cross_entropy,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
-RESULTS = ROOT / "benchmarks" / "results"
 SECTION = "## Shell-aware losses"
 CLASSES = 7
 NOVEL = 2
@@ -84,36 +75,21 @@ CPU), the H100 for B = 16."""
 
 
 # ---------------------------------------------------------------------------------------------- machine
-def cpu_name() -> str:
-    """CPU model from lscpu, else platform's."""
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
-        if m:
-            return m.group(1).strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine(device: str) -> dict[str, Any]:
     """What the numbers were measured on."""
+    m = common.machine_info({"warp": "warp-lang", "pyopencl": "pyopencl"})
     info: dict[str, Any] = {
-        "date": dt.date.today().isoformat(),
-        "cpu": cpu_name(),
-        "cores": os.cpu_count(),
+        "date": m["date"],
+        "cpu": m["cpu"],
+        "cores": m["cores"],
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
-        "python": platform.python_version(),
-        "load_average": os.getloadavg()[0],
+        "python": m["python"],
+        "load_average": m["load_average"],
     }
     if device.startswith("cuda"):
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
-    for mod in ("warp", "pyopencl"):
-        try:
-            info[mod] = __import__(mod).__version__
-        except (ImportError, AttributeError):
-            pass
+    info.update({k: v for k, v in m["versions"].items() if v})
     return info
 
 
@@ -125,18 +101,7 @@ def _sync(device: str) -> None:
 
 def timed(fn: Callable[[], Any], device: str, repeat: int) -> dict[str, float]:
     """First call and median / min of ``repeat`` further calls, milliseconds, synchronised on CUDA."""
-    _sync(device)
-    t0 = time.perf_counter()
-    fn()
-    _sync(device)
-    first = (time.perf_counter() - t0) * 1e3
-    runs = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        runs.append((time.perf_counter() - t0) * 1e3)
-    return {"first_ms": first, "median_ms": statistics.median(runs), "min_ms": min(runs)}
+    return common.time_calls(fn, repeat, sync=lambda: _sync(device))
 
 
 # ---------------------------------------------------------------------------------------------- setup
@@ -225,11 +190,7 @@ def table(result: dict[str, Any]) -> str:
 
 def chart(result: dict[str, Any], path: Path) -> None:
     """Horizontal bar chart of the medians."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = common.pyplot()
     labels, values = [], []
     for entry in result["backends"]:
         for name, r in entry["rows"].items():
@@ -244,9 +205,7 @@ def chart(result: dict[str, Any], path: Path) -> None:
                  f"own view + {NOVEL} x {NOVEL_SIZE[0]}^2 ({result['logits']} logits)", fontsize=9)
     for i, v in enumerate(values):
         ax.text(v, i, f" {v:,.1f}", va="center", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=110)
 
 
 def section(results: list[dict[str, Any]]) -> str:
@@ -277,16 +236,10 @@ def section(results: list[dict[str, Any]]) -> str:
     return "\n".join(out).rstrip() + "\n"
 
 
-def write_section(text: str) -> None:
-    """Replace (or append) this benchmark's section of BENCHMARKS.md, leaving every other section as it is."""
-    md = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else "# Benchmarks\n"
-    start = md.find(SECTION + "\n")
-    if start < 0:
-        md = md.rstrip() + "\n\n" + text
-    else:
-        nxt = md.find("\n## ", start + len(SECTION))
-        md = md[:start] + text + ("\n" + md[nxt + 1:] if nxt >= 0 else "")
-    BENCHMARKS_MD.write_text(md)
+def write_section() -> None:
+    """Re-render this benchmark's section of BENCHMARKS.md from every ``benchmarks/results/losses*.json``."""
+    runs = [json.loads(f.read_text()) for f in sorted(common.RESULTS.glob("losses*.json"))]
+    common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -305,7 +258,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                          "copying in a run made on another machine)")
     args = ap.parse_args(argv)
     if args.render:
-        write_section(section([json.loads(f.read_text()) for f in sorted(RESULTS.glob("losses*.json"))]))
+        write_section()
         return {}
     backends = args.backends or available_backends()
     device = args.device or ("cuda" if any(b == "warp-cuda" for b in backends) else "cpu")
@@ -319,15 +272,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(table(result))
     if not args.no_write:
         tag = "cuda" if device.startswith("cuda") else "cpu"
-        out = Path(args.out) if args.out else RESULTS / f"losses-{tag}-b{args.batch}-{args.logits}"
+        out = Path(args.out) if args.out else common.RESULTS / f"losses-{tag}-b{args.batch}-{args.logits}"
         out.parent.mkdir(parents=True, exist_ok=True)
         png = out.with_suffix(".png")
         chart(result, png)
         # Where the files end up beside BENCHMARKS.md (a run elsewhere, e.g. into a device's $OUT, is copied there).
-        result["png"] = str((RESULTS / png.name).relative_to(ROOT))
+        result["png"] = str((common.RESULTS / png.name).relative_to(common.ROOT))
         out.with_suffix(".json").write_text(json.dumps(result, indent=1))
-        write_section(section([json.loads(f.read_text()) for f in sorted(RESULTS.glob("losses*.json"))]))
-        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {BENCHMARKS_MD.name}")
+        write_section()
+        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")
     return result
 
 

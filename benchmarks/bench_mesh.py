@@ -18,10 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
-import re
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import common  # noqa: E402
 import scenes  # noqa: E402
 
 from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
@@ -39,9 +36,7 @@ from fruxel.grid import FruxelGrid  # noqa: E402
 from fruxel.io import load  # noqa: E402
 from fruxel.mesh import MODES, mesh_labels  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
-CHART = ROOT / "benchmarks" / "results" / "mesh.png"
+CHART = common.RESULTS / "mesh.png"
 SECTION = "## Meshing"
 
 GRID = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=6.0, hfov=60.0)
@@ -110,40 +105,9 @@ def time_mesh(labels: np.ndarray, grid: FruxelGrid, palette: np.ndarray, mode: s
     return float(np.median(times)), mesh.n_faces
 
 
-def cpu_name() -> str:
-    """The CPU's model name and the number of cores this process may use."""
-    name = platform.processor() or platform.machine()
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
-        if m:
-            name = m.group(1).strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{name}, {cores} cores"
-
-
-def write_section(text: str, path: Path = BENCHMARKS_MD) -> None:
-    """Replace (or append) the "## Meshing" section of BENCHMARKS.md, leaving the other sections alone."""
-    header = "# Benchmarks\n\nMeasured results of the benchmarks in `benchmarks/`.\n"
-    old = path.read_text() if path.exists() else header
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
-    block = text.rstrip("\n") + "\n\n"
-    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
-    # Other benchmarks write their own sections of the same file; a rename keeps readers from seeing half of it.
-    tmp = path.with_name(f".{path.name}.mesh.tmp")
-    tmp.write_text(new.rstrip("\n") + "\n")
-    os.replace(tmp, path)
-
-
 def bar_chart(rows: list[dict], path: Path = CHART) -> None:
     """Two panels: build time (s) and triangle count (log scale) per mode."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = common.pyplot()
     modes = [r["mode"] for r in rows]
     colours = ["#aec7e8", "#ff7f0e", "#2ca02c"]
     fig, (ax_t, ax_n) = plt.subplots(1, 2, figsize=(9, 3.6))
@@ -158,10 +122,7 @@ def bar_chart(rows: list[dict], path: Path = CHART) -> None:
         for i, r in enumerate(rows):
             ax.annotate(fmt.format(r[key]), (i, r[key]), ha="center", va="bottom", fontsize=8)
     fig.suptitle("Trapezoid meshing, 128^3 grid, 25 % occupied")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=120)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -170,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md and the chart")
     args = parser.parse_args(argv)
 
-    load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load_before = common.load_average()
     palette = DEFAULT_CLASSES.palette()
     labels = dense_room()
     n_occ = int(np.count_nonzero(labels))
@@ -193,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
     for mode in MODES:
         t, n = time_mesh(shell, room_grid, palette, mode, args.repeats)
         shell_rows.append({"mode": mode, "time": t, "tris": n})
-    load_after = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load_after = common.load_average()
 
     culled_t = rows[1]["time"]
     shell_greedy_ms = shell_rows[2]["time"] * 1e3
@@ -201,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         SECTION,
         "",
-        f"`python benchmarks/bench_mesh.py` on {dt.date.today().isoformat()}, {cpu_name()}, "
+        f"`python benchmarks/bench_mesh.py` on {dt.date.today().isoformat()}, {common.cpu_description()}, "
         f"NumPy {np.__version__}; median of {args.repeats} runs after one warm-up, one thread. The machine is "
         f"shared and was loaded (1-minute load average {load_before:.1f} before the runs, {load_after:.1f} after), "
         "so the times are noisy and on the slow side.",
@@ -245,9 +206,9 @@ def main(argv: list[str] | None = None) -> None:
     text = "\n".join(lines)
     print(text)
     if not args.no_write:
-        write_section(text)
+        common.replace_section(common.BENCHMARKS_MD, SECTION, text)
         bar_chart(rows)
-        print(f"wrote {BENCHMARKS_MD} and {CHART}")
+        print(f"wrote {common.BENCHMARKS_MD} and {CHART}")
 
 
 if __name__ == "__main__":

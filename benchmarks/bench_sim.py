@@ -32,7 +32,6 @@ import argparse
 import datetime as dt
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -41,10 +40,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
-BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
-CHART = RESULTS / "sim.png"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import common  # noqa: E402
+
+CHART = common.RESULTS / "sim.png"
 SECTION = "## Simulator"
 
 TARGETS = {("cpu", "256x64"): 10.0, ("cpu", "512x128"): 2.0, ("h100", "128x64"): 150.0}
@@ -153,30 +153,10 @@ def cfg_sps() -> int:
 # ---------------------------------------------------------------------------------------------------- machine
 def machine() -> dict[str, Any]:
     """CPU model and cores, GPU (nvidia-smi), OpenGL renderer, library versions, load average."""
-    name = platform.processor() or platform.machine()
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
-        if m:
-            name = m.group(1).strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    gpu = ""
-    try:
-        gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                             text=True, check=True, timeout=30).stdout.strip().splitlines()[0]
-    except (OSError, subprocess.CalledProcessError, subprocess.TimeoutExpired, IndexError):
-        pass
-    info: dict[str, Any] = {"cpu": f"{name}, {cores} cores", "gpu": gpu, "gl": gl_renderer(),
-                            "python": platform.python_version(), "load_before": os.getloadavg()[0]}
-    for mod in ("numpy", "torch", "warp", "pyrender", "trimesh"):
-        try:
-            m = __import__(mod)
-            info[mod] = getattr(m, "__version__", None) or getattr(getattr(m, "config", None), "version", "?")
-        except ImportError:
-            info[mod] = None
-    return info
+    m = common.machine_info({"numpy": "numpy", "torch": "torch", "warp": "warp-lang", "pyrender": "pyrender",
+                             "trimesh": "trimesh"})
+    return {"cpu": f"{m['cpu']}, {m['cores']} cores", "gpu": m["gpu"] or "", "gl": gl_renderer(),
+            "python": m["python"], "load_before": m["load_average"], **m["versions"]}
 
 
 def gl_renderer() -> str:
@@ -201,7 +181,7 @@ def _target(tag: str, case: str, mode: str) -> float | None:
 
 def load_results() -> list[dict[str, Any]]:
     """Every ``benchmarks/results/sim-*.json``, CPU first."""
-    runs = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("sim-*.json"))]
+    runs = [json.loads(p.read_text()) for p in sorted(common.RESULTS.glob("sim-*.json"))]
     return sorted(runs, key=lambda r: (r["tag"] != "cpu", r["tag"]))
 
 
@@ -250,26 +230,9 @@ def section(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def write_section(text: str, path: Path = BENCHMARKS_MD) -> None:
-    """Replace (or append) the "## Simulator" section of BENCHMARKS.md, leaving the other sections alone."""
-    header = "# Benchmarks\n\nMeasured results of the benchmarks in `benchmarks/`.\n"
-    old = path.read_text() if path.exists() else header
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
-    block = text.rstrip("\n") + "\n\n"
-    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
-    # Other benchmarks write their own sections of the same file; a rename keeps readers from seeing half of it.
-    tmp = path.with_name(f".{path.name}.sim.tmp")
-    tmp.write_text(new.rstrip("\n") + "\n")
-    os.replace(tmp, path)
-
-
 def chart(runs: list[dict[str, Any]], path: Path = CHART) -> None:
     """Bars of steady samples/s per machine, mode and case, with the targets as ticks."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = common.pyplot()
     bars = [(f"{run['tag']} {r['mode']}\n{r['image']}^2/{r['grid']}^3 x{r['workers']}", r["steady_sps"],
              _target(run["tag"], f"{r['image']}x{r['grid']}", r["mode"]))
             for run in runs for r in run["results"] if r["mode"] != "profile"]
@@ -286,10 +249,7 @@ def chart(runs: list[dict[str, Any]], path: Path = CHART) -> None:
     ax.set_yscale("log")
     ax.set_ylabel("samples / s (steady)")
     ax.set_title("fruxel-sim throughput (red: target)")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    common.save_figure(fig, path, dpi=110)
 
 
 # ---------------------------------------------------------------------------------------------------- main
@@ -312,7 +272,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.report:
         runs = load_results()
-        write_section(section(runs))
+        common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
         chart(runs)
         print(section(runs))
         return
@@ -340,15 +300,15 @@ def main(argv: list[str] | None = None) -> None:
             print(json.dumps(r), flush=True)
     run = {"tag": args.tag, "date": dt.date.today().isoformat(), "machine": info, "results": results,
            "notes": args.note}
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    common.RESULTS.mkdir(parents=True, exist_ok=True)
     text = json.dumps(run, indent=1) + "\n"
-    (RESULTS / f"sim-{args.tag}.json").write_text(text)
+    (common.RESULTS / f"sim-{args.tag}.json").write_text(text)
     if args.json:
         Path(args.json).write_text(text)
     print(section([run]))
     if not args.no_write:
         runs = load_results()
-        write_section(section(runs))
+        common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
         chart(runs)
 
 

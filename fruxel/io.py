@@ -1,4 +1,5 @@
-"""Model files (SPEC section 5): an ``.npz`` archive read and written without pickle.
+"""Model files (SPEC section 5): an ``.npz`` archive read and written without pickle; and the package's atomic
+writes and strict npy-member reading, which the simulator's shards, mesh export and the renderer share.
 
 Layout, format version 1:
 
@@ -7,15 +8,23 @@ Layout, format version 1:
   ``{"format": "fruxel", "version": 1, "grid": FruxelGrid.to_dict(), "classes": ClassTable.to_dict()}``.
   A bytes (``|S``) member holding UTF-8 JSON is read too.
 
-Members are deflate-compressed (label volumes are mostly zeros). :func:`save` writes atomically: a temporary
-file in the target's directory, fsync, then ``os.replace``, so a crash leaves the old file or the new one,
-never a half-written file under the target's name.
+Members are deflate-compressed (label volumes are mostly zeros). :func:`save` writes atomically
+(:func:`atomic_write`): a temporary file in the target's directory, fsync, then ``os.replace``, so a crash leaves
+the old file or the new one, never a half-written file under the target's name.
 
 :func:`load` never unpickles and never trusts a size before checking it: it opens the archive with
-:mod:`zipfile`, checks the member names, parses each member's npy header (``numpy.lib.format``) and refuses
+:mod:`zipfile`, checks the member names, parses each member's npy header (:func:`open_npy_member`) and refuses
 wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-checks the label
 shape with the grid in ``meta``, then reads exactly the bytes the header announces. Every problem raises one
 :class:`FruxelFileError` naming the file and the problem, with no chained traceback.
+
+Shared helpers (numpy and the standard library only):
+
+- :func:`atomic_write` (a file object) and :func:`atomic_path` (a temporary file name, for writers that need one
+  with the right suffix: PIL, imageio, matplotlib) replace a file atomically and durably.
+- :func:`open_archive`, :func:`open_npy_member`, :func:`read_npy_member` and :func:`describe_read_error` read
+  npz archives strictly; they raise the neutral :class:`ArchiveError`, which each reader turns into its own
+  error naming the file (:class:`FruxelFileError` here, ``DatasetError`` in :mod:`fruxel.train.sim.shards`).
 """
 
 from __future__ import annotations
@@ -25,6 +34,8 @@ import json
 import os
 import secrets
 import zipfile
+from collections.abc import Iterator
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -59,8 +70,309 @@ class FruxelFileError(ValueError):
         """What is wrong with it, in words."""
 
 
-class _Bad(Exception):
-    """Internal: one problem found while reading; becomes a FruxelFileError outside any except block."""
+class ArchiveError(ValueError):
+    """One problem found while strictly reading an npz archive (a bad npy header, a truncated member, a wrong
+    layout). The message is the problem in words, without the file name: each reader catches this error and
+    raises its own, naming the file, outside the ``except`` block (so with no chained traceback)."""
+
+
+# ---------------------------------------------------------------------------------------------------- atomic writes
+def _create_temporary(target: str, suffix: str) -> tuple[str, int]:
+    """Create a new, empty, hidden file beside ``target``; returns its name and an open write descriptor."""
+    directory = os.path.dirname(os.path.abspath(target))
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    while True:
+        # Beside the target (os.replace must not cross file systems), short enough for any name limit.
+        tmp = os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp{suffix}")
+        try:
+            # Mode 0o666 lets the umask decide the permissions, as for any newly created file (mkstemp's 0o600
+            # would leave written models, meshes and images private).
+            return tmp, os.open(tmp, flags, 0o666)
+        except FileExistsError:
+            continue
+
+
+def _fsync_directory(directory: str) -> None:
+    # Makes the rename itself durable on POSIX; some platforms cannot open directories, which is harmless.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _commit(tmp: str, target: str) -> None:
+    os.replace(tmp, target)
+    _fsync_directory(os.path.dirname(os.path.abspath(target)))
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: str = "utf-8") -> Iterator[IO[Any]]:
+    """Replace the file ``path`` atomically with what the ``with`` block writes to the yielded file object.
+
+    The block writes to a new hidden file beside the target, ``.NAME.XXXXXXXXXXXX.tmp`` (12 hex digits); when it
+    ends normally the file is flushed and fsynced, renamed onto ``path`` with ``os.replace`` and the folder is
+    fsynced, so a reader or a crash sees the old file or the complete new one, never part of one. When the block
+    (or the sync or the rename) raises, including ``KeyboardInterrupt``, the temporary file is removed, the old
+    file is left as it was and the exception propagates. Only a killed process can leave the temporary file;
+    a program that cleans up after one can recognise it by its name.
+
+    Args:
+        path: the file to write; its folder must exist.
+        mode: ``"wb"`` (bytes) or ``"w"`` (text).
+        encoding: the text encoding of mode ``"w"``; unused for ``"wb"``.
+
+    Yields:
+        The open temporary file, in ``mode``.
+
+    Raises:
+        ValueError: another mode.
+        OSError: the file cannot be written (the target is a directory, no permission, disk full).
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"atomic_write() writes in mode 'wb' or 'w', not {mode!r}")
+    target = os.fsdecode(path)
+    tmp, fd = _create_temporary(target, "")
+    try:
+        with os.fdopen(fd, mode, encoding=None if "b" in mode else encoding) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        _commit(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Replace the file ``path`` atomically with the file written to the yielded temporary name.
+
+    For writers that take a file name and pick the format by its suffix (PIL, imageio, matplotlib, trimesh):
+    the temporary file is ``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` beside the target, with the target's suffix (e.g.
+    ``.room.png.0123456789ab.tmp.png``), created empty before the block runs. When the block ends normally the
+    file is fsynced, renamed onto ``path`` and the folder fsynced; when anything raises, including
+    ``KeyboardInterrupt``, the temporary file is removed and the old file stays as it was (as for
+    :func:`atomic_write`).
+
+    Args:
+        path: the file to write; its folder must exist.
+
+    Yields:
+        The temporary file's path; the block must write it (overwriting the empty file) and close it.
+
+    Raises:
+        OSError: the file cannot be written or replaced.
+    """
+    target = os.fsdecode(path)
+    tmp, fd = _create_temporary(target, Path(target).suffix)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        fd = os.open(tmp, os.O_RDWR | getattr(os, "O_BINARY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        _commit(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+# ---------------------------------------------------------------------------------------------------- strict reading
+def describe_read_error(e: BaseException) -> str:
+    """The problem, in words, behind an exception raised while reading an archive strictly.
+
+    Args:
+        e: an :class:`ArchiveError` (its message), or anything that zipfile, zlib or the file system raise on a
+            damaged or unreadable file.
+
+    Returns:
+        E.g. ``"truncated file (unexpected end of data)"`` or ``"corrupt zip archive (Bad CRC-32 ...)"``.
+    """
+    if isinstance(e, ArchiveError):
+        return str(e)
+    if isinstance(e, (zipfile.BadZipFile, zipfile.LargeZipFile)):
+        return f"corrupt zip archive ({e})"
+    if isinstance(e, EOFError):
+        return "truncated file (unexpected end of data)"
+    if isinstance(e, MemoryError):
+        return "not enough memory to read it"
+    if isinstance(e, OSError):
+        return f"read error ({e.strerror or e})"
+    # Anything else a damaged archive can provoke in zipfile or zlib (bad CRC, unknown compression, encryption,
+    # struct errors) is still a damaged file.
+    return f"corrupt file ({type(e).__name__}: {e})"
+
+
+def open_archive(fileobj: IO[bytes]) -> zipfile.ZipFile:
+    """Open a zip (npz) archive for reading.
+
+    Args:
+        fileobj: the file, opened in binary mode at its start; it must stay open while the archive is used.
+
+    Returns:
+        The archive.
+
+    Raises:
+        ArchiveError: not a zip archive, or one whose central directory is missing (a truncated file).
+    """
+    head = fileobj.read(4)
+    fileobj.seek(0)
+    try:
+        return zipfile.ZipFile(fileobj)
+    except zipfile.BadZipFile:
+        if head == b"PK\x03\x04":
+            raise ArchiveError("truncated or corrupt zip archive (no readable central directory)") from None
+        raise ArchiveError("not an npz file (not a zip archive)") from None
+
+
+class NpyMember:
+    """An npy member of an open archive whose header has been parsed and checked, positioned at its data.
+
+    Made by :func:`open_npy_member`. The caller checks :attr:`dtype` and :attr:`shape` (and any size limit of
+    its own) and only then calls :meth:`read` or :meth:`read_array`, which read exactly the bytes the header
+    announces; nothing is allocated by size before that. Close it (or use it as a context manager).
+    """
+
+    shape: tuple[int, ...]
+    """The array shape the header announces."""
+    fortran_order: bool
+    """Whether the data are in Fortran (column-major) order."""
+    dtype: np.dtype
+    """The array dtype the header announces (never an object dtype: those are refused on opening)."""
+    header_len: int
+    """Length of the npy magic string and header, in bytes."""
+
+    def __init__(self, zf: zipfile.ZipFile, name: str) -> None:
+        self.key = name[:-4] if name.endswith(".npy") else name
+        """The member's name without ``.npy``, as error messages name it."""
+        self._info = zf.getinfo(name)
+        self._file = zf.open(name)
+        try:
+            self.shape, self.fortran_order, self.dtype, self.header_len = self._parse()
+        except BaseException:
+            self._file.close()
+            raise
+
+    def _parse(self) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+        key, f = self.key, self._file
+        # Only ValueError means a bad npy member; zip-level errors (bad CRC, truncation) go up to the reader.
+        try:
+            version = npy_format.read_magic(f)
+        except ValueError:
+            raise ArchiveError(f"member {key!r} is not an npy array (bad magic string)") from None
+        if version not in ((1, 0), (2, 0)):
+            raise ArchiveError(f"member {key!r} has unsupported npy format version {version}")
+        try:
+            if version == (1, 0):
+                shape, fortran, dtype = npy_format.read_array_header_1_0(f)
+            else:
+                shape, fortran, dtype = npy_format.read_array_header_2_0(f)
+        except (ValueError, TypeError, SyntaxError) as e:
+            problem = f"member {key!r} has a malformed npy header ({e})"
+        else:
+            if dtype.hasobject:
+                problem = f"member {key!r} is an object array (refused: loading it would need pickle)"
+            else:
+                return tuple(shape), bool(fortran), dtype, f.tell()
+        raise ArchiveError(problem)
+
+    @property
+    def nbytes(self) -> int:
+        """Data bytes the header announces: the product of :attr:`shape` times the item size (a Python int, so
+        an absurd header cannot overflow it)."""
+        n = self.dtype.itemsize
+        for s in self.shape:
+            n *= s
+        return n
+
+    def read(self) -> bytes:
+        """Exactly the :attr:`nbytes` data bytes, after checking the member's stored size agrees with the header.
+
+        Raises:
+            ArchiveError: a truncated member, or one with data beyond (or a stored size other than) what the
+                header announces. Damaged compressed data raise zipfile's or zlib's own errors.
+        """
+        key, nbytes = self.key, self.nbytes
+        if self._info.file_size != self.header_len + nbytes:
+            raise ArchiveError(f"member {key!r} holds {self._info.file_size} bytes but its header announces "
+                               f"{self.header_len + nbytes} (truncated or inconsistent)")
+        # Reading at most one byte more than announced bounds memory by the header (already checked) and shows
+        # both truncated and over-long members; zipfile verifies the CRC when the member ends.
+        data = self._file.read(nbytes + 1)
+        if len(data) < nbytes:
+            raise ArchiveError(f"member {key!r} is truncated: {len(data)} of {nbytes} data bytes")
+        if len(data) > nbytes or self._file.read(1):
+            raise ArchiveError(f"member {key!r} has trailing data after its {nbytes} data bytes")
+        return data
+
+    def read_array(self) -> np.ndarray:
+        """The array: :meth:`read`'s bytes as a read-only array of :attr:`shape` and :attr:`dtype`, in the
+        member's memory order. Not for item size 0 (e.g. ``<U0``), which numpy cannot view a buffer as."""
+        order = "F" if self.fortran_order else "C"
+        return np.frombuffer(self.read(), dtype=self.dtype).reshape(self.shape, order=order)
+
+    def close(self) -> None:
+        """Close the member's stream (idempotent)."""
+        self._file.close()
+
+    def __enter__(self) -> NpyMember:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_npy_member(zf: zipfile.ZipFile, name: str) -> NpyMember:
+    """Open the npy member ``name`` of ``zf`` and parse its header, refusing object arrays (no pickle).
+
+    Args:
+        zf: the open archive.
+        name: the member's name in the archive, e.g. ``"labels.npy"``; it must exist.
+
+    Returns:
+        The open member, positioned at its data (see :class:`NpyMember`).
+
+    Raises:
+        ArchiveError: not an npy member (bad magic string), an unsupported npy version, a malformed header, or
+            an object dtype.
+    """
+    return NpyMember(zf, name)
+
+
+def read_npy_member(zf: zipfile.ZipFile, name: str, dtype: np.dtype | type, shape: tuple[int, ...]) -> np.ndarray:
+    """Read the npy member ``name`` of ``zf``, which must hold exactly a C-ordered ``shape`` ``dtype`` array.
+
+    The header is checked before any data is read, so a member announcing another (or an absurd) size costs
+    nothing.
+
+    Args:
+        zf: the open archive.
+        name: the member's name in the archive, e.g. ``"pose_00000.npy"``.
+        dtype: the dtype required (byte order included).
+        shape: the shape required.
+
+    Returns:
+        A new, writable ``shape`` array of ``dtype``.
+
+    Raises:
+        ArchiveError: an object array, another dtype, shape or memory order, or a truncated or over-long member
+            (see :func:`open_npy_member`, :meth:`NpyMember.read`).
+    """
+    dtype = np.dtype(dtype)
+    with open_npy_member(zf, name) as m:
+        if m.dtype != dtype or m.shape != tuple(shape) or m.fortran_order:
+            raise ArchiveError(f"member {m.key!r} is {m.shape} {m.dtype}{' (Fortran order)' if m.fortran_order else ''}"
+                               f", expected {tuple(shape)} {dtype}")
+        return m.read_array().copy()
 
 
 # ---------------------------------------------------------------------------------------------------- save
@@ -77,24 +389,12 @@ def _write_npz(fileobj: IO[bytes], model: FruxelModel) -> None:
                         meta=np.array(_meta_json(model), dtype=np.str_))
 
 
-def _fsync_directory(directory: str) -> None:
-    # Makes the rename itself durable on POSIX; some platforms cannot open directories, which is harmless.
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        with contextlib.suppress(OSError):
-            os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def save(path: str | os.PathLike[str], model: FruxelModel) -> None:
     """Write ``model`` to ``path`` atomically (format in the module docstring).
 
     The name is used as given (no ``.npz`` is appended). An existing file is replaced only once the new one is
-    complete and synced; on any failure the old file is left as it was and the temporary file is removed.
+    complete and synced; on any failure the old file is left as it was and the temporary file is removed
+    (:func:`atomic_write`).
 
     Args:
         path: target file name.
@@ -106,29 +406,8 @@ def save(path: str | os.PathLike[str], model: FruxelModel) -> None:
     """
     if not isinstance(model, FruxelModel):
         raise TypeError(f"save() needs a FruxelModel, got {type(model).__name__}")
-    target = os.fsdecode(path)
-    directory = os.path.dirname(os.path.abspath(target))
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    while True:
-        # Hidden, beside the target (os.replace must not cross file systems), short enough for any name limit.
-        tmp = os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp")
-        try:
-            # Mode 0o666 lets the umask decide the permissions, as for any newly created file.
-            fd = os.open(tmp, flags, 0o666)
-            break
-        except FileExistsError:
-            continue
-    try:
-        with os.fdopen(fd, "wb") as f:
-            _write_npz(f, model)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
-    _fsync_directory(directory)
+    with atomic_write(path) as f:
+        _write_npz(f, model)
 
 
 # ---------------------------------------------------------------------------------------------------- load
@@ -137,71 +416,23 @@ def _listing(missing: list[str], extra: list[str]) -> str:
     return ": " + ", ".join(parts)
 
 
-def _read_header(zf: zipfile.ZipFile, name: str) -> tuple[IO[bytes], tuple[int, ...], bool, np.dtype, int]:
-    """Open member ``name`` and parse its npy header; returns the open stream positioned at the data, shape,
-    fortran_order, dtype and the header length in bytes."""
-    key = name[:-4]
-    f = zf.open(name)
-    try:
-        # Only ValueError means a bad npy member; zip-level errors (bad CRC, truncation) go up to load().
-        try:
-            version = npy_format.read_magic(f)
-        except ValueError:
-            raise _Bad(f"member {key!r} is not an npy array (bad magic string)") from None
-        if version not in ((1, 0), (2, 0)):
-            raise _Bad(f"member {key!r} has unsupported npy format version {version}")
-        try:
-            if version == (1, 0):
-                shape, fortran, dtype = npy_format.read_array_header_1_0(f)
-            else:
-                shape, fortran, dtype = npy_format.read_array_header_2_0(f)
-        except (ValueError, TypeError, SyntaxError) as e:
-            problem = f"member {key!r} has a malformed npy header ({e})"
-        else:
-            return f, tuple(shape), bool(fortran), dtype, f.tell()
-        raise _Bad(problem)
-    except BaseException:
-        f.close()
-        raise
-
-
-def _read_data(f: IO[bytes], key: str, nbytes: int) -> bytes:
-    # Reading at most one byte more than announced bounds memory by the header (already checked) and shows
-    # both truncated and over-long members; zipfile verifies the CRC when the member ends.
-    data = f.read(nbytes + 1)
-    if len(data) < nbytes:
-        raise _Bad(f"member {key!r} is truncated: {len(data)} of {nbytes} data bytes")
-    if len(data) > nbytes or f.read(1):
-        raise _Bad(f"member {key!r} has trailing data after its {nbytes} data bytes")
-    return data
-
-
-def _expect_size(info: zipfile.ZipInfo, key: str, header_len: int, nbytes: int) -> None:
-    if info.file_size != header_len + nbytes:
-        raise _Bad(f"member {key!r} holds {info.file_size} bytes but its header announces {header_len + nbytes} "
-                   "(truncated or inconsistent)")
-
-
 def _read_meta(zf: zipfile.ZipFile) -> tuple[FruxelGrid, ClassTable]:
-    f, shape, _, dtype, header_len = _read_header(zf, "meta.npy")
-    with f:
-        if dtype.hasobject:
-            raise _Bad("member 'meta' is an object array (refused: loading it would need pickle)")
+    with open_npy_member(zf, "meta.npy") as m:
+        dtype, shape = m.dtype, m.shape
         if dtype.kind not in "US" or dtype.fields is not None:
-            raise _Bad(f"member 'meta' has dtype {dtype}, expected a unicode string")
+            raise ArchiveError(f"member 'meta' has dtype {dtype}, expected a unicode string")
         if shape != ():
-            raise _Bad(f"member 'meta' has shape {shape}, expected a 0-d string")
+            raise ArchiveError(f"member 'meta' has shape {shape}, expected a 0-d string")
         chars = dtype.itemsize // 4 if dtype.kind == "U" else dtype.itemsize
         if chars > MAX_META_CHARS:
-            raise _Bad(f"member 'meta' is too large: {chars} characters, limit {MAX_META_CHARS}")
-        _expect_size(zf.getinfo("meta.npy"), "meta", header_len, dtype.itemsize)
-        raw = _read_data(f, "meta", dtype.itemsize)
+            raise ArchiveError(f"member 'meta' is too large: {chars} characters, limit {MAX_META_CHARS}")
+        raw = m.read()
     value = np.frombuffer(raw, dtype=dtype, count=1)[0] if dtype.itemsize else dtype.type()
     if dtype.kind == "S":
         try:
             text = bytes(value).decode("utf-8")
         except UnicodeDecodeError:
-            raise _Bad("member 'meta' is not valid UTF-8") from None
+            raise ArchiveError("member 'meta' is not valid UTF-8") from None
     else:
         text = str(value)
     try:
@@ -210,23 +441,23 @@ def _read_meta(zf: zipfile.ZipFile) -> tuple[FruxelGrid, ClassTable]:
         problem = f"meta is not valid JSON ({e})"
     else:
         return _check_meta(meta)
-    raise _Bad(problem)
+    raise ArchiveError(problem)
 
 
 def _check_meta(meta: Any) -> tuple[FruxelGrid, ClassTable]:
     if not isinstance(meta, dict):
-        raise _Bad(f"meta must be a JSON object, got {type(meta).__name__}")
+        raise ArchiveError(f"meta must be a JSON object, got {type(meta).__name__}")
     missing = [k for k in _META_KEYS if k not in meta]
     extra = sorted(str(k) for k in set(meta) - set(_META_KEYS))
     if missing or extra:
-        raise _Bad(f"wrong meta keys{_listing(missing, extra)}")
+        raise ArchiveError(f"wrong meta keys{_listing(missing, extra)}")
     if meta["format"] != FORMAT_NAME:
-        raise _Bad(f"meta format is {meta['format']!r}, expected {FORMAT_NAME!r}")
+        raise ArchiveError(f"meta format is {meta['format']!r}, expected {FORMAT_NAME!r}")
     version = meta["version"]
     if isinstance(version, bool) or not isinstance(version, int):
-        raise _Bad(f"meta version must be an integer, got {version!r}")
+        raise ArchiveError(f"meta version must be an integer, got {version!r}")
     if version != FORMAT_VERSION:
-        raise _Bad(f"unsupported format version {version} (this fruxel reads version {FORMAT_VERSION})")
+        raise ArchiveError(f"unsupported format version {version} (this fruxel reads version {FORMAT_VERSION})")
     try:
         grid = FruxelGrid.from_dict(meta["grid"])
     except GridError as e:
@@ -238,31 +469,26 @@ def _check_meta(meta: Any) -> tuple[FruxelGrid, ClassTable]:
             problem = f"meta has invalid classes: {e}"
         else:
             return grid, classes
-    raise _Bad(problem)
+    raise ArchiveError(problem)
 
 
 def _read_labels(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> np.ndarray:
-    f, shape, fortran, dtype, header_len = _read_header(zf, "labels.npy")
-    with f:
-        if dtype.hasobject:
-            raise _Bad("member 'labels' is an object array (refused: loading it would need pickle)")
-        if dtype != np.dtype(np.uint8):
-            raise _Bad(f"member 'labels' has dtype {dtype}, expected uint8")
+    with open_npy_member(zf, "labels.npy") as m:
+        shape = m.shape
+        if m.dtype != np.dtype(np.uint8):
+            raise ArchiveError(f"member 'labels' has dtype {m.dtype}, expected uint8")
         if len(shape) != 3:
-            raise _Bad(f"member 'labels' has {len(shape)} dimensions (shape {shape}), expected 3 (D, H, W)")
-        n = 1
-        for s in shape:
-            n *= s
-        if n > MAX_CELLS:
-            raise _Bad(f"member 'labels' header claims {n} cells (shape {shape}), more than the limit {MAX_CELLS}")
+            raise ArchiveError(f"member 'labels' has {len(shape)} dimensions (shape {shape}), expected 3 (D, H, W)")
+        cells = m.nbytes  # uint8: one byte per cell
+        if cells > MAX_CELLS:
+            raise ArchiveError(f"member 'labels' header claims {cells} cells (shape {shape}), more than the "
+                               f"limit {MAX_CELLS}")
         if shape != grid.shape:
-            raise _Bad(f"member 'labels' has shape {shape} but the grid in meta has (D, H, W) = {grid.shape}")
-        _expect_size(zf.getinfo("labels.npy"), "labels", header_len, n)
-        raw = _read_data(f, "labels", n)
-    labels = np.frombuffer(raw, dtype=np.uint8).reshape(shape, order="F" if fortran else "C")
+            raise ArchiveError(f"member 'labels' has shape {shape} but the grid in meta has (D, H, W) = {grid.shape}")
+        labels = m.read_array()
     top = int(labels.max()) if labels.size else 0
     if top >= len(classes):
-        raise _Bad(f"label value {top} is out of range for the {len(classes)} classes in meta")
+        raise ArchiveError(f"label value {top} is out of range for the {len(classes)} classes in meta")
     return labels
 
 
@@ -270,28 +496,20 @@ def _load(path: str) -> FruxelModel:
     try:
         f = open(path, "rb")
     except FileNotFoundError:
-        raise _Bad("no such file") from None
+        raise ArchiveError("no such file") from None
     except IsADirectoryError:
-        raise _Bad("it is a directory, not a file") from None
+        raise ArchiveError("it is a directory, not a file") from None
     except OSError as e:
-        raise _Bad(f"cannot open it ({e.strerror or e})") from None
+        raise ArchiveError(f"cannot open it ({e.strerror or e})") from None
     with f:
         if os.path.isdir(path):
-            raise _Bad("it is a directory, not a file")
-        head = f.read(4)
-        f.seek(0)
-        try:
-            zf = zipfile.ZipFile(f)
-        except zipfile.BadZipFile:
-            if head == b"PK\x03\x04":
-                raise _Bad("truncated or corrupt zip archive (no readable central directory)") from None
-            raise _Bad("not an npz file (not a zip archive)") from None
-        with zf:
+            raise ArchiveError("it is a directory, not a file")
+        with open_archive(f) as zf:
             names = zf.namelist()
             if sorted(names) != sorted(_MEMBERS):
                 missing = [m[:-4] for m in _MEMBERS if m not in names]
                 extra = sorted({n for n in names if n not in _MEMBERS} | {n for n in names if names.count(n) > 1})
-                raise _Bad(f"wrong keys{_listing(missing, extra)}; expected exactly 'labels' and 'meta'")
+                raise ArchiveError(f"wrong keys{_listing(missing, extra)}; expected exactly 'labels' and 'meta'")
             grid, classes = _read_meta(zf)
             labels = _read_labels(zf, grid, classes)
     return FruxelModel(labels, grid, classes)
@@ -316,18 +534,7 @@ def load(path: str | os.PathLike[str]) -> FruxelModel:
     name = os.fsdecode(path)
     try:
         return _load(name)
-    except _Bad as e:
-        problem = str(e)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile) as e:
-        problem = f"corrupt zip archive ({e})"
-    except EOFError:
-        problem = "truncated file (unexpected end of data)"
-    except MemoryError:
-        problem = "not enough memory to read it"
-    except OSError as e:
-        problem = f"read error ({e.strerror or e})"
     except Exception as e:
-        # Anything else a damaged archive can provoke in zipfile or zlib (bad CRC, unknown compression,
-        # encryption, struct errors) is still a damaged file, and the caller gets the one documented error.
-        problem = f"corrupt file ({type(e).__name__}: {e})"
+        # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
+        problem = describe_read_error(e)
     raise FruxelFileError(name, problem)

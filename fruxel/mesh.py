@@ -34,7 +34,6 @@ shell keeps a few % of the cells) meshes in time proportional to its size, not t
 from __future__ import annotations
 
 import os
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .grid import FruxelGrid
+from .io import atomic_write
 
 if TYPE_CHECKING:
     import trimesh
@@ -500,8 +500,9 @@ def export_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
 
     PLY also keeps the face labels, as the uchar face property ``label``; glTF has no place for them.
 
-    The file is written to a temporary file in the same folder and moved into place, so a reader never sees
-    a partial file and a failed write leaves any earlier file untouched.
+    The file is written atomically (:func:`fruxel.io.atomic_write`: a temporary file in the same folder, synced
+    and moved into place), so a reader never sees a partial file and a failed write leaves any earlier file
+    untouched.
 
     Args:
         mesh: the mesh to write.
@@ -522,21 +523,6 @@ def export_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
         data = tm.export(file_type="ply", encoding="binary")
     else:
         data = tm.export(file_type="glb")
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    while True:
-        tmp = dest.parent / f".{dest.name}.{secrets.token_hex(6)}.tmp"
-        try:
-            # Mode 0o666 lets the umask decide the permissions, as for any newly created file (mkstemp's 0o600
-            # would leave exported meshes private).
-            fd = os.open(tmp, flags, 0o666)
-            break
-        except FileExistsError:
-            continue
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, dest)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_write(dest) as f:
+        f.write(data)
     return dest

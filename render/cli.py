@@ -538,21 +538,15 @@ class FrameRenderer:
 
 
 # ---------------------------------------------------------------------------------------------------- outputs
-def _atomic_target(path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
-
-
 def write_png(path: Path, image: np.ndarray) -> Path:
-    """Write ``(h, w, 3)`` uint8 RGB to ``path`` atomically (temporary file, then rename)."""
+    """Write ``(h, w, 3)`` uint8 RGB to ``path`` atomically (:func:`fruxel.io.atomic_path`), making its folder."""
     from PIL import Image
 
-    tmp = _atomic_target(path)
-    try:
+    from fruxel.io import atomic_path
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
         Image.fromarray(image).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -562,19 +556,22 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int) -> Path:
     Raises:
         InputError: MP4 without ``imageio-ffmpeg``.
     """
-    tmp = _atomic_target(path)
-    try:
-        if path.suffix.lower() == ".mp4":
-            import importlib.util
+    from fruxel.io import atomic_path
 
-            if importlib.util.find_spec("imageio_ffmpeg") is None:
-                raise InputError("MP4 output needs imageio-ffmpeg (pip install imageio-ffmpeg); or use --video gif")
+    mp4 = path.suffix.lower() == ".mp4"
+    if mp4:
+        import importlib.util
+
+        if importlib.util.find_spec("imageio_ffmpeg") is None:
+            raise InputError("MP4 output needs imageio-ffmpeg (pip install imageio-ffmpeg); or use --video gif")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        if mp4:
             import imageio.v2 as imageio
+            import numpy as np
 
             # libx264 with yuv420p needs even sizes; pad by one row / column where needed.
             h, w = frames[0].shape[:2]
-            import numpy as np
-
             frames = [np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") for f in frames]
             imageio.mimwrite(tmp, frames, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
         else:
@@ -582,9 +579,6 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int) -> Path:
 
             ims = [Image.fromarray(f) for f in frames]
             ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps), loop=0)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

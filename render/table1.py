@@ -47,6 +47,7 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.grid import FruxelGrid
+from fruxel.io import atomic_path, atomic_write
 
 SECTION = "## Visualisation (Table 1)"
 """Heading of this benchmark's section in BENCHMARKS.md."""
@@ -587,10 +588,11 @@ def write_chart(runs: dict[str, Table1Result], path: Path) -> Path:
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -626,9 +628,8 @@ def record(result: Table1Result | dict[str, Table1Result], results_dir: Path, ma
     jpath = results_dir / "table1.json"
     runs = load_runs(jpath)
     runs.update(result if isinstance(result, dict) else {machine_tag(result.machine): result})
-    tmp = jpath.with_name(f".{jpath.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"runs": {k: asdict(v) for k, v in runs.items()}}, indent=1) + "\n")
-    os.replace(tmp, jpath)
+    with atomic_write(jpath, "w") as f:
+        f.write(json.dumps({"runs": {k: asdict(v) for k, v in runs.items()}}, indent=1) + "\n")
     written = [jpath]
     if importlib.util.find_spec("matplotlib") is not None:
         written.append(write_chart(runs, results_dir / "table1.png"))
@@ -653,9 +654,8 @@ def update_markdown(path: Path, section: str) -> None:
         end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
         rest = "".join(lines[end:])
         new = "".join(lines[:start]) + section + ("\n" + rest if rest else "")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(new, encoding="utf-8")
-    os.replace(tmp, path)
+    with atomic_write(path, "w") as f:
+        f.write(new)
 
 
 # ---------------------------------------------------------------------------------------------------- entry
@@ -712,6 +712,7 @@ def run_cli(args: argparse.Namespace, results_dir: Path | None = None, markdown:
     written = record(result, out, markdown)
     if markdown is None:
         md = out / "table1.md"
-        md.write_text(markdown_section({machine_tag(result.machine): result}, "table1.png"), encoding="utf-8")
+        with atomic_write(md, "w") as f:
+            f.write(markdown_section({machine_tag(result.machine): result}, "table1.png"))
         written.append(md)
     return written

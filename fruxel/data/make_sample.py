@@ -28,7 +28,7 @@ import numpy as np
 
 from fruxel.classes import DEFAULT_CLASSES
 from fruxel.grid import FruxelGrid
-from fruxel.io import save
+from fruxel.io import atomic_path, save
 from fruxel.model import FruxelModel
 
 GRID = FruxelGrid(width=64, height=48, depth=64, z_near=0.5, z_far=6.0, hfov=60.0)
@@ -158,9 +158,8 @@ def render_picture(
         color, _ = renderer.render(scene)
     finally:
         renderer.delete()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    Image.fromarray(color).save(tmp, optimize=True)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(color).save(tmp, optimize=True)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -164,6 +164,102 @@ def test_saving_onto_a_directory_fails_cleanly(tmp_path: Path) -> None:
     assert os.listdir(tmp_path) == ["d.npz"]
 
 
+# ---------------------------------------------------------------------------------------------------- public helpers
+def _via_file(path: Path, data: bytes, fail: BaseException | None = None) -> None:
+    with fio.atomic_write(path) as f:
+        f.write(data[: len(data) // 2])
+        if fail is not None:
+            raise fail
+        f.write(data[len(data) // 2 :])
+
+
+def _via_path(path: Path, data: bytes, fail: BaseException | None = None) -> None:
+    with fio.atomic_path(path) as tmp:
+        tmp.write_bytes(data[: len(data) // 2])
+        if fail is not None:
+            raise fail
+        tmp.write_bytes(data)
+
+
+@pytest.mark.parametrize("write", [_via_file, _via_path])
+@pytest.mark.parametrize("failure", ["exception", "KeyboardInterrupt", "os.replace"])
+def test_atomic_helpers_keep_the_old_file_and_leave_no_litter_on_failure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, write: Callable, failure: str
+) -> None:
+    path = tmp_path / "frame.png"
+    path.write_bytes(b"old contents")
+    fail: BaseException | None = {"exception": RuntimeError("killed mid-write"),
+                                  "KeyboardInterrupt": KeyboardInterrupt()}.get(failure)
+    if failure == "os.replace":
+        monkeypatch.setattr(fio.os, "replace", _fail_replace)
+    with pytest.raises((RuntimeError, KeyboardInterrupt, OSError)):
+        write(path, b"new contents", fail)
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == ["frame.png"]
+    assert path.read_bytes() == b"old contents"
+
+
+@pytest.mark.parametrize("write", [_via_file, _via_path])
+def test_atomic_helpers_replace_the_file_on_success(tmp_path: Path, write: Callable) -> None:
+    path = tmp_path / "frame.png"
+    path.write_bytes(b"old contents")
+    write(path, b"new contents")
+    assert os.listdir(tmp_path) == ["frame.png"]
+    assert path.read_bytes() == b"new contents"
+    write(tmp_path / "fresh.png", b"first")
+    assert (tmp_path / "fresh.png").read_bytes() == b"first"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(tmp_path / "fresh.png").st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_atomic_path_is_a_hidden_sibling_with_the_target_suffix(tmp_path: Path) -> None:
+    path = tmp_path / "orbit.mp4"
+    path.write_bytes(b"old")
+    with fio.atomic_path(path) as tmp:
+        # Writers that pick the format by suffix (PIL, imageio, matplotlib) need the target's own suffix.
+        assert tmp.parent == tmp_path and tmp.suffix == ".mp4"
+        assert re.fullmatch(r"\.orbit\.mp4\.[0-9a-f]{12}\.tmp\.mp4", tmp.name)
+        assert tmp.is_file() and tmp.stat().st_size == 0
+        tmp.write_bytes(b"new")
+        assert path.read_bytes() == b"old"
+    assert path.read_bytes() == b"new" and not tmp.exists()
+
+
+def test_atomic_write_names_its_temporary_and_writes_text(tmp_path: Path) -> None:
+    path = tmp_path / "manifest.json"
+    with fio.atomic_write(path, "w") as f:
+        (name,) = os.listdir(tmp_path)
+        # The simulator's generator removes such leftovers of a killed run by this name.
+        assert re.fullmatch(r"\.manifest\.json\.[0-9a-f]{12}\.tmp", name)
+        f.write("café\n")
+    assert path.read_text(encoding="utf-8") == "café\n"
+    with pytest.raises(ValueError, match="mode"), fio.atomic_write(path, "ab"):
+        pass
+    assert os.listdir(tmp_path) == ["manifest.json"]
+
+
+def test_read_npy_member_reads_exactly_the_expected_array(tmp_path: Path) -> None:
+    pose = np.arange(16, dtype=np.float64).reshape(4, 4)
+    path = _zip(tmp_path / "a.npz", {"pose.npy": _npy(pose), "obj.npy": _npy(np.array([{"evil": 1}], dtype=object)),
+                                     "cut.npy": _npy(pose)[:-8], "fortran.npy": _npy(np.asfortranarray(pose))})
+    with zipfile.ZipFile(path) as zf:
+        got = fio.read_npy_member(zf, "pose.npy", np.float64, (4, 4))
+        np.testing.assert_array_equal(got, pose)
+        assert got.flags.writeable and got.dtype == np.float64
+        for name, dtype, shape, problem in [
+            ("pose.npy", np.float32, (4, 4), r"member 'pose' is \(4, 4\) float64, expected \(4, 4\) float32"),
+            ("pose.npy", np.float64, (16,), "expected"),
+            ("fortran.npy", np.float64, (4, 4), "Fortran order"),
+            ("obj.npy", np.float64, (1,), "object array"),
+            ("cut.npy", np.float64, (4, 4), "truncated"),
+        ]:
+            # The neutral error: each reader (load, the simulator's shards) words it into its own.
+            with pytest.raises(fio.ArchiveError, match=problem) as info:
+                fio.read_npy_member(zf, name, dtype, shape)
+            assert not isinstance(info.value, FruxelFileError)
+
+
 # ---------------------------------------------------------------------------------------------------- malformed corpus
 def _cut(fraction: float) -> Callable[[Path], Path]:
     def make(path: Path) -> Path:

@@ -145,16 +145,15 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    import io
-
     import numpy as np
     from PIL import Image
 
+    from fruxel.io import atomic_write
     from fruxel.kernels import first_hit
     from fruxel.shading import shade_hits
 
     from .images import contact_sheet, second_camera
-    from .shards import SampleMaker, atomic_write
+    from .shards import SampleMaker
 
     config = _config(args, ((args.split, args.index + args.count),))
     classes = config.classes
@@ -176,9 +175,8 @@ def _preview(args: argparse.Namespace) -> int:
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
                           f"grid {_grid_text(config)}")
     sheet = contact_sheet(rows, classes.names, palette, titles)
-    buf = io.BytesIO()
-    Image.fromarray(sheet).save(buf, format="PNG")
-    atomic_write(args.out, buf.getvalue())
+    with atomic_write(args.out) as f:
+        Image.fromarray(sheet).save(f, format="PNG")
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")
     return 0
 

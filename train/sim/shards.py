@@ -36,10 +36,10 @@ Shard file
     another driver (llvmpipe here, NVIDIA on a GPU machine) can differ in the last bits of some pixels, and poses
     computed by another numpy build in the last bits of some entries.
 
-Writes are atomic (temporary file beside the target, fsync, rename). Reads are strict: the file's SHA-256 must
-match the manifest, the members must be exactly the expected ones, and every npy header is checked (dtype,
-shape, size) before any data is read, with :mod:`fruxel.io`'s helpers; any problem raises one
-:class:`DatasetError` naming the file.
+Writes are atomic (:func:`fruxel.io.atomic_write`: temporary file beside the target, fsync, rename). Reads are
+strict: the file's SHA-256 must match the manifest, the members must be exactly the expected ones, and every npy
+header is checked (dtype, shape, size) before any data is read (:func:`fruxel.io.read_npy_member`); any problem
+raises one :class:`DatasetError` naming the file.
 """
 
 from __future__ import annotations
@@ -51,7 +51,6 @@ import json
 import math
 import os
 import re
-import secrets
 import time
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
@@ -61,7 +60,14 @@ from typing import IO, Any
 import numpy as np
 import numpy.lib.format as npy_format
 
-from fruxel.io import _Bad, _expect_size, _fsync_directory, _read_data, _read_header
+from fruxel.io import (
+    ArchiveError,
+    atomic_write,
+    describe_read_error,
+    open_archive,
+    open_npy_member,
+    read_npy_member,
+)
 
 from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
 
@@ -93,6 +99,7 @@ SEED_RULE = (
 )
 """The seed rule in words, recorded in every manifest (the code is in :mod:`.config`)."""
 
+# The temporary files fruxel.io.atomic_write leaves beside a shard or the manifest when a run is killed.
 _SHARD_RE = re.compile(r"^\.([a-z0-9][a-z0-9_-]*-\d{5,}\.npz|manifest\.json)\.[0-9a-f]{12}\.tmp$")
 
 
@@ -321,33 +328,6 @@ def shard_specs(config: SimConfig) -> list[ShardSpec]:
 
 
 # ---------------------------------------------------------------------------------------------------- writing
-def atomic_write(path: str, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: a hidden temporary file beside it, fsync, ``os.replace``, then
-    fsync of the folder (the pattern of :func:`fruxel.io.save`). On failure the old file stays and the temporary
-    file is removed; a killed process leaves at most a ``.NAME.XXXXXXXXXXXX.tmp`` file, which the generator
-    deletes on its next run."""
-    directory = os.path.dirname(os.path.abspath(path))
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    while True:
-        tmp = os.path.join(directory, f".{os.path.basename(path)[:120]}.{secrets.token_hex(6)}.tmp")
-        try:
-            fd = os.open(tmp, flags, 0o666)
-            break
-        except FileExistsError:
-            continue
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
-    _fsync_directory(directory)
-
-
 def _put(zf: zipfile.ZipFile, key: str, array: np.ndarray) -> None:
     buf = io.BytesIO()
     # np.require keeps a 0-d array 0-d (np.ascontiguousarray would make it 1-d).
@@ -401,17 +381,6 @@ def file_sha256(path: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------- reading
-def _problem(e: BaseException) -> str:
-    """The words for an exception raised while reading a damaged archive (as :func:`fruxel.io.load` words it)."""
-    if isinstance(e, (zipfile.BadZipFile, zipfile.LargeZipFile)):
-        return f"corrupt zip archive ({e})"
-    if isinstance(e, EOFError):
-        return "truncated file (unexpected end of data)"
-    if isinstance(e, OSError):
-        return f"read error ({e.strerror or e})"
-    return f"corrupt file ({type(e).__name__}: {e})"
-
-
 @contextlib.contextmanager
 def _reading(path: str) -> Iterator[None]:
     """Turn every failure inside into one :class:`DatasetError` for ``path``, with no chained traceback."""
@@ -420,12 +389,8 @@ def _reading(path: str) -> Iterator[None]:
         return
     except DatasetError:
         raise
-    except _Bad as e:
-        problem = str(e)
-    except MemoryError:
-        problem = "not enough memory to read it"
     except Exception as e:
-        problem = _problem(e)
+        problem = describe_read_error(e)
     raise DatasetError(path, f"corrupt or foreign shard: {problem}") from None
 
 
@@ -477,70 +442,48 @@ class ShardReader:
 
     def _open(self, seed: int) -> None:
         self._file = open(self.path, "rb")
-        head = self._file.read(4)
-        self._file.seek(0)
-        try:
-            self._zip = zipfile.ZipFile(self._file)
-        except zipfile.BadZipFile:
-            if head == b"PK\x03\x04":
-                raise _Bad("truncated or corrupt zip archive (no readable central directory)") from None
-            raise _Bad("not an npz file (not a zip archive)") from None
+        self._zip = open_archive(self._file)
         names = self._zip.namelist()
         expected = ["meta.npy"] + [f"{n}_{j:05d}.npy" for j in range(self.spec.count) for n in FIELDS]
         if len(names) != len(set(names)) or set(names) != set(expected):
             missing = sorted(set(expected) - set(names))[:4]
             extra = sorted(set(names) - set(expected))[:4]
-            raise _Bad(f"wrong members (missing {missing}, unexpected {extra}; "
-                       f"{len(names)} members, expected {len(expected)})")
+            raise ArchiveError(f"wrong members (missing {missing}, unexpected {extra}; "
+                               f"{len(names)} members, expected {len(expected)})")
         self.meta = self._read_meta()
         want = _shard_meta(self.spec, self.config, seed, [])
         for key in ("format", "version", "config_sha256", "seed", "split", "shard", "start", "count"):
             if self.meta.get(key) != want[key]:
-                raise _Bad(f"meta {key} is {self.meta.get(key)!r}, expected {want[key]!r} (a shard of another data "
-                           "set, split or version)")
+                raise ArchiveError(f"meta {key} is {self.meta.get(key)!r}, expected {want[key]!r} (a shard of another "
+                                   "data set, split or version)")
         entries = self.meta.get("samples")
         sps = self.config.samples_per_scene
         if not isinstance(entries, list) or len(entries) != self.spec.count:
-            raise _Bad("meta 'samples' must list one entry per sample")
+            raise ArchiveError("meta 'samples' must list one entry per sample")
         for j, e in enumerate(entries):
             index = self.spec.start + j
             ok = isinstance(e, dict) and sorted(e) == ["frame", "index", "scene", "scene_seed"] and all(
                 isinstance(v, int) and not isinstance(v, bool) for v in e.values())
             if not ok or (e["index"], e["scene"], e["frame"]) != (index, *divmod(index, sps)):
-                raise _Bad(f"meta entry {j} does not describe sample {index}")
+                raise ArchiveError(f"meta entry {j} does not describe sample {index}")
 
     def _read_meta(self) -> dict[str, Any]:
         assert self._zip is not None
-        f, shape, _, dtype, header_len = _read_header(self._zip, "meta.npy")
-        with f:
-            if dtype.hasobject or dtype.kind != "U" or shape != ():
-                raise _Bad(f"member 'meta' must be a 0-d unicode string, got {dtype} {shape}")
+        with open_npy_member(self._zip, "meta.npy") as m:
+            dtype = m.dtype
+            if dtype.kind != "U" or m.shape != ():
+                raise ArchiveError(f"member 'meta' must be a 0-d unicode string, got {dtype} {m.shape}")
             if dtype.itemsize // 4 > MAX_META_CHARS:
-                raise _Bad(f"member 'meta' is too large: {dtype.itemsize // 4} characters")
-            _expect_size(self._zip.getinfo("meta.npy"), "meta", header_len, dtype.itemsize)
-            raw = _read_data(f, "meta", dtype.itemsize)
+                raise ArchiveError(f"member 'meta' is too large: {dtype.itemsize // 4} characters")
+            raw = m.read()
         text = str(np.frombuffer(raw, dtype=dtype, count=1)[0]) if dtype.itemsize else ""
         try:
             meta = json.loads(text)
         except ValueError as e:
-            raise _Bad(f"meta is not valid JSON ({e})") from None
+            raise ArchiveError(f"meta is not valid JSON ({e})") from None
         if not isinstance(meta, dict):
-            raise _Bad("meta must be a JSON object")
+            raise ArchiveError("meta must be a JSON object")
         return meta
-
-    def _read_array(self, key: str, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
-        assert self._zip is not None
-        f, got_shape, fortran, got_dtype, header_len = _read_header(self._zip, f"{key}.npy")
-        with f:
-            if got_dtype.hasobject:
-                raise _Bad(f"member {key!r} is an object array (refused: loading it would need pickle)")
-            if got_dtype != dtype or got_shape != shape or fortran:
-                raise _Bad(f"member {key!r} is {got_shape} {got_dtype}{' (Fortran order)' if fortran else ''}, "
-                           f"expected {shape} {dtype}")
-            nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-            _expect_size(self._zip.getinfo(f"{key}.npy"), key, header_len, nbytes)
-            raw = _read_data(f, key, nbytes)
-        return np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
 
     def sample(self, j: int) -> Sample:
         """Sample ``j`` of the shard (index ``start + j``).
@@ -556,13 +499,13 @@ class ShardReader:
         with _reading(self.path):
             for name in FIELDS:
                 dtype, shape = self._specs[name]
-                arrays[name] = self._read_array(f"{name}_{j:05d}", dtype, shape)
+                arrays[name] = read_npy_member(self._zip, f"{name}_{j:05d}.npy", dtype, shape)
             n_classes = len(self.config.classes)
             for name in ("labels", "view_label"):
                 if arrays[name].size and int(arrays[name].max()) >= n_classes:
-                    raise _Bad(f"member '{name}_{j:05d}' has labels outside the {n_classes} classes")
+                    raise ArchiveError(f"member '{name}_{j:05d}' has labels outside the {n_classes} classes")
             if not np.all(np.isfinite(arrays["view_depth"])) or not np.all(np.isfinite(arrays["pose"])):
-                raise _Bad(f"sample {j} has non-finite depth or pose values")
+                raise ArchiveError(f"sample {j} has non-finite depth or pose values")
         e = self.meta["samples"][j]
         return Sample(self.spec.split, e["index"], e["scene"], e["frame"], e["scene_seed"], **arrays)
 
@@ -645,7 +588,8 @@ class Manifest:
 
     def save(self, path: str) -> None:
         """Write the manifest atomically."""
-        atomic_write(path, self.to_json().encode("utf-8"))
+        with atomic_write(path) as f:
+            f.write(self.to_json().encode("utf-8"))
 
     @classmethod
     def load(cls, path: str) -> Manifest:
@@ -709,7 +653,8 @@ def _make_shard(maker: SampleMaker, spec: ShardSpec, out: str, tick: Callable[[]
         samples.append(maker.make(spec.split, i))
         tick()
     data = encode_shard(spec, maker.config, maker.seed, samples)
-    atomic_write(os.path.join(out, spec.file), data)
+    with atomic_write(os.path.join(out, spec.file)) as f:
+        f.write(data)
     return hashlib.sha256(data).hexdigest()
 
 

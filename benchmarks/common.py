@@ -1,0 +1,191 @@
+"""Plumbing shared by the benchmark scripts: where results go, what machine they ran on, timing a call, saving
+a chart, and how each script rewrites its own section of BENCHMARKS.md.
+
+The scripts run as ``python benchmarks/NAME.py`` (``benchmarks/`` is not a package) and import this module the
+way they import :mod:`scenes`: with their own folder put first on ``sys.path``. The package (``fruxel.render``
+included) never imports it.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import platform
+import re
+import statistics
+import subprocess
+import time
+from collections.abc import Callable, Iterable, Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from fruxel.io import atomic_path, atomic_write
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The source checkout."""
+BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
+"""The file of measured results; each script owns one ``## `` section of it."""
+RESULTS = ROOT / "benchmarks" / "results"
+"""JSON results and charts of the benchmarks."""
+
+_NEW_FILE = "# Benchmarks\n\nMeasured results of the benchmarks in `benchmarks/`.\n"
+
+
+# ---------------------------------------------------------------------------------------------- machine
+def cpu_model() -> str:
+    """The CPU's model name from ``lscpu``, else :mod:`platform`'s (e.g. ``"AMD EPYC 7B13"``)."""
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        out = ""
+    m = re.search(r"^Model name:\s*(.+)$", out, re.MULTILINE)
+    return m.group(1).strip() if m else platform.processor() or platform.machine()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform has one, else all of them)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def cpu_description() -> str:
+    """``"MODEL, N cores"``: :func:`cpu_model` and :func:`usable_cores`."""
+    return f"{cpu_model()}, {usable_cores()} cores"
+
+
+def gpu_name() -> str | None:
+    """The first NVIDIA GPU's name from ``nvidia-smi`` (e.g. ``"NVIDIA H100 80GB HBM3"``), or None."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, check=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.CalledProcessError, subprocess.TimeoutExpired):
+        return None
+    return out.splitlines()[0] if out else None
+
+
+def load_average() -> float:
+    """The 1-minute load average, NaN where the platform has none. On the shared machines a load above the core
+    count means the timings are pessimistic, so every run records it."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+
+
+def package_versions(names: Iterable[str] | Mapping[str, str]) -> dict[str, str | None]:
+    """Installed versions of distributions, None for those missing. Reads the installed metadata only, so
+    nothing is imported (importing warp or torch would cost seconds and print).
+
+    Args:
+        names: distribution names, e.g. ``("numpy", "warp-lang")``; or a mapping from the key wanted in the
+            result to the distribution name, e.g. ``{"warp": "warp-lang"}``.
+
+    Returns:
+        Version by name (or by key), in the order given.
+    """
+    pairs = names.items() if isinstance(names, Mapping) else ((n, n) for n in names)
+    out: dict[str, str | None] = {}
+    for key, dist in pairs:
+        try:
+            out[key] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[key] = None
+    return out
+
+
+def machine_info(packages: Iterable[str] | Mapping[str, str] = ()) -> dict[str, Any]:
+    """What a run was measured on, as stored in the results JSON.
+
+    Args:
+        packages: distributions whose versions to record (see :func:`package_versions`).
+
+    Returns:
+        ``{"date": ISO date, "cpu": model, "cores": int, "gpu": name or None, "python": version,
+        "load_average": 1-minute load at the call, "versions": {name: version or None}}``.
+    """
+    return {
+        "date": dt.date.today().isoformat(),
+        "cpu": cpu_model(),
+        "cores": usable_cores(),
+        "gpu": gpu_name(),
+        "python": platform.python_version(),
+        "load_average": load_average(),
+        "versions": package_versions(packages),
+    }
+
+
+# ---------------------------------------------------------------------------------------------- timing, charts
+def time_calls(fn: Callable[[], Any], repeat: int, sync: Callable[[], Any] | None = None,
+               warmup: int = 0) -> dict[str, float]:
+    """Wall time of ``fn()`` in milliseconds: the first call on its own (it may compile or load kernels), then,
+    after ``warmup`` untimed calls, the median and minimum of ``repeat`` timed calls.
+
+    Args:
+        fn: the work to time; called ``1 + warmup + repeat`` times.
+        repeat: timed calls (at least 1).
+        sync: waits for the device's queued work (e.g. ``torch.cuda.synchronize``); called before the first call
+            and after every call, so that each time covers the work itself. None for synchronous work.
+        warmup: untimed calls between the first and the timed ones.
+
+    Returns:
+        ``{"first_ms", "median_ms", "min_ms", "runs"}`` (``runs`` = ``repeat``).
+    """
+    wait = sync or (lambda: None)
+    wait()
+    t0 = time.perf_counter()
+    fn()
+    wait()
+    first = (time.perf_counter() - t0) * 1e3
+    for _ in range(warmup):
+        fn()
+        wait()
+    runs = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        wait()
+        runs.append((time.perf_counter() - t0) * 1e3)
+    return {"first_ms": first, "median_ms": statistics.median(runs), "min_ms": min(runs), "runs": len(runs)}
+
+
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend (charts go to files, and the machines have no display); imported
+    on first use, so that scripts run without matplotlib until they draw."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig: Any, path: Path, dpi: int) -> None:
+    """Lay out a matplotlib figure, write it to ``path`` (format by suffix, folder made, written atomically with
+    :func:`fruxel.io.atomic_path`) and close it."""
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi)
+    finally:
+        pyplot().close(fig)
+
+
+# ---------------------------------------------------------------------------------------------- BENCHMARKS.md
+def replace_section(path: Path, heading: str, text: str) -> None:
+    """Replace the ``heading`` section of a Markdown file with ``text``, or append it; the other sections stay.
+
+    A section runs from its heading line to the next ``## `` heading (its own ``### `` subsections included) or
+    the end of the file. The file is rewritten atomically (:func:`fruxel.io.atomic_write`): other benchmarks
+    write their own sections of the same file, and readers never see half of it.
+
+    Args:
+        path: the Markdown file; a missing one is created with a ``# Benchmarks`` title.
+        heading: the section's heading line, e.g. ``"## Kernels"``.
+        text: the whole new section, heading line included; one blank line is kept before the next section.
+    """
+    old = path.read_text(encoding="utf-8") if path.exists() else _NEW_FILE
+    pattern = re.compile(rf"^{re.escape(heading)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
+    block = text.rstrip("\n") + "\n\n"
+    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
+    with atomic_write(path, "w") as f:
+        f.write(new.rstrip("\n") + "\n")
