@@ -339,8 +339,8 @@ class MeshSet:
     """Labelled meshes prepared and uploaded once, for many ``fruxelize`` calls on the same scene.
 
     A user-held object, not a cache: build it per scene, pass it to :func:`fruxelize` for every pose of that
-    scene, and drop it with the scene. Building splits the meshes into parts and builds the BVHs (a few
-    milliseconds for a room of the simulator).
+    scene, and drop it with the scene. Building splits the meshes into parts and builds the BVHs (the "upload"
+    column of BENCHMARKS.md's simulator table).
 
     Args:
         meshes: as for :func:`prepare_meshes`.

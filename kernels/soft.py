@@ -94,7 +94,11 @@ def check_same_size(cameras: Any) -> list[Camera]:
 def _as_tensor(x: Any, name: str) -> Any:
     torch = _torch()
     if isinstance(x, np.ndarray):
-        return torch.from_numpy(x)
+        if x.dtype.kind != "f":
+            raise VolumeError(f"{name} must be a float array, got {x.dtype}")
+        # torch takes neither negative strides, nor the other byte order, nor long double.
+        dtype = np.dtype(np.float64) if x.dtype.itemsize > 8 else x.dtype.newbyteorder("=")
+        return torch.from_numpy(np.ascontiguousarray(x, dtype=dtype))
     if not is_torch(x):
         raise VolumeError(f"{name} must be a numpy array or torch tensor, got {type(x).__name__}")
     if not x.dtype.is_floating_point:

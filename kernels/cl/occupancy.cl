@@ -55,11 +55,13 @@ __kernel void scores_to_labels(__global const SCORE_T* scores, __global uchar* l
 #if MODE == 0
     const int occupied = best > s0;
 #elif MODE == 1
+    /* 1 - p(empty) as the non-empty mass over the total, not as 1 - p(empty): the subtraction would round a
+     * small occupancy to 0 (as the Warp backend, kernels/wp/occupancy.py, computes it). */
     const real m = (s0 > best) ? s0 : best;
-    real sum = 0;
+    real rest = 0;
 #pragma unroll
-    for (int c = 0; c < NUM_CHANNELS; ++c) sum += exp(LOAD(p, c * cells) - m);
-    const int occupied = (1 - exp(s0 - m) / sum) >= threshold;
+    for (int c = 1; c < NUM_CHANNELS; ++c) rest += exp(LOAD(p, c * cells) - m);
+    const int occupied = rest / (exp(s0 - m) + rest) >= threshold;
 #else
     const int occupied = (1 - s0) >= threshold;
 #endif

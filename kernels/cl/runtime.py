@@ -241,9 +241,12 @@ def defines(**values: int | float) -> tuple[str, ...]:
 
 # ---------------------------------------------------------------------------------------------- host arrays
 def host_array(volume: Any) -> np.ndarray:
-    """The caller's volume as a C-contiguous numpy array on the host (no copy when it already is one).
+    """The caller's volume as a C-contiguous numpy array on the host, of a dtype the kernels take (no copy when it
+    already is one).
 
-    torch tensors are detached and brought to the CPU; bfloat16 becomes float32 (OpenCL has no bfloat16).
+    torch tensors are detached and brought to the CPU; bfloat16 becomes float32 (OpenCL has no bfloat16). numpy's
+    long double becomes float64, and data of the other byte order is swapped to the host's, because the kernels
+    read raw native elements.
     """
     if is_torch(volume):
         import torch
@@ -255,7 +258,10 @@ def host_array(volume: Any) -> np.ndarray:
         arr = t.numpy()
     else:
         arr = volume
-    return np.ascontiguousarray(arr)
+    dtype = arr.dtype.newbyteorder("=")
+    if dtype.kind == "f" and dtype.itemsize > 8:
+        dtype = np.dtype(np.float64)
+    return np.ascontiguousarray(arr, dtype=dtype)
 
 
 def to_caller(arr: np.ndarray, spec: VolumeSpec, like: Any = None) -> Any:
@@ -264,10 +270,11 @@ def to_caller(arr: np.ndarray, spec: VolumeSpec, like: Any = None) -> Any:
     Args:
         arr: host result.
         spec: the validated input's description (kind and device).
-        like: the input volume; for torch results of a float input, its dtype is restored (bfloat16).
+        like: the input volume, whose dtype the result takes back where :func:`host_array` changed it (bfloat16,
+            long double, the other byte order).
     """
     if spec.kind == "numpy":
-        return arr
+        return arr if like is None or arr.dtype == like.dtype else arr.astype(like.dtype)
     import torch
 
     t = torch.from_numpy(arr)

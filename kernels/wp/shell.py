@@ -25,19 +25,25 @@ from ..inputs import EMPTY_LOGIT, check_cameras, inspect_volume
 from ..traversal import is_own_view
 from . import traverse
 from .arrays import Buffer, Workspace, compute_device
-from .occupancy import build_pyramid, label_scores, labels_input, score_label, score_mode, scores_input
+from .occupancy import (
+    SCORE_DTYPES,
+    build_pyramid,
+    label_scores,
+    labels_input,
+    score_label,
+    score_mode,
+    scores_input,
+)
 from .runtime import warp
 from .traverse import CameraInfo, GridInfo, camera_arg, grid_info, pixel_ray, trace_ray
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
 
-SCORE_DTYPES = (wp.float16, wp.float32, wp.float64)
-
 
 # ---------------------------------------------------------------------------------------------- own view alone
 @wp.kernel
-def shell_columns_labels_kernel(
+def keep_first_labels_kernel(
     labels: wp.array2d(dtype=wp.uint8),
     grid: GridInfo,
     out: wp.array2d(dtype=wp.uint8),
@@ -66,7 +72,7 @@ def shell_columns_labels_kernel(
 
 
 @wp.kernel
-def shell_columns_scores_kernel(
+def keep_first_scores_kernel(
     scores: wp.array3d(dtype=Any),
     mode: int,
     threshold: wp.float64,
@@ -213,7 +219,7 @@ def write_shell_scores_kernel(
 
 
 for _t in SCORE_DTYPES:
-    wp.overload(shell_columns_scores_kernel, {"scores": wp.array3d(dtype=_t), "out": wp.array3d(dtype=_t)})
+    wp.overload(keep_first_scores_kernel, {"scores": wp.array3d(dtype=_t), "out": wp.array3d(dtype=_t)})
     wp.overload(write_shell_scores_kernel, {"scores": wp.array3d(dtype=_t), "out": wp.array3d(dtype=_t)})
 
 
@@ -265,7 +271,7 @@ def shell(
         out = ws.empty(scores.shape, scores.dtype)
         if not others:
             ws.launch(
-                shell_columns_scores_kernel, columns, [scores, mode, wp.float64(thr), first, rest, g, out]
+                keep_first_scores_kernel, columns, [scores, mode, wp.float64(thr), first, rest, g, out]
             )
         else:
             mask = _mark(ws, label_scores(ws, scores, spec), grid, own, others)
@@ -274,7 +280,7 @@ def shell(
         labels = labels_input(ws, volume, spec, grid)
         out = ws.empty((batch, n), wp.uint8)
         if not others:
-            ws.launch(shell_columns_labels_kernel, columns, [labels, g, out])
+            ws.launch(keep_first_labels_kernel, columns, [labels, g, out])
         else:
             mask = _mark(ws, labels, grid, own, others)
             ws.launch(write_shell_labels_kernel, (batch, n), [labels, mask, out])

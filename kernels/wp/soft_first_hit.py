@@ -310,8 +310,8 @@ def _flush_denormals(cpu: bool) -> Iterator[None]:
     """Run the enclosed CPU launches with denormals flushed to zero (FTZ/DAZ), restoring the caller's mode after.
 
     Warp runs CPU kernels on the calling thread, so its floating-point mode applies. Near the end of a ray the
-    products ``T p`` fall below the smallest normal number, where x86 arithmetic takes a microcode assist that
-    made the kernels several times slower; GPUs flush them anyway. The mode is probed with a denormal
+    products ``T p`` fall below the smallest normal number, where x86 arithmetic takes a slow microcode assist;
+    GPUs flush them anyway. The mode is probed with a denormal
     multiplication (zero when flushing is on) and put back as it was.
     """
     if not cpu:

@@ -379,6 +379,19 @@ def test_threshold_rule(backend: str, probs: bool, threshold: float) -> None:
     np.testing.assert_array_equal(got["label"], want["label"])
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_threshold_below_float32_resolution_of_one(backend: str) -> None:
+    """A logit threshold far below float32's resolution near 1: occupancy ``1 - p(empty)`` about 7.6e-10 must
+    still pass a threshold of 1e-10 in float32 arithmetic (a kernel that forms ``1 - p(empty)`` by subtraction
+    rounds it to 0 and misses every cell)."""
+    grid = FruxelGrid(6, 5, 4, z_near=0.5, z_far=3.0, hfov=60.0)
+    scores = np.zeros((1, 2, *grid.shape), np.float32)
+    scores[:, 1] = -21.0
+    hits = hits_numpy(first_hit(backend, scores, grid, grid.camera(), threshold=1e-10))
+    assert np.all(hits["cell"] == np.arange(grid.height * grid.width).reshape(grid.height, grid.width))
+    assert np.all(hits["label"] == 1)
+
+
 # ---------------------------------------------------------------------------------------------- array kinds
 
 

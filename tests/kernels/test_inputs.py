@@ -115,6 +115,22 @@ def test_good_input_after_bad_input_still_works(backend: str) -> None:
     assert np.all(hits.label == 3) and np.all(hits.cell // (GRID.width * GRID.height) == 2)
 
 
+@pytest.mark.parametrize("backend", REAL_BACKENDS)
+@pytest.mark.parametrize(("dtype", "native"), [(np.longdouble, np.float64), (">f4", np.float32), (">i4", np.int32)],
+                         ids=["longdouble", ">f4", ">i4"])
+def test_unusual_numpy_dtypes_work_and_come_back(backend: str, dtype: str, native: type) -> None:
+    """numpy's long double and data in the other byte order (as read from some files) are taken like their
+    native float64 / float32 / int32 counterparts, and shell gives them back in their own dtype."""
+    vol = (_labels() if np.dtype(native).kind == "i" else _scores()).astype(native)
+    odd = vol.astype(dtype)
+    want, got = first_hit(backend, vol, GRID, CAM), first_hit(backend, odd, GRID, CAM)
+    np.testing.assert_array_equal(got.cell, want.cell)
+    np.testing.assert_array_equal(got.label, want.label)
+    kept = shell(backend, odd, GRID, [CAM])
+    assert kept.dtype == odd.dtype
+    np.testing.assert_array_equal(kept.astype(native), shell(backend, vol, GRID, [CAM]))
+
+
 def test_camera_construction_errors() -> None:
     skew = np.eye(4)
     skew[0, 1] = 0.1

@@ -229,3 +229,18 @@ def test_input_errors() -> None:
         soft_first_hit(logits, GRID, [])
     with pytest.raises(VolumeError, match="class_probs"):
         soft_first_hit_occ(torch.zeros(1, *GRID.shape), torch.zeros(1, C - 1, 2, 2, 2), GRID, GRID.camera())
+
+
+@pytest.mark.parametrize("backend", REAL_BACKENDS)
+def test_unusual_numpy_layouts(backend: str) -> None:
+    """numpy scores with negative strides, the other byte order or long double give the plain float64 result;
+    a non-float array is refused with a VolumeError (torch itself takes none of these)."""
+    logits = np.random.default_rng(3).normal(size=(1, C, *GRID.shape))
+    want = soft_first_hit(logits, GRID, GRID.camera(), backend=backend).classes
+    flipped = np.ascontiguousarray(logits[..., ::-1])[..., ::-1]
+    assert flipped.strides[-1] < 0
+    for odd in (flipped, logits.astype(np.longdouble), logits.astype(">f8")):
+        got = soft_first_hit(odd, GRID, GRID.camera(), backend=backend).classes
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    with pytest.raises(VolumeError, match="float"):
+        soft_first_hit(logits.astype(object), GRID, GRID.camera(), backend=backend)
