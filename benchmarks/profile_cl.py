@@ -102,7 +102,7 @@ def main() -> None:
     def kernel_only(cam: Camera) -> Callable[[], None]:
         vol = occupancy.labels_from_host(rt, host_array(lab), spec, g)
         outs = [rt.scratch(f"prof{i}", cam.width * cam.height * s) for i, s in enumerate((4, 8, 4, 12))]
-        k = rt.kernel(occupancy.TRACE_SOURCE, "first_hit", occupancy.trace_options())
+        k = rt.kernel(occupancy.TRACE_SOURCE, "trace_first_hit_kernel", occupancy.trace_options())
 
         def run() -> None:
             k(rt.queue, occupancy.trace_global(cam, 1), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,

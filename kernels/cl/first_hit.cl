@@ -305,7 +305,7 @@ INLINE int trace(const Ray* r, const int4 entry, const float t_lo, const float t
 }
 
 /*
- * first_hit: one work-item per pixel (x, y) of the viewing camera and batch item b.
+ * trace_first_hit_kernel: one work-item per pixel (x, y) of the viewing camera and batch item b.
  *   global size (ceil(w / lx) lx, ceil(h / ly) ly, B), local size (lx, ly, 1): 2D pixel tiles, so that the
  *   rays of a work-group read neighbouring cells. Work-items past the image edge do nothing.
  * Outputs, (B, h, w) row-major, pixel index (b * h + y) * w + x:
@@ -314,10 +314,10 @@ INLINE int trace(const Ray* r, const int4 entry, const float t_lo, const float t
  *   depth  float32 z of the entry point in the viewing camera (the ray parameter t), 0 on a miss
  *   normal float32 (B, h, w, 3) entry-face normal in the grid frame, zeros on a miss
  */
-__kernel void first_hit(__global const uchar* labels, __global const uchar* pyr1, __global const uchar* pyr2,
-                        const float8 grid, const float16 cam, const int4 n, const int w, const int h,
-                        const int max_iter, __global int* out_label, __global long* out_cell,
-                        __global float* out_depth, __global float* out_normal)
+__kernel void trace_first_hit_kernel(__global const uchar* labels, __global const uchar* pyr1,
+                                     __global const uchar* pyr2, const float8 grid, const float16 cam, const int4 n,
+                                     const int w, const int h, const int max_iter, __global int* out_label,
+                                     __global long* out_cell, __global float* out_depth, __global float* out_normal)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= w || y >= h) return;

@@ -75,7 +75,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: 
     normal = np.empty((b, h, w, 3), np.float32)
     outs = [(rt.output(name, a), a) for name, a in
             (("hit_label", label), ("hit_cell", cell), ("hit_depth", depth), ("hit_normal", normal))]
-    k = rt.kernel(occupancy.TRACE_SOURCE, "first_hit", occupancy.trace_options())
+    k = rt.kernel(occupancy.TRACE_SOURCE, "trace_first_hit_kernel", occupancy.trace_options())
     k(rt.queue, occupancy.trace_global(cam, b), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,
       *occupancy.trace_args(grid, cam), *(buf for buf, _ in outs))
     # The call's one synchronisation: the results go to the caller next.

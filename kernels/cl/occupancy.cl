@@ -4,7 +4,7 @@
  *
  * Build options (-D):
  *   SCORE_HALF / SCORE_FLOAT / SCORE_DOUBLE   the scores' element type (exactly one is defined)
- *   NUM_CHANNELS, MODE                        channel count C and occupancy rule of scores_to_labels
+ *   NUM_CHANNELS, MODE                        channel count C and occupancy rule of label_scores_kernel
  *   BLOCK                                     edge of a pyramid block in cells (kernels/traversal.py)
  */
 
@@ -25,7 +25,7 @@ typedef float real;
 #endif
 
 /*
- * scores_to_labels: one work-item per cell and batch item.
+ * label_scores_kernel: one work-item per cell and batch item.
  *   global size (ceil(cells / l) l, B), local size (l, 1), cells = D * H * W; work-items past the end do nothing.
  *   scores  SCORE_T (B, NUM_CHANNELS, D, H, W) logits or probabilities, NCDHW, channel 0 = empty
  *   labels  uchar   (B, D, H, W) out: 0 where empty, else the argmax over channels 1..C-1 (first on ties)
@@ -36,7 +36,7 @@ typedef float real;
  * which PoCL vectorises across work-items (the host checks NUM_CHANNELS <= 256 so labels fit in uchar).
  * Precision: float, or double for double scores.
  */
-__kernel void scores_to_labels(__global const SCORE_T* scores, __global uchar* labels, const long cells,
+__kernel void label_scores_kernel(__global const SCORE_T* scores, __global uchar* labels, const long cells,
                                const real threshold)
 {
     const long cell = get_global_id(0);
@@ -69,15 +69,15 @@ __kernel void scores_to_labels(__global const SCORE_T* scores, __global uchar* l
 }
 
 /*
- * pyramid: one work-item per coarse cell (I, J, K) of batch item b: 1 when any of its fine cells (a block of
- * BLOCK^3, cut at the volume's far edges) is nonzero, else 0.
+ * build_pyramid_kernel: one work-item per coarse cell (I, J, K) of batch item b: 1 when any of its fine cells (a
+ * block of BLOCK^3, cut at the volume's far edges) is nonzero, else 0.
  *   global size (ceil(Wc / lx) lx, Hc, Dc * B), local size (lx, 1, 1); (Dc, Hc, Wc) = ceil((D, H, W) / BLOCK)
  *   fine    uchar (B, D, H, W)    labels or the level below
  *   coarse  uchar (B, Dc, Hc, Wc) out
  * The loops have a fixed trip count and clamp indices at the far edges instead of testing them (OR-ing a cell
  * twice changes nothing), so the body is straight-line code that PoCL vectorises across work-items.
  */
-__kernel void pyramid(__global const uchar* fine, __global uchar* coarse, const int4 n, const int4 nc)
+__kernel void build_pyramid_kernel(__global const uchar* fine, __global uchar* coarse, const int4 n, const int4 nc)
 {
     const int I = get_global_id(0), J = get_global_id(1), KB = get_global_id(2);
     if (I >= nc.x) return;

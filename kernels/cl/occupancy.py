@@ -41,7 +41,7 @@ TRACE_LOCAL = (16, 4)
 """Work-group shape of the per-pixel traversal kernels (pixels along x, y): PoCL runs a work-group as one loop,
 so a tile of neighbouring rays shares cache lines of the label volume."""
 _LOCAL_CELLS = 256
-"""Work-group size of scores_to_labels (PoCL vectorises its straight-line body across work-items)."""
+"""Work-group size of label_scores_kernel (PoCL vectorises its straight-line body across work-items)."""
 _LOCAL_PYRAMID = 16
 """Work-group width of pyramid (coarse cells along x)."""
 
@@ -112,7 +112,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         keep.append(scores)
         kind = _SCORE_TYPES[scores.dtype]
         mode = 0 if spec.threshold is None else (2 if spec.probs else 1)
-        k = rt.kernel(_SOURCE, "scores_to_labels",
+        k = rt.kernel(_SOURCE, "label_scores_kernel",
                       defines(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode, BLOCK=traversal.BLOCK))
         real = np.float64 if kind == "SCORE_DOUBLE" else np.float32
         labels = rt.scratch("labels", b * cells)
@@ -138,7 +138,8 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
 def build_pyramid(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> list[Any]:
     """Enqueue the pyramid of a uint8 ``(B, D, H, W)`` label buffer: levels 1 .. LEVELS-1 in pooled buffers,
     padded with 1-byte dummies to two entries (the kernels always take two level buffers)."""
-    k = rt.kernel(_SOURCE, "pyramid", defines(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, BLOCK=traversal.BLOCK))
+    opts = defines(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, BLOCK=traversal.BLOCK)
+    k = rt.kernel(_SOURCE, "build_pyramid_kernel", opts)
     out = []
     fine = labels
     for level in range(1, LEVELS):

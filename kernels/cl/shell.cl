@@ -7,10 +7,10 @@
  */
 
 /*
- * shell_mark: one work-item per pixel (x, y) of one viewing camera and batch item b; sets the mask at its first
+ * mark_shell_kernel: one work-item per pixel (x, y) of one viewing camera and batch item b; sets the mask at its first
  * hit. Global and local sizes, and all arguments but the last, as first_hit (first_hit.cl).
  */
-__kernel void shell_mark(__global const uchar* labels, __global const uchar* pyr1, __global const uchar* pyr2,
+__kernel void mark_shell_kernel(__global const uchar* labels, __global const uchar* pyr1, __global const uchar* pyr2,
                          const float8 grid, const float16 cam, const int4 n, const int w, const int h,
                          const int max_iter, __global uchar* mask)
 {
@@ -34,13 +34,13 @@ __kernel void shell_mark(__global const uchar* labels, __global const uchar* pyr
 }
 
 /*
- * shell_columns: the fast path for the grid's own camera at native resolution, whose pixel (i, j) looks
+ * mark_columns_kernel: the fast path for the grid's own camera at native resolution, whose pixel (i, j) looks
  * straight down column (j, i) from the near plane (traversal.is_own_view): one work-item per column (i, j) and
  * batch item b marks the column's first occupied cell, which is exactly that pixel's first hit.
  *   global size (ceil(W / lx) lx, H, B), local size (lx, 1, 1)
  *   labels uchar (B, D, H, W), mask uchar (B, D, H, W)
  */
-__kernel void shell_columns(__global const uchar* labels, const int4 n, __global uchar* mask)
+__kernel void mark_columns_kernel(__global const uchar* labels, const int4 n, __global uchar* mask)
 {
     const int i = get_global_id(0), j = get_global_id(1), b = get_global_id(2);
     if (i >= n.x) return;
@@ -55,7 +55,7 @@ __kernel void shell_columns(__global const uchar* labels, const int4 n, __global
 }
 
 /*
- * shell_select_<bytes>: the output volume, on raw element bits (so one kernel per element size serves every
+ * write_shell_kernel_<bytes>: the output volume, on raw element bits (so one kernel per element size serves every
  * dtype: integer labels, float16/32/64 scores). One work-item per element (cell, channel c, batch item b):
  *   out[b, c, cell] = mask[b, cell] ? in[b, c, cell] : (c == 0 ? empty0 : empty1)
  *   global size (ceil(cells / l) l, C, B), local size (l, 1, 1), cells = D * H * W
@@ -74,7 +74,7 @@ __kernel void shell_columns(__global const uchar* labels, const int4 n, __global
         const long e = (b * C + c) * cells + cell;                                                             \
         out[e] = mask[b * cells + cell] ? in[e] : (c == 0 ? empty0 : empty1);                                  \
     }
-SHELL_SELECT(shell_select_1, uchar)
-SHELL_SELECT(shell_select_2, ushort)
-SHELL_SELECT(shell_select_4, uint)
-SHELL_SELECT(shell_select_8, ulong)
+SHELL_SELECT(write_shell_kernel_1, uchar)
+SHELL_SELECT(write_shell_kernel_2, ushort)
+SHELL_SELECT(write_shell_kernel_4, uint)
+SHELL_SELECT(write_shell_kernel_8, ulong)

@@ -1,8 +1,8 @@
 """OpenCL ``shell``: the VMS simplification (SPEC section 4) of a label or score volume.
 
 Per call: labels (and their pyramid) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
-launch per camera marking each pixel's first-hit cell (:file:`shell.cl`'s ``shell_mark``; the grid's own
-camera at native resolution takes ``shell_columns``, one work-item per column), then one launch that writes the
+launch per camera marking each pixel's first-hit cell (:file:`shell.cl`'s ``mark_shell_kernel``; the grid's own
+camera at native resolution takes ``mark_columns_kernel``, one work-item per column), then one launch that writes the
 output from the input, the mask and the canonical empty cell. Nothing is cached across calls but device buffers.
 """
 
@@ -22,9 +22,9 @@ from .runtime import Runtime, get_runtime, host_array, source, to_caller
 
 _SOURCE = occupancy.TRACE_SOURCE + "\n" + source(__file__)
 _LOCAL_COLUMNS = 16
-"""Work-group width of shell_columns (columns along x)."""
+"""Work-group width of mark_columns_kernel (columns along x)."""
 _LOCAL_SELECT = 256
-"""Work-group size of shell_select_* (elements along the cell axis)."""
+"""Work-group size of write_shell_kernel_* (elements along the cell axis)."""
 
 
 def shell(
@@ -90,11 +90,11 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
     n = np.array([grid.width, grid.height, grid.depth, 1], np.int32)
     for cam, own_view in zip(cams, own, strict=True):
         if own_view:
-            k = rt.kernel(_SOURCE, "shell_columns", opts)
+            k = rt.kernel(_SOURCE, "mark_columns_kernel", opts)
             k(rt.queue, (-(-grid.width // _LOCAL_COLUMNS) * _LOCAL_COLUMNS, grid.height, b), (_LOCAL_COLUMNS, 1, 1),
               vol.labels, n, mask)
         else:
-            k = rt.kernel(_SOURCE, "shell_mark", opts)
+            k = rt.kernel(_SOURCE, "mark_shell_kernel", opts)
             k(rt.queue, occupancy.trace_global(cam, b), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,
               *occupancy.trace_args(grid, cam), mask)
 
@@ -103,7 +103,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
     dst = rt.output("shell_out", out)
     channels = spec.channels if spec.is_scores else 1
     e0, e1 = empty_bits(spec, arr.dtype)
-    k = rt.kernel(_SOURCE, f"shell_select_{arr.dtype.itemsize}", opts)
+    k = rt.kernel(_SOURCE, f"write_shell_kernel_{arr.dtype.itemsize}", opts)
     k(rt.queue, (-(-cells // _LOCAL_SELECT) * _LOCAL_SELECT, channels, b), (_LOCAL_SELECT, 1, 1), data, mask, dst,
       np.int64(cells), e0, e1)
     # The call's one synchronisation: the result goes to the caller next.

@@ -87,7 +87,7 @@ inline void scatter(volatile __global real* p, const real v, const int exclusive
  * S = sum_{c>=1} p_c; stops early only when T is 0 (or below REAL_MIN, flushed to 0). With save = 1 also writes
  * state, log_t and tape.
  */
-__kernel void soft_first_hit_forward(__global const real* probs, const float8 grid, const float16 cam,
+__kernel void accumulate_soft_hits_kernel(__global const real* probs, const float8 grid, const float16 cam,
                                      const int4 n, const int w, const int h, const int max_steps, const int slot,
                                      const int ncam, const int save, const int words, __global real* acc,
                                      __global real* miss, __global real* dsum, __global int* state,
@@ -175,7 +175,7 @@ __kernel void soft_first_hit_forward(__global const real* probs, const float8 gr
  *   grad[0][m] += T_m R_m,  grad[c][m] += T_m (g_c + g_d t_m)   (scatter(): plain adds when exclusive = 1)
  * g_acc (B, ncam, NC, h*w), g_miss and g_dsum (B, ncam, h*w); grad (B, NC + 1, D*H*W) is zeroed by the host.
  */
-__kernel void soft_first_hit_backward(__global const real* probs, const float8 grid, const float16 cam,
+__kernel void backpropagate_soft_hits_kernel(__global const real* probs, const float8 grid, const float16 cam,
                                       const int4 n, const int w, const int h, const int slot, const int ncam,
                                       const int exclusive, const int words, __global const int* state,
                                       __global const real* log_t,

@@ -109,7 +109,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     rays = b * n_cam * h * w
     words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD)
     with rt.lock:
-        k = _kernel(rt, "soft_first_hit_forward", real, c - 1)
+        k = _kernel(rt, "accumulate_soft_hits_kernel", real, c - 1)
         p_buf = rt.input("soft_probs", _host(probs, real))
         outs = [(rt.output(name, a.numpy()), a.numpy()) for name, a in
                 (("soft_acc", acc), ("soft_miss", miss), ("soft_dsum", dsum))]
@@ -144,7 +144,7 @@ def backward(probs: Any, grid: FruxelGrid, saved: SavedRays, g_acc: Any, g_miss:
     h, w = cams[0].height, cams[0].width
     grad = torch.zeros(probs.shape, dtype=probs.dtype) if out is None else out
     with rt.lock:
-        k = _kernel(rt, "soft_first_hit_backward", real, c - 1)
+        k = _kernel(rt, "backpropagate_soft_hits_kernel", real, c - 1)
         p_buf = rt.input("soft_probs", _host(probs, real))
         gbufs = [rt.input(name, _host(g, real)) for name, g in
                  (("soft_g_acc", g_acc), ("soft_g_miss", g_miss), ("soft_g_dsum", g_dsum))]
