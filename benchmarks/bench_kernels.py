@@ -421,7 +421,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             result["chart"] = str(png.resolve().relative_to(common.ROOT))
         except ValueError:
             result["chart"] = str(png)
-        out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=str))
+        common.write_text(out.with_suffix(".json"), json.dumps(result, indent=1, default=str))
         files = sorted(common.RESULTS.glob("kernels*.json"))
         common.replace_section(common.BENCHMARKS_MD, SECTION, section([json.loads(f.read_text()) for f in files]))
         print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")

@@ -278,7 +278,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         chart(result, png)
         # Where the files end up beside BENCHMARKS.md (a run elsewhere, e.g. into a device's $OUT, is copied there).
         result["png"] = str((common.RESULTS / png.name).relative_to(common.ROOT))
-        out.with_suffix(".json").write_text(json.dumps(result, indent=1))
+        common.write_text(out.with_suffix(".json"), json.dumps(result, indent=1))
         write_section()
         print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")
     return result

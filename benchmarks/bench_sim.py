@@ -302,9 +302,9 @@ def main(argv: list[str] | None = None) -> None:
            "notes": args.note}
     common.RESULTS.mkdir(parents=True, exist_ok=True)
     text = json.dumps(run, indent=1) + "\n"
-    (common.RESULTS / f"sim-{args.tag}.json").write_text(text)
+    common.write_text(common.RESULTS / f"sim-{args.tag}.json", text)
     if args.json:
-        Path(args.json).write_text(text)
+        common.write_text(Path(args.json), text)
     print(section([run]))
     if not args.no_write:
         runs = load_results()

@@ -170,6 +170,14 @@ def save_figure(fig: Any, path: Path, dpi: int) -> None:
         pyplot().close(fig)
 
 
+def write_text(path: Path, text: str) -> None:
+    """Write a result file (JSON) atomically (:func:`fruxel.io.atomic_write`), making its folder: an interrupted
+    run leaves the previous results whole, and BENCHMARKS.md is rebuilt from them."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "w") as f:
+        f.write(text)
+
+
 # ---------------------------------------------------------------------------------------------- BENCHMARKS.md
 def replace_section(path: Path, heading: str, text: str) -> None:
     """Replace the ``heading`` section of a Markdown file with ``text``, or append it; the other sections stay.

@@ -673,7 +673,14 @@ def config_from_args(args: argparse.Namespace) -> Table1Config:
         if getattr(args, name, None) is not None:
             kw[name] = getattr(args, name)
     if getattr(args, "backends", None):
-        kw["raycast_backends"] = tuple(b.strip() for b in args.backends.split(",") if b.strip())
+        from fruxel.kernels.registry import split_name
+
+        names = tuple(b.strip() for b in args.backends.split(",") if b.strip())
+        # A misspelt name fails here, before minutes of measuring; an installed-but-unusable one still becomes an
+        # "unavailable" row (as OpenCL does on a GPU machine without it).
+        for b in names:
+            split_name(b)
+        kw["raycast_backends"] = names
     return Table1Config(**kw)
 
 

@@ -77,9 +77,9 @@ def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.
     return scale * err.sum() / m.sum().clamp_min(1.0)
 
 
-def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor,
-                                         shell_mask: torch.Tensor, *, weight_visible: float = 1.0,
-                                         weight_other: float = 0.1, log_probs: bool = False) -> torch.Tensor:
+def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor, shell_mask: torch.Tensor, *,
+                              weight_visible: float = 1.0, weight_other: float = 0.1,
+                              log_probs: bool = False) -> torch.Tensor:
     """Per-cell cross-entropy with a weight per cell from the ground truth's visible shell.
 
     Args:

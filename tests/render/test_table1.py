@@ -84,3 +84,14 @@ def test_benchmark_cli_writes_results(tmp_path: Path, capsys: pytest.CaptureFixt
     out = capsys.readouterr().out
     assert "no simplification" in out and "paper" in out
     assert {p.name for p in tmp_path.iterdir()} >= {"table1.json", "table1.png", "table1.md"}
+
+
+def test_benchmark_cli_rejects_unknown_backend_before_measuring(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fruxel.render.cli import main
+
+    rc = main(["--benchmark", "--backends", "warp,vulkn", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "unknown backend 'vulkn'" in err
+    assert not any(tmp_path.iterdir())

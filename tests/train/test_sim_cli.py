@@ -71,6 +71,14 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path: Path, capsys: pytest.Captu
     assert len(err) == 1 and err[0].startswith("fruxel-sim: error:") and words in err[0]
 
 
+@pytest.mark.parametrize("argv", [["generate"], ["generate", "--out", "x", "--image", "0"], ["nope"], []])
+def test_argparse_errors_are_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and err[0].startswith("fruxel-sim") and "error:" in err[0]
+
+
 def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     f = tmp_path / "file"
     f.write_text("x")

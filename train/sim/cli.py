@@ -23,6 +23,12 @@ from typing import Any
 PROG = "fruxel-sim"
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        # One line, like every other error of this command, instead of argparse's usage block.
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
 def _positive(text: str) -> int:
     try:
         v = int(text)
@@ -75,7 +81,8 @@ def _config_options(p: argparse.ArgumentParser, image: int, grid: str) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``fruxel-sim``."""
-    parser = argparse.ArgumentParser(prog=PROG, description="Simulated training data for fruxel: rooms, a mobile "
+    # Subcommand parsers are made with the same class, so they give one-line errors too.
+    parser = _Parser(prog=PROG, description="Simulated training data for fruxel: rooms, a mobile "
                                      "robot's camera images and ground-truth fruxel labels.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -209,6 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except expected as e:
         print(f"{PROG}: error: {e}", file=sys.stderr)
         return 2
+
 
 if __name__ == "__main__":
     sys.exit(main())
