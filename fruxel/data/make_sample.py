@@ -1,6 +1,6 @@
-"""Build the bundled sample room: a small procedural fruxel model and a picture of it.
+"""Build the bundled sample room: a small procedural fruxel model.
 
-Run as ``python -m fruxel.data.make_sample`` (optionally ``--out-dir DIR``, ``--no-picture``). The result is
+Run as ``python -m fruxel.data.make_sample`` (optionally ``--out-dir DIR``). The result is
 deterministic: every cell is labelled by testing its centre against simple solids (boxes, cylinders, a
 sphere) in the grid frame, with no randomness.
 
@@ -15,8 +15,8 @@ The scene, in the grid camera's frame (OpenCV axes: x right, y down, z forward; 
 - a table (top and four legs) and a cabinet by the left wall (``furniture``), a cylindrical pedestal
   (``furniture``) carrying a sphere (``sculpture``).
 
-Writes ``sample_room.npz`` (:func:`fruxel.save`) and ``sample_room.png``, rendered offscreen with pyrender
-from an oblique pose with the culled trapezoid mesh.
+Writes ``sample_room.npz`` (:func:`fruxel.save`). Its picture, ``sample_room.png``, needs pyrender, which the
+numpy-only core does not import: ``python scripts/make_sample_picture.py`` draws it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 
 from fruxel.classes import DEFAULT_CLASSES
 from fruxel.grid import FruxelGrid
-from fruxel.io import atomic_path, save
+from fruxel.io import save
 from fruxel.model import FruxelModel
 
 GRID = FruxelGrid(width=64, height=48, depth=64, z_near=0.5, z_far=6.0, hfov=60.0)
@@ -97,75 +97,9 @@ def sample_model() -> FruxelModel:
     return FruxelModel(room_labels(GRID), GRID, DEFAULT_CLASSES)
 
 
-VIEW_EYE = (2.4, -8.0, -2.8)
-"""Viewpoint of the picture, grid frame, metres: high above, right of and behind the grid camera."""
-VIEW_TARGET = (0.4, -0.6, 3.8)
-"""Point the picture's camera looks at, grid frame, metres: the middle of the frustum's occupied part."""
-
-
-def render_picture(
-    model: FruxelModel,
-    path: Path,
-    size: tuple[int, int] = (960, 720),
-    eye: tuple[float, float, float] = VIEW_EYE,
-    target: tuple[float, float, float] = VIEW_TARGET,
-) -> None:
-    """Render the model's culled mesh offscreen from an oblique pose and write a PNG.
-
-    Args:
-        model: the model to draw.
-        path: PNG file to write.
-        size: image ``(width, height)`` in pixels.
-        eye: ``(3,)`` viewpoint, grid frame, metres.
-        target: ``(3,)`` point looked at, grid frame, metres.
-    """
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=True)
-    import pyrender
-    from PIL import Image
-
-    from fruxel.camera import Camera
-    from fruxel.mesh import mesh_labels, to_trimesh
-
-    mesh = mesh_labels(model.labels, model.grid, model.classes.palette(), mode="culled")
-    scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 1.0], ambient_light=[0.35, 0.35, 0.35])
-    scene.add(pyrender.Mesh.from_trimesh(to_trimesh(mesh), smooth=False))
-
-    # The frustum's 12 edges give the grid's extent; corners in cell_corners order.
-    g = model.grid
-    c = np.arange(8)
-    corners = g.corner_points((c >> 2) * g.depth, ((c >> 1) & 1) * g.height, (c & 1) * g.width).astype(np.float32)
-    edges = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
-    lines = pyrender.Primitive(
-        positions=corners[edges.reshape(-1)], mode=pyrender.constants.GLTF.LINES,
-        color_0=np.tile([0.25, 0.25, 0.25, 1.0], (24, 1)).astype(np.float32),
-    )
-    scene.add(pyrender.Mesh([lines]))
-
-    cam = Camera.look_at(eye=eye, target=target, width=size[0], height=size[1], hfov=50.0)
-    yfov = 2.0 * np.arctan(size[1] / (2.0 * cam.fy))
-    scene.add(pyrender.PerspectiveCamera(yfov=yfov, aspectRatio=size[0] / size[1]), pose=cam.opengl_pose())
-    # A key light over the viewer's shoulder and a weaker fill from the other side, so that the three plane
-    # families of the trapezoid faces get distinct shades.
-    key = Camera.look_at(eye=(-4.0, -6.0, 0.5), target=target)
-    fill = Camera.look_at(eye=(5.0, -2.0, 1.0), target=target)
-    scene.add(pyrender.DirectionalLight(intensity=3.0), pose=key.opengl_pose())
-    scene.add(pyrender.DirectionalLight(intensity=1.2), pose=fill.opengl_pose())
-
-    renderer = pyrender.OffscreenRenderer(*size)
-    try:
-        color, _ = renderer.render(scene)
-    finally:
-        renderer.delete()
-    with atomic_path(path) as tmp:
-        Image.fromarray(color).save(tmp, optimize=True)
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parent)
-    parser.add_argument("--no-picture", action="store_true", help="skip the pyrender picture")
     args = parser.parse_args(argv)
     model = sample_model()
     args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -175,10 +109,6 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{npz}: {npz.stat().st_size} bytes, {model.n_occupied} occupied cells")
     for name, n in zip(model.classes.names, counts.tolist(), strict=False):
         print(f"  {name:10s} {n}")
-    if not args.no_picture:
-        png = args.out_dir / "sample_room.png"
-        render_picture(model, png)
-        print(f"{png}: {png.stat().st_size} bytes")
 
 
 if __name__ == "__main__":
