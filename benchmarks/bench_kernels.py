@@ -1,6 +1,7 @@
 """Kernel benchmark: first_hit and shell on every backend, against an Embree ray caster on the full mesh.
 
-Model: :func:`scenes.room_volume` (128^3, 25 % occupied) seen by :func:`scenes.oblique_camera` at 512^2.
+Model: :func:`fruxel.data.rooms.room_volume` (128^3, 25 % occupied) seen by
+:func:`fruxel.data.rooms.oblique_camera` at 512^2.
 Measured per backend (median of ``--repeat`` runs after one warm-up; the very first call, which compiles the
 kernels or loads them from the backend's cache, is reported on its own):
 
@@ -41,9 +42,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common  # noqa: E402
-import scenes  # noqa: E402
 
 from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
+from fruxel.data import rooms  # noqa: E402
 from fruxel.grid import FruxelGrid  # noqa: E402
 from fruxel.kernels import available_backends, first_hit, orbit_cameras, shell  # noqa: E402
 from fruxel.mesh import mesh_labels  # noqa: E402
@@ -117,7 +118,7 @@ def logits_batch(n: int, batch: int = 4, channels: int = 7) -> np.ndarray:
     out = np.empty((batch, channels, n, n, n), np.float32)
     rng = np.random.default_rng(1)
     for b in range(batch):
-        lab, _ = scenes.room_volume(n, seed=b)
+        lab, _ = rooms.room_volume(n, seed=b)
         out[b] = rng.standard_normal((channels, n, n, n), dtype=np.float32)
         top = out[b].max(axis=0)
         np.put_along_axis(out[b], lab[None].astype(np.int64), (top + 2.0)[None], axis=0)
@@ -131,7 +132,7 @@ def bench_backend(name: str, labels: np.ndarray, grid: FruxelGrid, image: int, r
     dev = device if name.startswith("warp") and device else None
     backend = "warp" if dev else name
     vol = _device_volume(labels, dev)
-    cam = scenes.oblique_camera(grid, image)
+    cam = rooms.oblique_camera(grid, image)
     rows = []
     t = time_call(lambda: first_hit(vol, grid, cam, backend=backend, device=dev), repeat, dev)
     hits = _cells(first_hit(vol, grid, cam, backend=backend, device=dev))
@@ -166,7 +167,7 @@ def bench_peer(labels: np.ndarray, grid: FruxelGrid, image: int, repeat: int,
     t0 = time.perf_counter()
     mesh = mesh_labels(labels, grid, DEFAULT_CLASSES.palette(), mode="full")
     mesh_ms = (time.perf_counter() - t0) * 1e3
-    cam = scenes.oblique_camera(grid, image)
+    cam = rooms.oblique_camera(grid, image)
     o, d = cam.rays()
     rays = np.concatenate([o, d], axis=-1).reshape(-1, 6).astype(np.float32)
     cells = np.flatnonzero(labels)
@@ -304,7 +305,7 @@ def table(result: dict[str, Any]) -> str:
 def section(results: list[dict[str, Any]]) -> str:
     """The "## Kernels" section of BENCHMARKS.md from every result file."""
     parts = [SECTION, "",
-             "`python benchmarks/bench_kernels.py` (see its docstring). Model: `benchmarks/scenes.py` "
+             "`python benchmarks/bench_kernels.py` (see its docstring). Model: `fruxel/data/rooms.py` "
              "`room_volume(128)` (25 % occupied: walls, floor, window, door, furniture blocks, a sculpture "
              "blob), viewed by `oblique_camera` at 512 x 512. Times are medians after one warm-up; "
              "\"first call\" includes compiling the kernels or loading them from the backend's cache. "
@@ -381,8 +382,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"machine: {result['machine']['cpu']} x{result['machine']['cores']}, GPU {result['machine']['gpu']}")
     first_cells = None
     for n in sizes:
-        labels, grid = scenes.room_volume(n)
-        result.setdefault("scenes", {})[str(n)] = scenes.describe(labels)
+        labels, grid = rooms.room_volume(n)
+        result.setdefault("scenes", {})[str(n)] = rooms.describe(labels)
         logits = logits_batch(n) if n == 128 else None
         for name in names:
             if n > 128 and name != "warp-cuda":
@@ -395,7 +396,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             result["rows"] += rows
             if n == 128 and first_cells is None:
                 dev = device if name.startswith("warp") else None
-                first_cells = _cells(first_hit(labels, grid, scenes.oblique_camera(grid, 512),
+                first_cells = _cells(first_hit(labels, grid, rooms.oblique_camera(grid, 512),
                                                backend="warp" if dev else name, device=dev))
         if n == 128 and not args.no_peer:
             peer = bench_peer(labels, grid, 512, args.repeat, first_cells)

@@ -1,11 +1,12 @@
 """Shell-aware losses benchmark: forward + backward of :class:`fruxel.train.losses.ShellLoss` per backend, and the
 pure-torch cumprod reference of the own view.
 
-Setup: logits ``(B, 7, n, n, n)`` float32 (default n = 64) against the ground truth of :func:`scenes.room_volume`
-(one seed per batch item), from the grid's own view (n x n pixels) plus 2 seeded novel poses at 128 x 128
-(:func:`fruxel.train.losses.random_poses`). ``--logits scene`` (default) makes "mid-training" logits, the ground
-truth's class raised by 4 over normal noise of standard deviation 1.5; ``--logits random`` makes standard normal
-logits, whose rays almost never reach a transmittance of exactly 0 and so run through every cell (worst case).
+Setup: logits ``(B, 7, n, n, n)`` float32 (default n = 64) against the ground truth of
+:func:`fruxel.data.rooms.room_volume` (one seed per batch item), from the grid's own view (n x n pixels) plus 2
+seeded novel poses at 128 x 128 (:func:`fruxel.train.losses.random_poses`). ``--logits scene`` (default) makes
+"mid-training" logits, the ground truth's class raised by 4 over normal noise of standard deviation 1.5; ``--logits
+random`` makes standard normal logits, whose rays almost never reach a transmittance of exactly 0 and so run
+through every cell (worst case).
 
 Rows, each a median of ``--repeat`` runs after one warm-up (the first call, which builds the kernels or loads
 them from the cache, is reported separately):
@@ -48,8 +49,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common  # noqa: E402
-import scenes  # noqa: E402
 
+from fruxel.data import rooms  # noqa: E402
 from fruxel.grid import FruxelGrid  # noqa: E402
 from fruxel.kernels import available_backends  # noqa: E402
 from fruxel.kernels.soft import soft_first_hit, soft_first_hit_own_view_torch  # noqa: E402
@@ -107,7 +108,7 @@ def timed(fn: Callable[[], Any], device: str, repeat: int) -> dict[str, float]:
 # ---------------------------------------------------------------------------------------------- setup
 def make_batch(n: int, batch: int, kind: str, device: str) -> tuple[torch.Tensor, torch.Tensor, FruxelGrid]:
     """Ground-truth labels ``(B, n, n, n)`` uint8 and logits ``(B, 7, n, n, n)`` float32 on ``device``."""
-    vols = [scenes.room_volume(n, 0.25, seed) for seed in range(batch)]
+    vols = [rooms.room_volume(n, 0.25, seed) for seed in range(batch)]
     grid = vols[0][1]
     labels = torch.from_numpy(np.stack([v[0] for v in vols]))
     rng = np.random.default_rng(0)
@@ -214,7 +215,7 @@ def section(results: list[dict[str, Any]]) -> str:
            "`python benchmarks/bench_losses.py`: `ShellLoss` (soft_first_hit shell cross-entropy + depth L1 + "
            "visible-weighted voxel cross-entropy) forward + backward on logits `(B, 7, 64, 64, 64)` float32, from "
            f"the grid's own view (64 x 64) plus {NOVEL} novel poses at {NOVEL_SIZE[0]} x {NOVEL_SIZE[1]}; ground "
-           "truth from `benchmarks/scenes.py` `room_volume`. *shell losses fwd+bwd* takes the ground-truth targets "
+           "truth from `fruxel/data/rooms.py` `room_volume`. *shell losses fwd+bwd* takes the ground-truth targets "
            "(`first_hit`, `shell` of the labels) as given; *+ ground truth* computes them too. *soft_first_hit own "
            "view* and *torch cumprod own view* are the same computation (own view only, shell cross-entropy + depth "
            "L1), by the kernels and by the pure-torch cumprod reference. *scene* logits are the ground truth's class "

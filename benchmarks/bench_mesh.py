@@ -1,10 +1,9 @@
 """Meshing benchmark: build time and triangle count of the full, culled and greedy trapezoid meshes.
 
-Model: the sample room's scene (:mod:`fruxel.data.make_sample`) on a 128^3 grid, filled with seeded random
-boxes, cylinders and spheres (furniture, sculptures) until about 25 % of the cells are occupied. Also reports
-the greedy / culled triangle ratio on the bundled sample room, and the interactive path's input: the own-view
-VMS shell (the first occupied cell of each column, as ``kernels.shell`` with ``grid.camera()``) of the Table 1
-model, :func:`scenes.room_volume` (128^3, 25 %), a few % of the grid.
+Model: :func:`fruxel.data.rooms.room_volume` (128^3, 25 % occupied; the model of the kernel benchmark and of
+Table 1). Also reports the greedy / culled triangle ratio on the bundled sample room, and the interactive path's
+input: the own-view VMS shell of the same model (the first occupied cell of each column, as ``kernels.shell``
+with ``grid.camera()``), a few % of the grid.
 
 Run ``python benchmarks/bench_mesh.py`` (``--repeats N``, ``--no-write``). Prints a table, replaces the
 "## Meshing" section of BENCHMARKS.md and writes the bar chart ``benchmarks/results/mesh.png``.
@@ -26,11 +25,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common  # noqa: E402
-import scenes  # noqa: E402
 
 from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
-from fruxel.data import SAMPLE_ROOM  # noqa: E402
-from fruxel.data.make_sample import room_labels  # noqa: E402
+from fruxel.data import SAMPLE_ROOM, rooms  # noqa: E402
 from fruxel.grid import FruxelGrid  # noqa: E402
 from fruxel.io import load  # noqa: E402
 from fruxel.mesh import MODES, mesh_labels  # noqa: E402
@@ -38,42 +35,9 @@ from fruxel.mesh import MODES, mesh_labels  # noqa: E402
 CHART = common.RESULTS / "mesh.png"
 SECTION = "## Meshing"
 
-GRID = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=6.0, hfov=60.0)
-TARGET_OCCUPANCY = 0.25
 CULLED_TARGET_S = 0.3
 GREEDY_TARGET_RATIO = 10.0
 SHELL_GREEDY_TARGET_MS = 20.0
-
-
-def dense_room(grid: FruxelGrid = GRID, occupancy: float = TARGET_OCCUPANCY, seed: int = 0) -> np.ndarray:
-    """The sample room on ``grid`` plus random solids until ``occupancy`` of the cells are occupied.
-
-    Returns:
-        ``(D, H, W)`` uint8 labels, :data:`DEFAULT_CLASSES` ids.
-    """
-    ids = {name: i for i, name in enumerate(DEFAULT_CLASSES.names)}
-    rng = np.random.default_rng(seed)
-    lab = room_labels(grid)
-    p = grid.cell_centres()
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    target = occupancy * lab.size
-    while np.count_nonzero(lab) < target:
-        cx, cz = rng.uniform(-2.0, 2.0), rng.uniform(1.0, 5.5)
-        kind = rng.integers(3)
-        if kind == 0:
-            hx, hz, h = rng.uniform(0.1, 0.6), rng.uniform(0.1, 0.6), rng.uniform(0.2, 2.0)
-            solid = (np.abs(x - cx) <= hx) & (np.abs(z - cz) <= hz) & (y >= 1.0 - h) & (y <= 1.0)
-            cls = ids["furniture"]
-        elif kind == 1:
-            r, h = rng.uniform(0.1, 0.4), rng.uniform(0.3, 2.0)
-            solid = ((x - cx) ** 2 + (z - cz) ** 2 <= r * r) & (y >= 1.0 - h) & (y <= 1.0)
-            cls = ids["furniture"]
-        else:
-            r = rng.uniform(0.15, 0.5)
-            solid = (x - cx) ** 2 + (y - (1.0 - r)) ** 2 + (z - cz) ** 2 <= r * r
-            cls = ids["sculpture"]
-        lab[solid & (lab == 0)] = cls
-    return lab
 
 
 def own_view_shell(labels: np.ndarray) -> np.ndarray:
@@ -132,11 +96,11 @@ def main(argv: list[str] | None = None) -> None:
 
     load_before = common.load_average()
     palette = DEFAULT_CLASSES.palette()
-    labels = dense_room()
+    labels, grid = rooms.room_volume(128)
     n_occ = int(np.count_nonzero(labels))
     rows = []
     for mode in MODES:
-        t, n = time_mesh(labels, GRID, palette, mode, args.repeats)
+        t, n = time_mesh(labels, grid, palette, mode, args.repeats)
         rows.append({"mode": mode, "time": t, "tris": n})
 
     sample = load(SAMPLE_ROOM)
@@ -146,12 +110,11 @@ def main(argv: list[str] | None = None) -> None:
         sample_tris[mode] = (t, n)
     ratio = sample_tris["culled"][1] / sample_tris["greedy"][1]
 
-    room, room_grid = scenes.room_volume(128)
-    shell = own_view_shell(room)
+    shell = own_view_shell(labels)
     n_shell = int(np.count_nonzero(shell))
     shell_rows = []
     for mode in MODES:
-        t, n = time_mesh(shell, room_grid, palette, mode, args.repeats)
+        t, n = time_mesh(shell, grid, palette, mode, args.repeats)
         shell_rows.append({"mode": mode, "time": t, "tris": n})
     load_after = common.load_average()
 
@@ -167,7 +130,8 @@ def main(argv: list[str] | None = None) -> None:
         + (" (the machine was loaded, so the times are noisy and on the slow side)."
            if max(load_before, load_after) >= common.usable_cores() else "."),
         "",
-        f"Dense room: {GRID.width}x{GRID.height}x{GRID.depth} grid, {n_occ:,} occupied cells "
+        f"Dense room: `fruxel/data/rooms.py` `room_volume(128)`, {grid.width}x{grid.height}x{grid.depth} grid, "
+        f"{n_occ:,} occupied cells "
         f"({n_occ / labels.size:.1%}).",
         "",
         "| mode | triangles | triangles per occupied cell | build time (s) |",
@@ -177,7 +141,7 @@ def main(argv: list[str] | None = None) -> None:
     lines += [
         "",
         f"Own-view VMS shell (the interactive path's input, remade every frame): the first occupied cell of each "
-        f"column of `benchmarks/scenes.py` `room_volume(128)` ({int(np.count_nonzero(room)):,} occupied cells), "
+        f"column of the same model, "
         f"{n_shell:,} cells kept ({n_shell / shell.size:.2%} of the grid).",
         "",
         "| mode | triangles | build time (ms) |",

@@ -1,8 +1,8 @@
 """Plumbing shared by the benchmark scripts: where results go, what machine they ran on, timing a call, saving
 a chart, and how each script rewrites its own section of BENCHMARKS.md.
 
-The scripts run as ``python benchmarks/NAME.py`` (``benchmarks/`` is not a package) and import this module the
-way they import :mod:`scenes`: with their own folder put first on ``sys.path``. The package (``fruxel.render``
+The scripts run as ``python benchmarks/NAME.py`` (``benchmarks/`` is not a package) and import this module
+with their own folder put first on ``sys.path``. The package (``fruxel.render``
 included) never imports it.
 """
 

@@ -21,9 +21,8 @@ new tensor every frame with the same content, so nothing can be cached while mes
 baseline gets fewer frames than the fast rows. On a CUDA device the frames are torch tensors on the GPU, as a
 network's output would be; the kernels read them in place.
 
-Model: ``benchmarks/scenes.py``'s ``room_volume`` when this runs from a source checkout (the scene of the other
-benchmarks), else :func:`room_volume` here: the bundled sample room's layout on an N^3 grid, filled with seeded
-random furniture and sculptures up to the wanted occupancy.
+Model: :func:`fruxel.data.rooms.room_volume`, the model of the other benchmarks: the bundled sample room's layout
+on an N^3 grid, filled with seeded random furniture and sculptures up to the wanted occupancy.
 
 Results: a printed table, ``table1.json`` (runs keyed by machine, so the CPU and GPU runs sit side by side),
 ``table1.png`` (bar chart of FPS, log scale) and the "## Visualisation (Table 1)" section of BENCHMARKS.md.
@@ -46,6 +45,7 @@ import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
+from fruxel.data import rooms
 from fruxel.grid import FruxelGrid
 from fruxel.io import atomic_path, atomic_write
 
@@ -58,7 +58,6 @@ TARGET_RATIO = 1000.0
 TARGET_SHELL_FPS = 30.0
 """The issue's target for shell + greedy mesh + draw in pyrender on the H100, per-frame model updates."""
 
-_ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass(frozen=True)
@@ -133,83 +132,15 @@ class Table1Result:
 
 
 # ---------------------------------------------------------------------------------------------------- model
-def room_volume(n: int = 128, occupancy: float = 0.25, seed: int = 0) -> tuple[np.ndarray, FruxelGrid]:
-    """A room-like N^3 model: the sample room's floor, walls, window and door plus seeded random solids.
-
-    Returns:
-        labels: ``(n, n, n)`` uint8, :data:`fruxel.DEFAULT_CLASSES` ids.
-        grid: its grid, z from 0.5 to 6 m, 60 degree horizontal field of view.
-    """
-    from fruxel.data.make_sample import room_labels
-
-    grid = FruxelGrid(width=n, height=n, depth=n, z_near=0.5, z_far=6.0, hfov=60.0)
-    ids = {name: i for i, name in enumerate(DEFAULT_CLASSES.names)}
-    rng = np.random.default_rng(seed)
-    lab = room_labels(grid)
-    zb = grid.z_bounds()
-    p = grid.cell_centres()
-    target = occupancy * lab.size
-    occupied = int(np.count_nonzero(lab))
-    while occupied < target:
-        cx, cz = rng.uniform(-2.0, 2.0), rng.uniform(1.0, 5.5)
-        kind = int(rng.integers(3))
-        half = rng.uniform(0.1, 0.6) if kind != 2 else rng.uniform(0.15, 0.5)
-        # Only the slices a solid can reach are tested, which keeps each solid to a few milliseconds.
-        k0 = max(0, int(np.searchsorted(zb, cz - half)) - 1)
-        k1 = min(grid.depth, int(np.searchsorted(zb, cz + half)) + 1)
-        x, y, z = p[k0:k1, ..., 0], p[k0:k1, ..., 1], p[k0:k1, ..., 2]
-        if kind == 0:
-            hz, h = rng.uniform(0.1, 0.6), rng.uniform(0.2, 2.0)
-            solid = (np.abs(x - cx) <= half) & (np.abs(z - cz) <= min(hz, half)) & (y >= 1.0 - h) & (y <= 1.0)
-            cls = ids["furniture"]
-        elif kind == 1:
-            h = rng.uniform(0.3, 2.0)
-            solid = ((x - cx) ** 2 + (z - cz) ** 2 <= half * half) & (y >= 1.0 - h) & (y <= 1.0)
-            cls = ids["furniture"]
-        else:
-            solid = (x - cx) ** 2 + (y - (1.0 - half)) ** 2 + (z - cz) ** 2 <= half * half
-            cls = ids["sculpture"]
-        sub = lab[k0:k1]
-        new = solid & (sub == 0)
-        sub[new] = cls
-        occupied += int(np.count_nonzero(new))
-    return lab, grid
-
-
-def _scenes_module() -> Any:
-    """``benchmarks/scenes.py`` of the source checkout, or None (installed package, or not written yet)."""
-    path = _ROOT / "benchmarks" / "scenes.py"
-    if not path.is_file():
-        return None
-    spec = importlib.util.spec_from_file_location("_fruxel_bench_scenes", path)
-    if spec is None or spec.loader is None:
-        return None
-    mod = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(mod)
-    except Exception:  # noqa: BLE001 - a broken helper script must not stop the benchmark; fall back
-        return None
-    return mod if hasattr(mod, "room_volume") else None
-
-
 def benchmark_model(cfg: Table1Config) -> tuple[np.ndarray, FruxelGrid, str]:
     """The base labels ``(D, H, W)`` uint8, their grid and a description of where they came from."""
-    scenes = _scenes_module()
-    if scenes is not None:
-        labels, grid = scenes.room_volume(n=cfg.n, occupancy=cfg.occupancy, seed=cfg.seed)
-        return np.ascontiguousarray(labels, dtype=np.uint8), grid, "benchmarks/scenes.py room_volume"
-    labels, grid = room_volume(cfg.n, cfg.occupancy, cfg.seed)
-    return labels, grid, "fruxel.render.table1.room_volume"
+    labels, grid = rooms.room_volume(n=cfg.n, occupancy=cfg.occupancy, seed=cfg.seed)
+    return np.ascontiguousarray(labels, dtype=np.uint8), grid, "fruxel.data.rooms.room_volume"
 
 
 def benchmark_camera(grid: FruxelGrid, size: tuple[int, int]) -> Camera:
-    """The viewing camera: ``benchmarks/scenes.py``'s ``oblique_camera`` where present, else the CLI's default."""
-    scenes = _scenes_module()
-    if scenes is not None and hasattr(scenes, "oblique_camera"):
-        return scenes.oblique_camera(grid, size)
-    from .cli import default_camera
-
-    return default_camera(grid, size[0], size[1])
+    """The viewing camera: :func:`fruxel.data.rooms.oblique_camera`, as in the kernel benchmark."""
+    return rooms.oblique_camera(grid, size)
 
 
 def make_frames(labels: np.ndarray, n: int, device: str | None) -> list[Any]:

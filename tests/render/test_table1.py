@@ -10,8 +10,9 @@ import pytest
 
 import fruxel
 from fruxel.data import SAMPLE_ROOM
+from fruxel.data.rooms import room_volume
 from fruxel.render import table1
-from fruxel.render.table1 import SECTION, Table1Config, format_table, record, room_volume, run, update_markdown
+from fruxel.render.table1 import SECTION, Table1Config, format_table, record, run, update_markdown
 
 MODEL = fruxel.load(SAMPLE_ROOM)
 

@@ -1,4 +1,6 @@
-"""Procedural benchmark scenes shared by the benchmarks: a room-like N^3 fruxel model and an oblique view of it.
+"""Procedural room models for benchmarks and demos: a room-like N^3 fruxel model and an oblique view of it.
+
+The benchmarks (``benchmarks/``) and ``fruxel-render --benchmark`` (Table 1) all measure on these.
 
 :func:`room_volume` paints, in the grid frame (OpenCV axes: x right, y down, z forward, metres), the sample
 room's structure (:func:`fruxel.data.make_sample.room_labels`: floor, three walls, a window and a door with
