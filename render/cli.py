@@ -635,7 +635,11 @@ def run_render(args: argparse.Namespace) -> list[Path]:
     written: list[Path] = []
     frames = FrameRenderer(inp, opts)
     if args.orbit is not None:
-        images = [frames.image(c) for c in orbit(inp.grid, camera, args.orbit)]
+        from tqdm import tqdm
+
+        cams = orbit(inp.grid, camera, args.orbit)
+        # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
+        images = [frames.image(c) for c in tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None)]
         written.append(write_video(args.out / f"{inp.name}_{args.mode}_orbit.{args.video}", images, args.fps))
     else:
         written.append(write_png(args.out / f"{inp.name}_{args.mode}.png", frames.image(camera)))
