@@ -48,6 +48,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from fruxel.cli import OneLineParser, device_name, positive_int, unit_fraction
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -77,24 +79,12 @@ class InputError(ValueError):
     """A problem with what the user asked for (a file, an option value) that is none of fruxel's own errors."""
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        # One line, like every other error of this command, instead of argparse's usage block.
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
-
-
 # ---------------------------------------------------------------------------------------------------- parsing
 def _size(text: str) -> tuple[int, int]:
     m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", text)
     if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
         raise argparse.ArgumentTypeError(f"expected WxH with positive integers, e.g. 640x480, got {text!r}")
     return int(m.group(1)), int(m.group(2))
-
-
-def _device(text: str) -> str:
-    if not re.fullmatch(r"cpu|cuda(:\d+)?", text):
-        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
-    return text
 
 
 def _grid_spec(text: str) -> tuple[float, ...]:
@@ -108,29 +98,9 @@ def _grid_spec(text: str) -> tuple[float, ...]:
     return values
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
-
-
-def _threshold(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < v <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (no heavy imports: ``--help`` must be instant)."""
-    p = _Parser(
+    p = OneLineParser(
         prog=PROG,
         description="Render a fruxel model: a trapezoid mesh of what the camera sees (pyrender), a ray-cast image "
         "(first_hit), or both; or measure Table 1 (--benchmark).",
@@ -140,11 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("model", nargs="?", metavar="MODEL", help="model .npz or logits .npy/.pt (default: the sample room)")
     p.add_argument("--backend", choices=BACKENDS, default=None, help="kernel backend (default: the best available)")
-    p.add_argument("--device", type=_device, default=None, help="where Warp runs: cpu, cuda or cuda:N")
+    p.add_argument("--device", type=device_name, default=None, help="where Warp runs: cpu, cuda or cuda:N")
     p.add_argument("--mode", choices=MODES, default="mesh", help="mesh (pyrender), raycast (first_hit) or both")
     p.add_argument("--shell", choices=SHELLS, default="own",
                    help="cells to keep: none (all), own (grid camera; default), poses (M cameras), view (viewer)")
-    p.add_argument("--poses", type=_positive_int, default=6, metavar="M", help="cameras for --shell poses")
+    p.add_argument("--poses", type=positive_int, default=6, metavar="M", help="cameras for --shell poses")
     p.add_argument("--mesh", dest="meshing", choices=MESHINGS, default="greedy", help="meshing (default greedy)")
     p.add_argument("--shading", choices=("lit", "flat"), default="lit", help="lit (Lambert) or flat class colours")
     p.add_argument("--fog", action="store_true", help="depth fog in ray-cast images")
@@ -154,17 +124,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default=None, metavar="JSON", help="viewing camera: Camera JSON text or a file")
     p.add_argument("--grid", type=_grid_spec, default=None, metavar="SPEC",
                    help="W,H,D,z_near,z_far,hfov of a bare logits tensor; with --benchmark, N for an N^3 model")
-    p.add_argument("--threshold", type=_threshold, default=None,
+    p.add_argument("--threshold", type=unit_fraction, default=None,
                    help="logits: occupied when 1 - p(empty) >= T (default: argmax rule)")
     p.add_argument("--out", type=Path, default=Path("out"), metavar="DIR", help="output folder (default out/)")
-    p.add_argument("--orbit", type=_positive_int, default=None, metavar="N", help="render an N-frame orbit")
+    p.add_argument("--orbit", type=positive_int, default=None, metavar="N", help="render an N-frame orbit")
     p.add_argument("--video", choices=VIDEO_FORMATS, default="gif", help="orbit format (mp4 needs imageio-ffmpeg)")
-    p.add_argument("--fps", type=_positive_int, default=12, help="orbit frames per second (default 12)")
+    p.add_argument("--fps", type=positive_int, default=12, help="orbit frames per second (default 12)")
     p.add_argument("--export", type=Path, default=None, metavar="FILE", help="also write the mesh to .glb or .ply")
     p.add_argument("--view", action="store_true", help="open pyrender's interactive Viewer (needs a display)")
     b = p.add_argument_group("Table 1 (--benchmark)")
     b.add_argument("--benchmark", action="store_true", help="measure Table 1 (per-frame model updates)")
-    b.add_argument("--frames", type=_positive_int, default=None, help="frames per fast row (default 30)")
+    b.add_argument("--frames", type=positive_int, default=None, help="frames per fast row (default 30)")
     b.add_argument("--backends", default=None, metavar="LIST",
                    help="ray-cast rows, comma-separated, e.g. warp,opencl or warp-cuda (default: warp,opencl)")
     return p

@@ -20,33 +20,9 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from fruxel.cli import OneLineParser, non_negative_int, positive_int
+
 PROG = "fruxel-sim"
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        # One line, like every other error of this command, instead of argparse's usage block.
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
-
-
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
-
-
-def _non_negative(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
-    return v
 
 
 def _grid_size(text: str) -> tuple[int, int, int]:
@@ -64,17 +40,17 @@ def _grid_size(text: str) -> tuple[int, int, int]:
 
 
 def _config_options(p: argparse.ArgumentParser, image: int, grid: str) -> None:
-    p.add_argument("--image", type=_positive, default=image, metavar="S",
+    p.add_argument("--image", type=positive_int, default=image, metavar="S",
                    help=f"image width in pixels; the height is S*H/W (default {image})")
     p.add_argument("--grid", type=_grid_size, default=_grid_size(grid), metavar="N|WxHxD",
                    help=f"grid size in cells (default {grid})")
     p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
     p.add_argument("--z-near", type=float, default=0.5, help="grid near plane, metres (default 0.5)")
     p.add_argument("--z-far", type=float, default=8.0, help="grid far plane, metres (default 8)")
-    p.add_argument("--samples-per-scene", type=_positive, default=16, metavar="N",
+    p.add_argument("--samples-per-scene", type=positive_int, default=16, metavar="N",
                    help="samples per room and robot trajectory (default 16)")
     p.add_argument("--no-augment", action="store_true", help="render without appearance augmentation")
-    p.add_argument("--seed", type=_non_negative, default=0, help="base seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="base seed (default 0)")
     p.add_argument("--backend", default="warp", choices=("warp", "warp-cpu", "warp-cuda"),
                    help="fruxelize backend (default warp: CUDA when present, else CPU)")
 
@@ -82,7 +58,7 @@ def _config_options(p: argparse.ArgumentParser, image: int, grid: str) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``fruxel-sim``."""
     # Subcommand parsers are made with the same class, so they give one-line errors too.
-    parser = _Parser(prog=PROG, description="Simulated training data for fruxel: rooms, a mobile "
+    parser = OneLineParser(prog=PROG, description="Simulated training data for fruxel: rooms, a mobile "
                                      "robot's camera images and ground-truth fruxel labels.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -90,12 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Write a data set folder: shards {split}-NNNNN.npz and manifest.json. "
                        "Deterministic per seed; an interrupted run resumes in the same folder.")
     g.add_argument("--out", required=True, metavar="DIR", help="data set folder (created if missing)")
-    g.add_argument("--samples", type=_positive, metavar="N",
+    g.add_argument("--samples", type=positive_int, metavar="N",
                    help="total samples, divided 15:1 into train and test (default: the --split sizes)")
     g.add_argument("--split", default=None, metavar="NAME=N,...",
                    help="samples per split (default train=15000,test=1000, the paper's)")
-    g.add_argument("--shard-size", type=_positive, default=64, metavar="N", help="samples per shard (default 64)")
-    g.add_argument("--workers", type=_positive, default=1, metavar="K", help="worker processes (default 1)")
+    g.add_argument("--shard-size", type=positive_int, default=64, metavar="N", help="samples per shard (default 64)")
+    g.add_argument("--workers", type=positive_int, default=1, metavar="K", help="worker processes (default 1)")
     g.add_argument("--device", default=None, help="Warp device for fruxelize, e.g. cpu, cuda:0 (default: automatic)")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     _config_options(g, 512, "128")
@@ -105,8 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "the ground truth from a second pose, with a class legend.")
     v.add_argument("--out", required=True, metavar="PNG", help="the PNG to write")
     v.add_argument("--split", default="train", help="split name (seeds differ per split; default train)")
-    v.add_argument("--index", type=_non_negative, default=0, help="first sample index (default 0)")
-    v.add_argument("--count", type=_positive, default=1, help="samples, one row each (default 1)")
+    v.add_argument("--index", type=non_negative_int, default=0, help="first sample index (default 0)")
+    v.add_argument("--count", type=positive_int, default=1, help="samples, one row each (default 1)")
     v.add_argument("--raycast-backend", default=None,
                    help="first_hit backend for the second view (default: the best available)")
     _config_options(v, 256, "128")
