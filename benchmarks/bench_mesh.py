@@ -131,8 +131,7 @@ def main(argv: list[str] | None = None) -> None:
            if max(load_before, load_after) >= common.usable_cores() else "."),
         "",
         f"Dense room: `fruxel/data/rooms.py` `room_volume(128)`, {grid.width}x{grid.height}x{grid.depth} grid, "
-        f"{n_occ:,} occupied cells "
-        f"({n_occ / labels.size:.1%}).",
+        f"{n_occ:,} occupied cells ({n_occ / labels.size:.1%}).",
         "",
         "| mode | triangles | triangles per occupied cell | build time (s) |",
         "| --- | ---: | ---: | ---: |",
@@ -141,8 +140,7 @@ def main(argv: list[str] | None = None) -> None:
     lines += [
         "",
         f"Own-view VMS shell (the interactive path's input, remade every frame): the first occupied cell of each "
-        f"column of the same model, "
-        f"{n_shell:,} cells kept ({n_shell / shell.size:.2%} of the grid).",
+        f"column of the same model, {n_shell:,} cells kept ({n_shell / shell.size:.2%} of the grid).",
         "",
         "| mode | triangles | build time (ms) |",
         "| --- | ---: | ---: |",

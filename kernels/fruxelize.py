@@ -255,23 +255,22 @@ def prepare_meshes(meshes: Sequence[Any]) -> MeshParts:
         refs.extend(range(p0, p0 + n_new))
         labels.extend([label] * n_new)
 
-    for v, f, label in triplets:
-        f = _drop_degenerate(f)
-        # Components by index first: pieces that only touch (boxes sharing a corner position) stay separate
-        # closed parts. Only what is open then gets its vertices welded by position, which closes meshes whose
-        # seams merely duplicate vertices.
+    def keep_closed(v: np.ndarray, f: np.ndarray, label: int) -> np.ndarray:
+        """Add the closed components of ``(v, f)`` as parts; return the faces of the open ones."""
         comp = _components(f, len(v))
         is_open = _open_components(f, comp, len(v))
         add_closed(v, f[~is_open[comp]], comp[~is_open[comp]], label)
-        rest = f[is_open[comp]]
+        return f[is_open[comp]]
+
+    for v, f, label in triplets:
+        # Components by index first: pieces that only touch (boxes sharing a corner position) stay separate
+        # closed parts. Only what is open then gets its vertices welded by position, which closes meshes whose
+        # seams merely duplicate vertices.
+        rest = keep_closed(v, _drop_degenerate(f), label)
         if len(rest):
             used, local = np.unique(rest, return_inverse=True)
             uv, inv = _weld(v[used])
-            fw = _drop_degenerate(inv[local.reshape(-1, 3)])
-            comp = _components(fw, len(uv))
-            is_open = _open_components(fw, comp, len(uv))
-            add_closed(uv, fw[~is_open[comp]], comp[~is_open[comp]], label)
-            fo = fw[is_open[comp]]
+            fo = keep_closed(uv, _drop_degenerate(inv[local.reshape(-1, 3)]), label)
             if len(fo):
                 used, local = np.unique(fo, return_inverse=True)
                 vo, fo = uv[used], local.reshape(-1, 3)

@@ -305,6 +305,28 @@ INLINE int trace(const Ray* r, const int4 entry, const float t_lo, const float t
 }
 
 /*
+ * The first hit of pixel (x, y) of batch item b (1 and *hit set, or 0 on a miss): this item's slices of the label
+ * volume and of its pyramid levels, then setup_ray() and trace(). The body of trace_first_hit_kernel and of
+ * shell.cl's mark_shell_kernel, whose arguments it takes as they come.
+ */
+INLINE int trace_pixel(const int x, const int y, const int b, __global const uchar* labels,
+                       __global const uchar* pyr1, __global const uchar* pyr2, const float8 grid, const float16 cam,
+                       const int4 n, const int max_iter, Hit* hit)
+{
+    const int4 n1 = ((n - 1) >> LOG_BLOCK) + 1;
+    const int4 n2 = ((n - 1) >> (2 * LOG_BLOCK)) + 1;
+    __global const uchar* m0 = labels + (size_t)b * n.x * n.y * n.z;
+    __global const uchar* m1 = pyr1 + (size_t)b * n1.x * n1.y * n1.z;
+    __global const uchar* m2 = (LEVELS > 2) ? pyr2 + (size_t)b * n2.x * n2.y * n2.z : pyr2;
+    Ray r;
+    int4 entry;
+    float t_lo, t_hi;
+    int plane;
+    if (!setup_ray(x, y, grid, cam, n, &r, &entry, &t_lo, &t_hi, &plane)) return 0;
+    return trace(&r, entry, t_lo, t_hi, plane, m0, m1, m2, max_iter, hit);
+}
+
+/*
  * trace_first_hit_kernel: one work-item per pixel (x, y) of the viewing camera and batch item b.
  *   global size (ceil(w / lx) lx, ceil(h / ly) ly, B), local size (lx, ly, 1): 2D pixel tiles, so that the
  *   rays of a work-group read neighbouring cells. Work-items past the image edge do nothing.
@@ -321,19 +343,8 @@ __kernel void trace_first_hit_kernel(__global const uchar* labels, __global cons
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= w || y >= h) return;
-    const int4 n1 = ((n - 1) >> LOG_BLOCK) + 1;
-    const int4 n2 = ((n - 1) >> (2 * LOG_BLOCK)) + 1;
-    __global const uchar* m0 = labels + (size_t)b * n.x * n.y * n.z;
-    __global const uchar* m1 = pyr1 + (size_t)b * n1.x * n1.y * n1.z;
-    __global const uchar* m2 = (LEVELS > 2) ? pyr2 + (size_t)b * n2.x * n2.y * n2.z : pyr2;
-
-    Ray r;
-    int4 entry;
-    float t_lo, t_hi;
-    int plane;
     Hit hit;
-    int found = setup_ray(x, y, grid, cam, n, &r, &entry, &t_lo, &t_hi, &plane);
-    if (found) found = trace(&r, entry, t_lo, t_hi, plane, m0, m1, m2, max_iter, &hit);
+    const int found = trace_pixel(x, y, b, labels, pyr1, pyr2, grid, cam, n, max_iter, &hit);
 
     const size_t pix = ((size_t)b * h + y) * w + x;
     if (found) {

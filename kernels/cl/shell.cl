@@ -1,6 +1,6 @@
 /*
  * VMS shell (SPEC section 4): mark every cell that is the first hit of some pixel of some camera, then build the
- * output volume. Compiled after first_hit.cl (same build options), whose setup_ray() and trace() it reuses.
+ * output volume. Compiled after first_hit.cl (same build options), whose trace_pixel() it reuses.
  *
  * mask  uchar (B, D, H, W): 1 for kept cells. Set to 0 by the host, then only ever written with 1, so the races
  *       between rays that hit the same cell are benign.
@@ -16,20 +16,9 @@ __kernel void mark_shell_kernel(__global const uchar* labels, __global const uch
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= w || y >= h) return;
-    const size_t cells = (size_t)n.x * n.y * n.z;
-    const int4 n1 = ((n - 1) >> LOG_BLOCK) + 1;
-    const int4 n2 = ((n - 1) >> (2 * LOG_BLOCK)) + 1;
-    __global const uchar* m0 = labels + b * cells;
-    __global const uchar* m1 = pyr1 + (size_t)b * n1.x * n1.y * n1.z;
-    __global const uchar* m2 = (LEVELS > 2) ? pyr2 + (size_t)b * n2.x * n2.y * n2.z : pyr2;
-
-    Ray r;
-    int4 entry;
-    float t_lo, t_hi;
-    int plane;
     Hit hit;
-    if (!setup_ray(x, y, grid, cam, n, &r, &entry, &t_lo, &t_hi, &plane)) return;
-    if (!trace(&r, entry, t_lo, t_hi, plane, m0, m1, m2, max_iter, &hit)) return;
+    if (!trace_pixel(x, y, b, labels, pyr1, pyr2, grid, cam, n, max_iter, &hit)) return;
+    const size_t cells = (size_t)n.x * n.y * n.z;
     mask[b * cells + ((size_t)hit.cell.z * n.y + hit.cell.y) * n.x + hit.cell.x] = 1;
 }
 
