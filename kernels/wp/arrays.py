@@ -10,9 +10,9 @@ kernels run on one Warp device, results go back in the caller's kind of array on
 * stream: with torch on CUDA, torch's current stream of the device, so kernels run in order with the caller's
   torch work and nothing needs a host synchronisation; otherwise Warp's current stream of the device;
 * inputs: wrapped without a copy where kind, device, dtype and layout allow, converted once otherwise;
-* launches: replayed from a per-thread cache of Warp launch commands with the arguments passed as raw
-  descriptors, which costs a fraction of ``wp.launch`` (that matters on CUDA, where a call's kernels take tens of
-  microseconds);
+* launches: replayed from a per-thread cache of prepared Warp launch commands (one per kernel overload, launch
+  dimensions and buffer shapes) that own their array descriptors, so a launch only writes addresses and scalars
+  into them: a fraction of ``wp.launch``, which matters on CUDA, where a call's kernels take tens of microseconds;
 * results: handed back as the caller's kind on the caller's device.
 
 Torch is imported only when the caller passes torch tensors, so the backend works without it.
@@ -88,7 +88,7 @@ class Buffer:
         device: Warp device the memory is on.
     """
 
-    __slots__ = ("_descriptor", "device", "dtype", "native", "ptr", "shape")
+    __slots__ = ("device", "dtype", "native", "ptr", "shape")
 
     def __init__(self, native: Any, shape: tuple[int, ...], dtype: Any, ptr: int, device: str) -> None:
         self.native = native
@@ -96,7 +96,6 @@ class Buffer:
         self.dtype = dtype
         self.ptr = ptr
         self.device = device
-        self._descriptor = None
 
     @classmethod
     def of(cls, native: Any, dtype: Any, device: str) -> Buffer:
@@ -110,22 +109,20 @@ class Buffer:
         inner = len(getattr(dtype, "_shape_", ()))
         return cls(native, shape[: len(shape) - inner] if inner else shape, dtype, ptr, device)
 
-    @property
-    def descriptor(self) -> Any:
-        """Warp's array descriptor of this buffer, for launch arguments (holds no reference to the memory)."""
-        if self._descriptor is None:
-            n = len(self.shape)
-            strides, acc = [0] * n, wp.types.type_size_in_bytes(self.dtype)
-            for axis in range(n - 1, -1, -1):
-                strides[axis] = acc
-                acc *= self.shape[axis]
-            desc = _ARRAY_DESCRIPTOR()
-            desc.data = self.ptr
-            desc.ndim = n
-            desc.shape[:n] = self.shape
-            desc.strides[:n] = strides
-            self._descriptor = desc
-        return self._descriptor
+    def make_descriptor(self) -> Any:
+        """A new Warp array descriptor of this buffer (C-contiguous strides), for launch parameters; it holds no
+        reference to the memory."""
+        n = len(self.shape)
+        strides, acc = [0] * n, wp.types.type_size_in_bytes(self.dtype)
+        for axis in range(n - 1, -1, -1):
+            strides[axis] = acc
+            acc *= self.shape[axis]
+        desc = _ARRAY_DESCRIPTOR()
+        desc.data = self.ptr
+        desc.ndim = n
+        desc.shape[:n] = self.shape
+        desc.strides[:n] = strides
+        return desc
 
     def array(self) -> Any:
         """This buffer as a ``warp.array`` (no copy)."""
@@ -158,12 +155,53 @@ _local = threading.local()
 _STREAM_CACHE_SIZE = 16
 
 
-def _commands() -> dict:
-    """This thread's cache of recorded launch commands (one per kernel overload and device)."""
+_COMMAND_CACHE_SIZE = 256
+"""Prepared launches kept per thread (one per kernel overload, device, launch dimensions and buffer shapes)."""
+
+
+def _commands() -> OrderedDict:
+    """This thread's cache of prepared launches, least recently used first."""
     cache = getattr(_local, "commands", None)
     if cache is None:
-        cache = _local.commands = {}
+        cache = _local.commands = OrderedDict()
     return cache
+
+
+class _Prepared:
+    """A recorded Warp launch command whose array parameters are descriptors it owns, rewritten per launch.
+
+    Args:
+        kernel, device, dim, args, block_dim: as for :meth:`Workspace.launch` (the first call's arguments).
+    """
+
+    __slots__ = ("cmd", "descriptors")
+
+    def __init__(self, kernel: Any, device: str, dim: tuple[int, ...], args: list[Any], block_dim: int) -> None:
+        values = [a.array() if isinstance(a, Buffer) else a for a in args]
+        cmd = wp.launch(kernel, dim=dim, inputs=values, device=device, record_cmd=True, block_dim=block_dim or None)
+        # The command outlives this call: keep no references to its arrays (it holds raw descriptors only).
+        cmd.fwd_args = None
+        self.descriptors = [None] * len(args)
+        for i, a in enumerate(args):
+            if isinstance(a, Buffer):
+                desc = a.make_descriptor()
+                cmd.set_param_at_index_from_ctype(i, desc)  # the command keeps this very structure
+                self.descriptors[i] = desc
+        self.cmd = cmd
+
+    def launch(self, args: list[Any], stream: Any) -> None:
+        """Write ``args`` into the command and launch it on ``stream`` (None: the device's current stream)."""
+        cmd, descriptors = self.cmd, self.descriptors
+        for i, a in enumerate(args):
+            desc = descriptors[i]
+            if desc is not None:
+                desc.data = a.ptr
+            elif hasattr(a, "__ctype__"):
+                cmd.set_param_at_index_from_ctype(i, a.__ctype__())
+            else:
+                # Warp scalars (wp.float64(x)) hold their Python value in .value
+                cmd.set_param_at_index_from_ctype(i, getattr(a, "value", a))
+        cmd.launch(stream)
 
 
 def _torch_stream(device: Any) -> Any:
@@ -281,8 +319,10 @@ class Workspace:
     def launch(self, kernel: Any, dim: tuple[int, ...], args: list[Any], block_dim: int = 0) -> None:
         """Launch ``kernel`` over ``dim`` on the compute device, on this call's stream (asynchronous on CUDA).
 
-        The first launch of a kernel overload on a device records a Warp launch command (resolving a generic
-        kernel's overload from the buffers' dtypes); later launches only write the arguments into it.
+        The first launch of a kernel overload with given buffer shapes on a device records a Warp launch command
+        (resolving a generic kernel's overload from the buffers' dtypes) whose array parameters are descriptors
+        owned by the command; later launches only write the buffers' addresses and the other arguments into it.
+        A launch copies its parameters (CUDA) or runs at once (CPU), so rewriting them afterwards is safe.
 
         Args:
             kernel: a Warp kernel.
@@ -296,23 +336,18 @@ class Workspace:
         if math.prod(dim) == 0:
             return
         cache = _commands()
-        key = (kernel, self.device, block_dim, *(_arg_key(a) for a in args))
-        cmd = cache.get(key)
-        if cmd is not None and getattr(cmd, "module_exec", None) not in kernel.module.execs.values():
-            cmd = None  # Warp rebuilt the kernel's module since (new options or overloads): record it again
-        if cmd is None:
-            values = [a.array() if isinstance(a, Buffer) else a for a in args]
-            cmd = wp.launch(kernel, dim=dim, inputs=values, device=self.device, record_cmd=True,
-                            block_dim=block_dim or None)
-            # The command outlives this call: keep no references to its arrays (it holds raw descriptors only).
-            cmd.fwd_args = None
-            cmd._fruxel_dim = dim
-            cache[key] = cmd
-        elif cmd._fruxel_dim != dim:
-            cmd.set_dim(dim)
-            cmd._fruxel_dim = dim
-        cmd.set_params_from_ctypes([_ctype(a) for a in args])
-        cmd.launch(self.stream)
+        key = (kernel, self.device, block_dim, dim, *(_arg_key(a) for a in args))
+        prepared = cache.get(key)
+        if prepared is not None and prepared.cmd.module_exec not in kernel.module.execs.values():
+            prepared = None  # Warp rebuilt the kernel's module since (new options or overloads): record it again
+        if prepared is None:
+            prepared = _Prepared(kernel, self.device, dim, args, block_dim)
+            cache[key] = prepared
+            if len(cache) > _COMMAND_CACHE_SIZE:
+                cache.popitem(last=False)
+        else:
+            cache.move_to_end(key)
+        prepared.launch(args, self.stream)
 
     # ------------------------------------------------------------------ results
     def result(self, buf: Buffer | Any, *, shape: tuple[int, ...] | None = None, dtype: Any = None) -> Any:
@@ -337,16 +372,7 @@ class Workspace:
 
 
 def _arg_key(a: Any) -> Any:
-    """What of a launch argument selects the kernel overload: a buffer's dtype and rank, a scalar's type."""
+    """What of a launch argument a prepared launch is specific to: a buffer's dtype and shape, a scalar's type."""
     if isinstance(a, Buffer):
-        return (a.dtype, len(a.shape))
+        return (a.dtype, a.shape)
     return type(a)
-
-
-def _ctype(a: Any) -> Any:
-    """A launch argument as the ctypes value of a recorded command."""
-    if isinstance(a, Buffer):
-        return a.descriptor
-    if hasattr(a, "__ctype__"):
-        return a.__ctype__()
-    return getattr(a, "value", a)  # Warp scalars (wp.float64(x)) hold their Python value in .value
