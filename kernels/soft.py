@@ -138,48 +138,50 @@ def _function() -> Any:
     from torch.autograd.function import once_differentiable
 
     class SoftFirstHitFunction(torch.autograd.Function):
-        """``probs (B, C, D, H, W)`` -> per camera group ``acc (B, N, C-1, h, w), miss, dsum (B, N, h, w)``,
-        flattened group after group. The backward pass adds every group's gradient into one tensor."""
+        """``probs (B, C, D, H, W)`` -> per camera group ``classes (B, N, C, h, w), depth, depth_sum (B, N, h, w)``,
+        flattened group after group. One backward pass gathers every group's gradient into one tensor."""
 
         @staticmethod
         def forward(ctx: Any, probs: Any, impl: Any, device: Any, grid: FruxelGrid, groups: list, save: bool) -> Any:
             outs, saved = [], []
             for cams in groups:
-                acc, miss, dsum, rays = impl.forward(probs, grid, cams, save=save, device=device)
-                outs += [acc, miss, dsum]
+                classes, depth, dsum, rays = impl.forward(probs, grid, cams, save=save, device=device)
+                outs += [classes, depth, dsum]
                 saved.append(rays)
-            ctx.impl, ctx.grid, ctx.saved = impl, grid, saved if save else None
+            ctx.impl, ctx.grid, ctx.rays = impl, grid, saved if save else None
+            # Outputs the loss does not use get None, not a zero-filled tensor (one device fill each saved).
+            ctx.set_materialize_grads(False)
             if save:
-                ctx.save_for_backward(probs)
+                # The backward kernels read each ray's class sums and depth back (saved as outputs, so that an
+                # in-place change to them is caught by autograd's version check).
+                ctx.save_for_backward(probs, *(x for g in range(len(groups)) for x in outs[3 * g: 3 * g + 2]))
             return tuple(outs)
 
         @staticmethod
         @once_differentiable
         def backward(ctx: Any, *grads: Any) -> Any:
-            if ctx.saved is None:
+            if ctx.rays is None:
                 raise RuntimeError("soft_first_hit: backward through a forward pass that saved nothing")
-            (probs,) = ctx.saved_tensors
-            grad = None
-            for g, rays in enumerate(ctx.saved):
-                g_acc, g_miss, g_dsum = (x.to(probs.dtype).contiguous() for x in grads[3 * g: 3 * g + 3])
-                grad = ctx.impl.backward(probs, ctx.grid, rays, g_acc, g_miss, g_dsum, out=grad)
-            return grad, None, None, None, None, None
+            probs, *outs = ctx.saved_tensors
+            groups = []
+            for g, rays in enumerate(ctx.rays):
+                g_cls, g_depth, g_dsum = (None if x is None else x.to(probs.dtype).contiguous()
+                                          for x in grads[3 * g: 3 * g + 3])
+                if g_cls is None and g_depth is None and g_dsum is None:
+                    continue
+                groups.append((rays, outs[2 * g], outs[2 * g + 1], g_cls, g_depth, g_dsum))
+            if not groups:
+                return None, None, None, None, None, None
+            return ctx.impl.backward(probs, ctx.grid, groups), None, None, None, None, None
 
     return SoftFirstHitFunction
 
 
-def _finish(acc: Any, miss: Any, dsum: Any, out_device: Any) -> SoftHits:
-    """SoftHits from the kernels' outputs, with torch operations (differentiable), on ``out_device``."""
-    torch = _torch()
-    if acc.device != out_device:
-        acc, miss, dsum = acc.to(out_device), miss.to(out_device), dsum.to(out_device)
-    hit = acc.sum(2)
-    pos = hit > torch.finfo(hit.dtype).tiny
-    # Where no hit is possible the ratio is 0/0: divide by 1 there, so that no NaN reaches the backward pass.
-    safe = torch.where(pos, hit, torch.ones_like(hit))
-    depth = torch.where(pos, dsum / safe, torch.zeros_like(dsum))
-    classes = torch.cat([miss.unsqueeze(2), acc], dim=2)
-    return SoftHits(classes, depth, miss, dsum)
+def _hits(classes: Any, depth: Any, dsum: Any, out_device: Any) -> SoftHits:
+    """SoftHits from the kernels' outputs, on ``out_device``."""
+    if classes.device != out_device:
+        classes, depth, dsum = classes.to(out_device), depth.to(out_device), dsum.to(out_device)
+    return SoftHits(classes, depth, classes[:, :, 0], dsum)
 
 
 def _numpy(h: SoftHits) -> SoftHits:
@@ -196,7 +198,7 @@ def _run(p: Any, grid: FruxelGrid, groups: list[list[Camera]], backend: str | No
     kp = p.to(impl.torch_device(dev)).contiguous()
     save = torch.is_grad_enabled() and kp.requires_grad
     outs = _function().apply(kp, impl, dev, grid, groups, save)
-    return [_finish(*outs[3 * g: 3 * g + 3], p.device) for g in range(len(groups))]
+    return [_hits(*outs[3 * g: 3 * g + 3], p.device) for g in range(len(groups))]
 
 
 # ---------------------------------------------------------------------------------------------- public
@@ -361,4 +363,9 @@ def soft_first_hit_own_view_torch(scores: Any, grid: FruxelGrid, *, probs: bool 
     acc = (w.unsqueeze(1) * cls).sum(2)
     miss = trans[:, -1] * free[:, -1]
     dsum = (w * t[None, :, None, None]).sum(1)
-    return _finish(acc.unsqueeze(1), miss.unsqueeze(1), dsum.unsqueeze(1), s.device)
+    hit = acc.sum(1)
+    pos = hit > torch.finfo(hit.dtype).tiny
+    # Where no hit is possible the ratio is 0/0: divide by 1 there, so that no NaN reaches the backward pass.
+    depth = torch.where(pos, dsum / torch.where(pos, hit, torch.ones_like(hit)), torch.zeros_like(dsum))
+    classes = torch.cat([miss.unsqueeze(1), acc], dim=1)
+    return SoftHits(classes.unsqueeze(1), depth.unsqueeze(1), miss.unsqueeze(1), dsum.unsqueeze(1))

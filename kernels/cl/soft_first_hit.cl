@@ -1,6 +1,7 @@
 /*
  * soft_first_hit: expected first hit along each pixel's ray and its exact backward pass (see
- * kernels/wp/soft_first_hit.py for the derivation; this file implements the same two passes).
+ * kernels/cl/soft_first_hit.py for the outputs and the backward recursion; kernels/wp/soft_first_hit.py derives the
+ * same two passes).
  *
  * Compiled after first_hit.cl, whose ray set-up (setup_ray: steps 0-3 of kernels/traversal.py), Ray, LANES,
  * pick() and FP_CONTRACT OFF it reuses, so both visit the same cells in the same order.
@@ -12,13 +13,15 @@
  *   SPW           steps per word of the step tape (2 bits per step: the plane family crossed)
  *
  * Layouts (row-major), cells by flat index (k * H + j) * W + i, rays by r = (b * ncam + slot) * h * w + y * w + x:
- *   probs  real (B, NC + 1, D*H*W)   class probabilities, channel 0 = empty (p_0 clamped to [0, 1])
- *   acc    real (B, ncam, NC, h*w)   sum_m T_m p_mc = sum_m w_m q_mc (the renormalisation cancels)
- *   miss   real (B, ncam, h*w)       T_M = prod_m p_m0
- *   dsum   real (B, ncam, h*w)       sum_m T_m S_m t_m, S_m = sum_{c>=1} p_mc (t: z in the viewing camera)
- *   state  int  (R, 4)               cells on the ray and (i, j, k) of the last one
- *   log_t  real (R)                  log T after the last cell: sum of log p_m0 over cells with p_m0 > 0
- *   tape   uint (R, words)           family of each step, SPW per word
+ *   probs    real (B, NC + 1, D*H*W)     class probabilities, channel 0 = empty (p_0 clamped to [0, 1])
+ *   classes  real (B, ncam, NC + 1, h*w) channel 0: miss = T_M = prod_m p_m0; channel c >= 1:
+ *                                        acc_c = sum_m T_m p_mc = sum_m w_m q_mc (the renormalisation cancels)
+ *   depth    real (B, ncam, h*w)         dsum / hit, hit = sum_{c>=1} acc_c (in channel order); 0 where
+ *                                        hit <= REAL_MIN
+ *   dsum     real (B, ncam, h*w)         sum_m T_m S_m t_m, S_m = sum_{c>=1} p_mc (t: z in the viewing camera)
+ *   state    int  (R, 4)                 cells on the ray and (i, j, k) of the last one
+ *   log_t    real (R)                    log T after the last cell: sum of log p_m0 over cells with p_m0 > 0
+ *   tape     uint (R, words)             family of each step, SPW per word
  */
 #if REAL_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -84,14 +87,14 @@ inline void scatter(volatile __global real* p, const real v, const int exclusive
  * Forward: one work-item per pixel (x, y) of camera slot `slot` and batch item b.
  *   global size (ceil(w / lx) lx, ceil(h / ly) ly, B), local size (lx, ly, 1); items past the image do nothing.
  * Visits the ray's cells in DDA order (plain loop, every cell): acc_c += T p_c, dsum += T S t, T *= p_0, where
- * S = sum_{c>=1} p_c; stops early only when T is 0 (or below REAL_MIN, flushed to 0). With save = 1 also writes
- * state, log_t and tape.
+ * S = sum_{c>=1} p_c; stops early only when T is 0 (or below REAL_MIN, flushed to 0). Then writes classes
+ * (miss = T, acc), dsum and depth = dsum / hit. With save = 1 also writes state, log_t and tape.
  */
 __kernel void accumulate_soft_hits_kernel(__global const real* probs, const float8 grid, const float16 cam,
-                                     const int4 n, const int w, const int h, const int max_steps, const int slot,
-                                     const int ncam, const int save, const int words, __global real* acc,
-                                     __global real* miss, __global real* dsum, __global int* state,
-                                     __global real* log_t, __global uint* tape)
+                                          const int4 n, const int w, const int h, const int max_steps,
+                                          const int slot, const int ncam, const int save, const int words,
+                                          __global real* classes, __global real* depth, __global real* dsum,
+                                          __global int* state, __global real* log_t, __global uint* tape)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= w || y >= h) return;
@@ -156,9 +159,14 @@ __kernel void accumulate_soft_hits_kernel(__global const real* probs, const floa
         if (save && (ncell - 1) % SPW != 0) tape[r * words + (ncell - 1) / SPW] = word;
     }
 
-    for (int c = 0; c < NC; ++c) acc[(((size_t)b * ncam + slot) * NC + c) * hw + p] = accv[c];
+    __global real* cls = classes + ((size_t)b * ncam + slot) * (NC + 1) * hw + p;
+    cls[0] = tr;
+    for (int c = 0; c < NC; ++c) cls[(size_t)(c + 1) * hw] = accv[c];
+    real hit = 0; /* sum_{c>=1} acc_c in channel order, as the backward sums the stored classes: the same bits */
+    for (int c = 0; c < NC; ++c) hit += accv[c];
+    /* No hit possible (or below REAL_MIN): depth 0, as first_hit's on a miss, and no 0 / 0. */
+    depth[r] = hit > REAL_MIN ? ds / hit : (real)0;
     dsum[r] = ds;
-    miss[r] = tr;
     if (save) {
         state[4 * r] = ncell;
         state[4 * r + 1] = idx.x;
@@ -169,19 +177,26 @@ __kernel void accumulate_soft_hits_kernel(__global const real* probs, const floa
 }
 
 /*
- * Backward: one work-item per pixel as in the forward. Walks the forward's cells last to first by undoing the
- * taped steps, with T_m = exp(log T_{m+1} - log p_m0), a_m = sum_c (g_c + g_d t_m) p_mc,
- * R_{M-1} = g_miss, R_{m-1} = a_m + p_m0 R_m:
- *   grad[0][m] += T_m R_m,  grad[c][m] += T_m (g_c + g_d t_m)   (scatter(): plain adds when exclusive = 1)
- * g_acc (B, ncam, NC, h*w), g_miss and g_dsum (B, ncam, h*w); grad (B, NC + 1, D*H*W) is zeroed by the host.
+ * Backward: one work-item per pixel as in the forward; adds this launch's rays' gradient into grad.
+ *
+ * Per ray, from the upstream gradients g_classes (gm = channel 0, gc_c = channel c >= 1), g_depth and g_dsum:
+ * the chain rule through depth = dsum / hit (hit > REAL_MIN; else depth is the constant 0) folds g_depth into
+ *   gd = g_dsum + g_depth / hit,  cmn = -g_depth depth / hit   (the gradient of every acc_c through hit),
+ * so that acc_c gets gc_c + cmn and dsum gets gd. Walks the forward's cells last to first by undoing the taped
+ * steps, with T_m = exp(log T_{m+1} - log p_m0), u_m = cmn + gd t_m, a_m = sum_{c>=1} (gc_c + u_m) p_mc,
+ * R_{M-1} = gm, R_{m-1} = a_m + p_m0 R_m:
+ *   grad[0][m] += T_m R_m,  grad[c][m] += T_m (gc_c + u_m)   (scatter(): plain adds when exclusive = 1)
+ * classes, g_classes (B, ncam, NC + 1, h*w); depth, g_depth, g_dsum (B, ncam, h*w); grad (B, NC + 1, D*H*W),
+ * zeroed by the host before the first launch.
  */
 __kernel void backpropagate_soft_hits_kernel(__global const real* probs, const float8 grid, const float16 cam,
-                                      const int4 n, const int w, const int h, const int slot, const int ncam,
-                                      const int exclusive, const int words, __global const int* state,
-                                      __global const real* log_t,
-                                      __global const uint* tape, __global const real* g_acc,
-                                      __global const real* g_miss, __global const real* g_dsum,
-                                      __global real* grad)
+                                             const int4 n, const int w, const int h, const int slot,
+                                             const int ncam, const int exclusive, const int words,
+                                             __global const int* state, __global const real* log_t,
+                                             __global const uint* tape, __global const real* classes,
+                                             __global const real* depth, __global const real* g_classes,
+                                             __global const real* g_depth, __global const real* g_dsum,
+                                             __global real* grad)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= w || y >= h) return;
@@ -191,14 +206,24 @@ __kernel void backpropagate_soft_hits_kernel(__global const real* probs, const f
     const int ncell = state[4 * r];
     if (ncell == 0) return;
 
-    real ga[NC];
+    const size_t ch = ((size_t)b * ncam + slot) * (NC + 1) * hw + p;
+    real gc[NC];
     int any = 0;
     for (int c = 0; c < NC; ++c) {
-        ga[c] = g_acc[(((size_t)b * ncam + slot) * NC + c) * hw + p];
-        any |= ga[c] != (real)0;
+        gc[c] = g_classes[ch + (size_t)(c + 1) * hw];
+        any |= gc[c] != (real)0;
     }
-    const real gm = g_miss[r], gd = g_dsum[r];
-    if (!any && gm == (real)0 && gd == (real)0) return; /* a pixel the loss ignores */
+    const real gm = g_classes[ch], gdep = g_depth[r];
+    real gd = g_dsum[r], cmn = 0;
+    if (gdep != (real)0) {
+        real hit = 0; /* the forward's sum, same values in the same order: the same bits */
+        for (int c = 0; c < NC; ++c) hit += classes[ch + (size_t)(c + 1) * hw];
+        if (hit > REAL_MIN) {
+            gd += gdep / hit;
+            cmn = -gdep * depth[r] / hit;
+        }
+    }
+    if (!any && gm == (real)0 && gd == (real)0 && cmn == (real)0) return; /* a pixel the loss ignores */
 
     Ray ray;
     int4 entry;
@@ -224,12 +249,12 @@ __kernel void backpropagate_soft_hits_kernel(__global const real* probs, const f
         const real p0 = clamp(pb[cell], (real)0, (real)1);
         if (p0 > (real)0) logt -= log(p0);
         const real tr = exp(logt);
-        const real gdt = gd * (real)t;
+        const real u = cmn + gd * (real)t;
         real a = 0;
         for (int c = 0; c < NC; ++c) {
-            const real gc = ga[c] + gdt;
-            a += gc * pb[(size_t)(c + 1) * cells + cell];
-            scatter(gb + (size_t)(c + 1) * cells + cell, tr * gc, exclusive);
+            const real g = gc[c] + u;
+            a += g * pb[(size_t)(c + 1) * cells + cell];
+            scatter(gb + (size_t)(c + 1) * cells + cell, tr * g, exclusive);
         }
         scatter(gb + cell, tr * rr, exclusive);
         rr = a + p0 * rr;

@@ -1,10 +1,17 @@
 """OpenCL backend of ``soft_first_hit``: the forward and backward kernels of :file:`soft_first_hit.cl`.
 
 The algorithm, its backward recursion and the step tape are those of :mod:`fruxel.kernels.wp.soft_first_hit`;
-the ray set-up is :file:`first_hit.cl`'s (compiled first), so both operations visit the same cells. Programs are
-built once per context and per (scalar type, number of classes). Data travels as host arrays: on PoCL (the CPU)
-they are used in place through ``USE_HOST_PTR`` buffers, elsewhere copied. Gradients are scattered with
-compare-and-swap adds, so float rounding may differ from run to run where rays share a cell.
+the ray set-up is :file:`first_hit.cl`'s (compiled first), so both operations visit the same cells. The forward
+kernel also finishes each pixel: it writes ``classes`` (the miss probability ``T_M`` in front of the class sums
+``acc_c = sum_m T_m p_mc``), ``depth_sum`` and ``depth = depth_sum / hit`` (``hit = sum_{c>=1} acc_c``, 0 where
+``hit`` is at most the scalar type's smallest normal number). The backward kernel folds the gradient of ``depth``
+into those of ``depth_sum`` and of every ``acc_c`` (the chain rule through ``depth_sum / hit``), then walks the ray
+back to front.
+
+Programs are built once per context and per (scalar type, number of classes). Data travels as host arrays: on
+PoCL (the CPU) they are used in place through ``USE_HOST_PTR`` buffers, elsewhere copied. Gradients are scattered
+with compare-and-swap adds (plain adds for the grid's own view, whose rays own their cells), so float rounding may
+differ from run to run where rays share a cell.
 """
 
 from __future__ import annotations
@@ -81,20 +88,23 @@ def _real(rt: Runtime, t: Any) -> np.dtype:
 
 
 def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
-            device: str | None = None) -> tuple[Any, ...]:
-    """Run the forward kernel; arguments and results as :func:`fruxel.kernels.wp.soft_first_hit.forward`.
+            device: str | None = None) -> tuple[Any, Any, Any, SavedRays | None]:
+    """Run the forward kernel, one launch per camera, and wait for the results.
 
     Args:
-        probs: ``(B, C, D, H, W)`` torch float32/float64 CPU tensor, contiguous: class probabilities, channel 0 =
-            empty.
+        probs: ``(B, C, D, H, W)`` torch float32/float64 CPU tensor, contiguous: class probabilities by cell
+            ``(k, j, i)``, channel 0 = empty.
         grid: the volume's grid.
-        cameras: N cameras of one image size.
+        cameras: N cameras of one image size ``h x w``.
         save: keep what :func:`backward` needs.
         device: OpenCL device selector (:func:`.runtime.resolve_device`).
 
     Returns:
-        ``(acc (B, N, C-1, h, w), miss (B, N, h, w), dsum (B, N, h, w), saved)``: torch CPU tensors of ``probs``'
-        dtype, and a :class:`SavedRays` or None.
+        ``(classes, depth, dsum, saved)``: torch CPU tensors of ``probs``' dtype, by pixel ``(y, x)`` of each
+        camera: ``classes`` ``(B, N, C, h, w)`` (channel 0 the miss probability ``T_M``, channel ``c >= 1`` the
+        class sum ``acc_c``), ``depth`` ``(B, N, h, w)`` (``dsum / hit``, 0 where ``hit`` is at most the smallest
+        normal number; metres along the camera's z) and ``dsum`` ``(B, N, h, w)`` (``sum_m w_m t_m``, metres), and
+        a :class:`SavedRays` (None without ``save``).
     """
     import torch
 
@@ -103,8 +113,8 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     b, c = probs.shape[0], probs.shape[1]
     h, w = cameras[0].height, cameras[0].width
     n_cam = len(cameras)
-    acc = torch.empty((b, n_cam, c - 1, h, w), dtype=probs.dtype)
-    miss = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
+    classes = torch.empty((b, n_cam, c, h, w), dtype=probs.dtype)
+    depth = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
     dsum = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
     rays = b * n_cam * h * w
     words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD)
@@ -112,7 +122,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
         k = _kernel(rt, "accumulate_soft_hits_kernel", real, c - 1)
         p_buf = rt.input("soft_probs", _host(probs, real))
         outs = [(rt.output(name, a.numpy()), a.numpy()) for name, a in
-                (("soft_acc", acc), ("soft_miss", miss), ("soft_dsum", dsum))]
+                (("soft_classes", classes), ("soft_depth", depth), ("soft_dsum", dsum))]
         if save:
             # Fresh buffers, not the runtime's pool: several forward passes may await their backward at once.
             flags = cl.mem_flags.READ_WRITE
@@ -125,41 +135,67 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
             k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam), _dims(grid),
               np.int32(w), np.int32(h), np.int32(traversal.max_steps(grid)), np.int32(slot), np.int32(n_cam),
               np.int32(save), np.int32(words), *(buf for buf, _ in outs), state, log_t, tape)
-        # Waits for the kernels (the call's one host synchronisation): the results are torch tensors.
+        # Host synchronisation (the call's only one): waits for the kernels, whose results are torch tensors.
         rt.fetch(outs)
     saved = SavedRays(device, state, log_t, tape, words, list(cameras)) if save else None
-    return acc, miss, dsum, saved
+    return classes, depth, dsum, saved
 
 
-def backward(probs: Any, grid: FruxelGrid, saved: SavedRays, g_acc: Any, g_miss: Any, g_dsum: Any,
-             out: Any = None) -> Any:
-    """Run the backward kernel; arguments and result as :func:`fruxel.kernels.wp.soft_first_hit.backward`
-    (torch CPU tensors; ``out``, when given, contiguous)."""
+def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any:
+    """Run the backward kernel, one launch per camera of every group, and wait for the gradient.
+
+    Args:
+        probs: ``(B, C, D, H, W)`` torch float32/float64 CPU tensor, contiguous: the forward's class probabilities.
+        grid: the volume's grid.
+        groups: one ``(saved, classes, depth, g_classes, g_depth, g_dsum)`` per camera group of the forward
+            call(s), all torch CPU tensors of ``probs``' dtype (the gradients contiguous), by pixel ``(y, x)`` of
+            the group's N cameras of one image size ``h x w``: ``saved`` the group's :class:`SavedRays`;
+            ``classes`` ``(B, N, C, h, w)`` and ``depth`` ``(B, N, h, w)`` its forward outputs; ``g_classes``
+            ``(B, N, C, h, w)``, ``g_depth`` and ``g_dsum`` ``(B, N, h, w)`` the upstream gradients of
+            ``classes``, ``depth`` and ``dsum``, each None where that output gets no gradient.
+
+    Returns:
+        ``(B, C, D, H, W)`` torch CPU tensor of ``probs``' dtype, by cell ``(k, j, i)``: the gradient of the loss
+        with respect to ``probs``, summed over every group.
+    """
     import torch
 
-    rt = get_runtime(saved.device)
+    rt = get_runtime(groups[0][0].device)
     real = _real(rt, probs)
     b, c = probs.shape[0], probs.shape[1]
-    cams = saved.cams
-    h, w = cams[0].height, cams[0].width
-    grad = torch.zeros(probs.shape, dtype=probs.dtype) if out is None else out
+    # Zero-copy: the kernels add into grad itself; else into a zeroed device buffer copied back at the end.
+    grad = (torch.zeros if rt.zero_copy else torch.empty)(probs.shape, dtype=probs.dtype)
+    # Host arrays the enqueued commands read: alive until the synchronisation below.
+    keep = [_host(probs, real)]
     with rt.lock:
         k = _kernel(rt, "backpropagate_soft_hits_kernel", real, c - 1)
-        p_buf = rt.input("soft_probs", _host(probs, real))
-        gbufs = [rt.input(name, _host(g, real)) for name, g in
-                 (("soft_g_acc", g_acc), ("soft_g_miss", g_miss), ("soft_g_dsum", g_dsum))]
+        p_buf = rt.input("soft_probs", keep[0])
         host = grad.numpy()
         if rt.zero_copy:
             g_buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
         else:
             g_buf = rt.scratch("soft_grad", host.nbytes)
-            cl.enqueue_copy(rt.queue, g_buf, host, is_blocking=False)  # what the kernel adds into
-        for slot, cam in enumerate(cams):
-            own = traversal.is_own_view(cam, grid)
-            k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam), _dims(grid),
-              np.int32(w), np.int32(h), np.int32(slot), np.int32(len(cams)), np.int32(own), np.int32(saved.words),
-              saved.state, saved.log_t, saved.tape, *gbufs, g_buf)
-        # Waits for the kernels (the call's one host synchronisation): the gradient is a torch tensor.
+            rt.zero(g_buf, host.nbytes)  # what the kernels add into
+        for saved, *tensors in groups:
+            cams = saved.cams
+            h, w = cams[0].height, cams[0].width
+            # An upstream gradient of None (an output the loss does not use) is zero.
+            pixel_shape = tuple(tensors[1].shape)
+            shapes = (None, None, tuple(tensors[0].shape), pixel_shape, pixel_shape)
+            arrays = [_host(t, real) if t is not None else np.zeros(shape, real)
+                      for t, shape in zip(tensors, shapes, strict=True)]
+            keep += arrays
+            # The queue is in order: a pooled buffer (not zero-copy) is refilled only after the previous group's
+            # kernels have read it.
+            bufs = [rt.input(name, a) for name, a in zip(
+                ("soft_classes", "soft_depth", "soft_g_classes", "soft_g_depth", "soft_g_dsum"), arrays, strict=True)]
+            for slot, cam in enumerate(cams):
+                own = traversal.is_own_view(cam, grid)
+                k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam),
+                  _dims(grid), np.int32(w), np.int32(h), np.int32(slot), np.int32(len(cams)), np.int32(own),
+                  np.int32(saved.words), saved.state, saved.log_t, saved.tape, *bufs, g_buf)
+        # Host synchronisation (the call's only one): waits for every group's kernels; the gradient is a torch
+        # tensor.
         rt.fetch([(g_buf, host)])
     return grad
 

@@ -15,13 +15,18 @@ so the forward pass needs no division, and ``T`` is a running product of ``p_0``
 exactly 0 (a saturated cell, ``o = 1``) and 1 (``o = 0``). The loop stops early only when ``T`` is 0, where every
 later weight is 0 anyway; a ``T`` below the smallest normal number of the scalar type counts as 0 (flushed, as
 FTZ arithmetic does), because denormal arithmetic runs about a hundred times slower on CPUs and the weights it
-would add are below that smallest normal number.
+would add are below that smallest normal number. The forward kernel also finishes each pixel: it writes
+``classes = (miss, acc_1, ..., acc_{C-1})`` and ``depth = dsum / hit`` with ``hit = sum_c acc_c`` (0 where ``hit``
+is below the smallest normal number), so no per-pixel torch operation follows.
 
-Backward, also division-free. With upstream gradients ``g_c`` (of acc_c), ``g_d`` (of dsum), ``g_miss`` of one
-ray, ``L = sum_m T_m a_m + g_miss T_M`` with ``a_m = sum_c g_c p_mc + g_d t_m S_m``; then::
+Backward, also division-free along the ray. A ray's upstream gradients are ``G_c`` (of classes, ``G_0`` of the
+miss), ``G_depth`` and ``G_dsum``. Through ``depth = dsum / hit`` they become ``g_c = G_c + k`` for the class sums
+with the common part ``k = -G_depth depth / hit``, and ``g_d = G_dsum + G_depth / hit`` for dsum (``k = 0``,
+``g_d = G_dsum`` where depth is the constant 0). With ``L = sum_m T_m a_m + G_0 T_M``,
+``a_m = sum_{c>=1} G_c p_mc + u_m S_m`` and ``u_m = k + g_d t_m``::
 
-    dL/dp_mc = T_m (g_c + g_d t_m)                   (c >= 1)
-    dL/dp_m0 = T_m R_m,  R_{M-1} = g_miss,  R_{m-1} = a_m + p_m0 R_m
+    dL/dp_mc = T_m (G_c + u_m)                       (c >= 1)
+    dL/dp_m0 = T_m R_m,  R_{M-1} = G_0,  R_{m-1} = a_m + p_m0 R_m
 
 ``R_m`` is the loss downstream of cell m per unit of transmittance past it, built back to front. The backward
 kernel walks each ray backwards: the forward saves per ray the number of cells, the last cell's indices and
@@ -29,15 +34,24 @@ kernel walks each ray backwards: the forward saves per ray the number of cells, 
 (the plane family crossed to enter each cell). Undoing the steps in reverse visits the forward's cells in
 reverse, exactly, with no floating-point decision repeated; ``T_m = exp(log T_{m+1} - log p_m0)`` comes back in
 log space, so no ``1 / p_m0`` appears. Where the forward stopped early (``T_{s+1}`` 0 after cell s), the walk
-starts at cell s with ``R_s = g_miss``: the cells behind s have zero weight and get zero gradient, as in the
+starts at cell s with ``R_s = G_0``: the cells behind s have zero weight and get zero gradient, as in the
 function computed, and ``dL/dp_s0`` treats the ray as ending at s. That entry is the only approximation: softmax
 multiplies it by ``p_s0``, and ``T_s p_s0`` is 0 or below the smallest normal number, so no logit gradient moves
 by more than that (an occupancy input of exactly 1 gets the derivative of a ray that ends there).
 
+Gradients of rays that share cells are scattered with ``wp.atomic_add``, and only where nonzero: per cell the
+class channels whose ``G_c`` is nonzero (a cross-entropy gives one), ``T_m R_m`` into channel 0, and the part
+``T_m u_m`` common to every class channel once into a ``(B, D*H*W)`` buffer that is added to channels 1..C-1 at the
+end. The grid's own camera at native resolution takes a fast path (:func:`~fruxel.kernels.traversal.is_own_view`):
+pixel (x, y) walks column (y, x) front to back (its ray crosses only z-planes, at the same ``t`` as the general
+walk), needs no tape, and owns its cells, so the first own view of a backward pass *stores* every cell's gradient
+(zeros behind an early stop) into an uninitialised tensor: no zero fill, no read-modify-write, no atomics.
+
 Geometry (ray, clip, crossings) is float32 as in every backend; accumulation is in the kernel's scalar type,
-float32 or float64 (one instantiation per scalar type and number of classes, built once per process). Gradients
-are scattered with ``wp.atomic_add`` (Warp runs CPU threads one after another, so CPU results are deterministic).
-CPU launches run with denormals flushed to zero, as GPUs run (see :func:`_flush_denormals`).
+float32 or float64 (one instantiation per scalar type and number of classes, built once per process). Warp runs
+CPU threads one after another, so CPU results are deterministic; CPU launches run with denormals flushed to zero,
+as GPUs run (see :func:`_flush_denormals`). Launches go through :class:`~fruxel.kernels.wp.arrays.Workspace` (torch
+memory, torch's current CUDA stream, prepared launch commands), so nothing waits for the device.
 """
 
 from __future__ import annotations
@@ -54,53 +68,134 @@ from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
 from .. import traversal
+from .arrays import Buffer, Packed, Workspace
 from .runtime import warp
 from .traverse import (
+    FAMILY_U,
+    FAMILY_V,
+    FAMILY_Z,
     CameraInfo,
     GridInfo,
     boundary_ahead,
     boundary_behind,
-    camera_info,
+    camera_arg,
     clip_ray,
     crossing,
     entry_cell,
     grid_info,
     pick_family,
     pixel_ray,
+    select,
     step_signs,
 )
 
 wp = warp()
 
-if (traversal.FAMILY_U, traversal.FAMILY_V, traversal.FAMILY_Z) != (0, 1, 2):
-    raise ImportError("soft_first_hit keeps per-family state in vector lanes: FAMILY_U, _V, _Z must be 0, 1, 2")
-
 TAPE_STEPS_PER_WORD = 15
 """Steps stored per int32 word of the step tape, 2 bits each (the plane family crossed); 15 keeps the sign bit
 clear, so no shift overflows."""
 
-
-@wp.func
-def _scatter(grad: wp.array3d(dtype=Any), b: int, c: int, cell: int, value: Any, exclusive: int):
-    """``grad[b, c, cell] += value``: skipped for 0 (most channels of a pixel the loss treats as a miss), plain when
-    this launch's rays own their cells, atomic otherwise."""
-    if value != type(value)(0.0):
-        if exclusive == 1:
-            grad[b, c, cell] = grad[b, c, cell] + value
-        else:
-            wp.atomic_add(grad, b, c, cell, value)
+GIVEN_CLASSES = wp.constant(1)
+GIVEN_DEPTH = wp.constant(2)
+GIVEN_DSUM = wp.constant(4)
+"""Flags of the backward kernels' ``given`` argument: which upstream gradients exist (an output that a loss does
+not use gets none, and costs no zero-filled tensor)."""
 
 
 # ---------------------------------------------------------------------------------------------- kernels
 @cache
-def _kernels(real: Any, nc: int) -> tuple[Any, Any]:
-    """Forward and backward kernels for scalar type ``real`` (``wp.float32`` / ``wp.float64``) and ``nc`` classes
-    (``C - 1``, channel 0 = empty excluded), in one module of their own: built once per process and device (and
-    cached on disk by Warp)."""
+def _kernels(real: Any, nc: int) -> dict[str, Any]:
+    """The forward and backward kernels, general and own view, for scalar type ``real`` (``wp.float32`` /
+    ``wp.float64``) and ``nc`` classes (``C - 1``, channel 0 = empty excluded), in one module of their own: built
+    once per process and device (and cached on disk by Warp)."""
     vec_c = wp.types.vector(length=nc, dtype=real)
+    vec_p = wp.types.vector(length=nc + 1, dtype=real)
     module = f"fruxel_soft_first_hit_{nc}_{real.__name__}"
     spw = wp.constant(TAPE_STEPS_PER_WORD)
     tiny = float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
+
+    @wp.func
+    def absorb(probs: wp.array3d(dtype=real), b: int, cell: int, t: float, acc: vec_c, ds: real, logt: real,
+               tr: real, save: int):
+        """One cell of the forward walk: adds its weighted class mass and depth, and multiplies the
+        transmittance by ``p_0`` (logged when ``save``). Returns ``(acc, ds, logt, tr)``."""
+        out = vec_c(acc)
+        p0 = wp.clamp(probs[b, 0, cell], real(0.0), real(1.0))
+        occ = real(0.0)
+        for c in range(wp.static(nc)):
+            pc = probs[b, c + 1, cell]
+            out[c] = out[c] + tr * pc
+            occ = occ + pc
+        lt = logt
+        if save == 1 and p0 > real(0.0):
+            lt = lt + wp.log(p0)
+        return out, ds + tr * occ * real(t), lt, tr * p0
+
+    @wp.func
+    def finish_ray(classes: wp.array4d(dtype=real), depth: wp.array3d(dtype=real), dsum: wp.array3d(dtype=real),
+                   b: int, n: int, p: int, acc: Any, ds: real, tr: real):
+        """Write one pixel's outputs: ``classes = (miss, acc)``, ``dsum`` and ``depth = dsum / hit``."""
+        hit = real(0.0)
+        for c in range(wp.static(nc)):
+            classes[b, n, c + 1, p] = acc[c]
+            hit = hit + acc[c]
+        classes[b, n, 0, p] = tr
+        dsum[b, n, p] = ds
+        dep = real(0.0)
+        if hit > real(tiny):
+            dep = ds / hit
+        depth[b, n, p] = dep
+
+    @wp.func
+    def ray_gradients(classes: wp.array4d(dtype=real), depth: wp.array3d(dtype=real),
+                      g_classes: wp.array4d(dtype=real), g_depth: wp.array3d(dtype=real),
+                      g_dsum: wp.array3d(dtype=real), given: int, b: int, n: int, p: int):
+        """One ray's upstream gradients through ``depth = dsum / hit``: ``(G_c, G_0, g_d, k)`` (module
+        docstring); ``hit`` is summed in the forward's order, so it is the forward's bit for bit. ``given`` flags
+        the upstream gradients that exist (:data:`GIVEN_CLASSES`, ``_DEPTH``, ``_DSUM``); the others are 0."""
+        gc = vec_c()
+        g0 = real(0.0)
+        if given & GIVEN_CLASSES != 0:
+            g0 = g_classes[b, n, 0, p]
+            for c in range(wp.static(nc)):
+                gc[c] = g_classes[b, n, c + 1, p]
+        gd = real(0.0)
+        if given & GIVEN_DSUM != 0:
+            gd = g_dsum[b, n, p]
+        k = real(0.0)
+        if given & GIVEN_DEPTH != 0:
+            hit = real(0.0)
+            for c in range(wp.static(nc)):
+                hit = hit + classes[b, n, c + 1, p]
+            if hit > real(tiny):
+                gdep = g_depth[b, n, p]
+                gd = gd + gdep / hit
+                k = -gdep * depth[b, n, p] / hit
+        return gc, g0, gd, k
+
+    @wp.func
+    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):
+        """All C probabilities of one cell, channel 0 first."""
+        v = vec_p()
+        for c in range(wp.static(nc + 1)):
+            v[c] = probs[b, c, cell]
+        return v
+
+    @wp.func
+    def cell_gradient(pm: Any, t: float, logt: real, gc: Any, gd: real, k: real):
+        """One cell of the backward walk from its probabilities ``pm`` (:func:`load_cell`):
+        ``(log T_m, T_m, u_m, a_m, p_m0)`` from ``log T_{m+1}``."""
+        p0 = wp.clamp(pm[0], real(0.0), real(1.0))
+        lt = logt
+        if p0 > real(0.0):
+            lt = lt - wp.log(p0)
+        u = k + gd * real(t)
+        a = real(0.0)
+        s = real(0.0)
+        for c in range(wp.static(nc)):
+            a = a + gc[c] * pm[c + 1]
+            s = s + pm[c + 1]
+        return lt, wp.exp(lt), u, a + u * s, p0
 
     @wp.kernel(enable_backward=False, module=module)
     def accumulate_soft_hits_kernel(
@@ -110,8 +205,8 @@ def _kernels(real: Any, nc: int) -> tuple[Any, Any]:
         n: int,
         max_steps: int,
         save: int,
-        acc: wp.array4d(dtype=real),
-        miss: wp.array3d(dtype=real),
+        classes: wp.array4d(dtype=real),
+        depth: wp.array3d(dtype=real),
         dsum: wp.array3d(dtype=real),
         state: wp.array2d(dtype=wp.int32),
         log_t: wp.array(dtype=real),
@@ -122,61 +217,58 @@ def _kernels(real: Any, nc: int) -> tuple[Any, Any]:
         Launch dims ``(B, h * w)``, one launch per camera. Input: ``probs`` ``(B, C, D*H*W)`` class probabilities
         by flat cell index ``(k * H + j) * W + i``, channel 0 = empty (clamped to [0, 1]); ``g``, ``cam`` the grid
         and camera constants (by value: no upload); ``max_steps`` :func:`traversal.max_steps`. Outputs (slot n of
-        N): ``acc`` ``(B, N, C-1, h*w)``, ``miss`` and ``dsum`` ``(B, N, h*w)``, depth in the viewing camera's z.
-        With ``save`` = 1, per ray r = (b * N + n) * h*w + p also ``state[:, r]`` = (cells on the ray, i, j, k of
-        the last one), ``log_t[r]`` = sum of ``log p_0`` over them (saturated cells left out) and ``tape[:, r]`` =
-        the family of every step, 2 bits each, TAPE_STEPS_PER_WORD per word (ray-minor, so that neighbouring
-        threads write neighbouring words); without ``save`` these three are 1-column dummies.
+        N): ``classes`` ``(B, N, C, h*w)``, ``depth`` and ``dsum`` ``(B, N, h*w)``, depths in the viewing
+        camera's z. With ``save`` = 1, per ray r = (b * N + n) * h*w + p also ``state[:, r]`` = (cells on the ray,
+        i, j, k of the last one), ``log_t[r]`` = sum of ``log p_0`` over them (saturated cells left out) and
+        ``tape[:, r]`` = the family of every step, 2 bits each, TAPE_STEPS_PER_WORD per word (ray-minor, so that
+        neighbouring threads write neighbouring words); without ``save`` these three are 1-column dummies. The
+        walk keeps one index and next crossing per family in scalars (a vector indexed by the family would live
+        in local memory).
         """
         b, p = wp.tid()
-        zero = real(0.0)
-        one = real(1.0)
-        r = (b * miss.shape[1] + n) * miss.shape[2] + p
+        r = (b * depth.shape[1] + n) * depth.shape[2] + p
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
         t_lo, t_hi, plane = clip_ray(g, o, d)
-        accv = vec_c()
-        ds = zero
-        tr = one
-        logt = zero
+        acc = vec_c()
+        ds = real(0.0)
+        tr = real(1.0)
+        logt = real(0.0)
         ncell = int(0)  # noqa: UP018 - Warp: a variable a loop mutates is declared dynamic
-        idx = wp.vec3i(0, 0, 0)
+        iu = int(0)  # noqa: UP018
+        iv = int(0)  # noqa: UP018
+        iz = int(0)  # noqa: UP018
         if t_lo < t_hi:
             idx = entry_cell(g, o, d, t_lo, plane)
+            iu = idx[0]
+            iv = idx[1]
+            iz = idx[2]
             s = step_signs(o, d)
-            tn = wp.vec3(
-                crossing(g, o, d, 0, boundary_ahead(idx[0], s[0]), s[0]),
-                crossing(g, o, d, 1, boundary_ahead(idx[1], s[1]), s[1]),
-                crossing(g, o, d, 2, boundary_ahead(idx[2], s[2]), s[2]),
-            )
-            dims = wp.vec3i(g.width, g.height, g.depth)
+            su = s[0]
+            sv = s[1]
+            sz = s[2]
+            cu = crossing(g, o, d, FAMILY_U, boundary_ahead(iu, su), su)
+            cv = crossing(g, o, d, FAMILY_V, boundary_ahead(iv, sv), sv)
+            cz = crossing(g, o, d, FAMILY_Z, boundary_ahead(iz, sz), sz)
             t_entry = t_lo
             word = int(0)  # noqa: UP018
             for _it in range(max_steps):
-                cell = (idx[2] * g.height + idx[1]) * g.width + idx[0]
-                p0 = wp.clamp(probs[b, 0, cell], zero, one)
-                occ = zero
-                for c in range(wp.static(nc)):
-                    pc = probs[b, c + 1, cell]
-                    accv[c] = accv[c] + tr * pc
-                    occ = occ + pc
-                ds = ds + tr * occ * real(t_entry)
+                cell = (iz * g.height + iv) * g.width + iu
+                acc, ds, logt, tr = absorb(probs, b, cell, t_entry, acc, ds, logt, tr, save)
                 ncell += 1
-                if save == 1 and p0 > zero:
-                    logt = logt + wp.log(p0)
-                tr = tr * p0
                 if tr < real(tiny):
                     # Transmittance 0, or below the smallest normal number, where it is flushed to 0 (as FTZ
                     # arithmetic does): every later weight is 0, and the CPU is spared denormal arithmetic, which
                     # costs a hundred times more per operation.
-                    tr = zero
+                    tr = real(0.0)
                     break
-                f = pick_family(tn[0], tn[1], tn[2])
-                tf = tn[f]
+                f = pick_family(cu, cv, cz)
+                tf = select(f, cu, cv, cz)
                 if tf >= t_hi:
                     break
-                nxt = idx[f] + s[f]
-                if nxt < 0 or nxt >= dims[f]:
+                sf = select(f, su, sv, sz)
+                nxt = select(f, iu, iv, iz) + sf
+                if nxt < 0 or nxt >= select(f, g.width, g.height, g.depth):
                     break
                 if save == 1:
                     step = ncell - 1
@@ -184,20 +276,68 @@ def _kernels(real: Any, nc: int) -> tuple[Any, Any]:
                     if step % spw == spw - 1:
                         tape[step // spw, r] = word
                         word = 0
-                idx[f] = nxt
+                cf = crossing(g, o, d, f, boundary_ahead(nxt, sf), sf)
+                iu = wp.where(f == FAMILY_U, nxt, iu)
+                iv = wp.where(f == FAMILY_V, nxt, iv)
+                iz = wp.where(f == FAMILY_Z, nxt, iz)
+                cu = wp.where(f == FAMILY_U, cf, cu)
+                cv = wp.where(f == FAMILY_V, cf, cv)
+                cz = wp.where(f == FAMILY_Z, cf, cz)
                 t_entry = tf
-                tn[f] = crossing(g, o, d, f, boundary_ahead(nxt, s[f]), s[f])
             if save == 1 and (ncell - 1) % spw != 0:
                 tape[(ncell - 1) // spw, r] = word
-        for c in range(wp.static(nc)):
-            acc[b, n, c, p] = accv[c]
-        dsum[b, n, p] = ds
-        miss[b, n, p] = tr
+        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
             state[0, r] = ncell
-            state[1, r] = idx[0]
-            state[2, r] = idx[1]
-            state[3, r] = idx[2]
+            state[1, r] = iu
+            state[2, r] = iv
+            state[3, r] = iz
+            log_t[r] = logt
+
+    @wp.kernel(enable_backward=False, module=module)
+    def accumulate_own_view_kernel(
+        probs: wp.array3d(dtype=real),
+        g: GridInfo,
+        cam: CameraInfo,
+        n: int,
+        save: int,
+        classes: wp.array4d(dtype=real),
+        depth: wp.array3d(dtype=real),
+        dsum: wp.array3d(dtype=real),
+        state: wp.array2d(dtype=wp.int32),
+        log_t: wp.array(dtype=real),
+    ):
+        """:func:`accumulate_soft_hits_kernel` for the grid's own camera: thread (b, p) walks column
+        ``p = j * W + i`` from slice 0 (the cells and entry depths of the general walk, which crosses only
+        z-planes there); no tape.
+
+        Launch dims ``(B, H * W)``; arrays as for :func:`accumulate_soft_hits_kernel` with ``h * w = H * W``.
+        """
+        b, p = wp.tid()
+        r = (b * depth.shape[1] + n) * depth.shape[2] + p
+        o = cam.origin
+        d = pixel_ray(cam, p % g.width, p // g.width)
+        t_lo, _t_hi, _plane = clip_ray(g, o, d)
+        plane_cells = g.height * g.width
+        acc = vec_c()
+        ds = real(0.0)
+        tr = real(1.0)
+        logt = real(0.0)
+        ncell = int(0)  # noqa: UP018
+        t_entry = t_lo
+        for k in range(g.depth):
+            acc, ds, logt, tr = absorb(probs, b, k * plane_cells + p, t_entry, acc, ds, logt, tr, save)
+            ncell += 1
+            if tr < real(tiny):
+                tr = real(0.0)
+                break
+            t_entry = crossing(g, o, d, FAMILY_Z, k + 1, 1)
+        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
+        if save == 1:
+            state[0, r] = ncell
+            state[1, r] = p % g.width
+            state[2, r] = p // g.width
+            state[3, r] = ncell - 1
             log_t[r] = logt
 
     @wp.kernel(enable_backward=False, module=module)
@@ -206,70 +346,158 @@ def _kernels(real: Any, nc: int) -> tuple[Any, Any]:
         g: GridInfo,
         cam: CameraInfo,
         n: int,
-        exclusive: int,
         state: wp.array2d(dtype=wp.int32),
         log_t: wp.array(dtype=real),
         tape: wp.array2d(dtype=wp.int32),
-        g_acc: wp.array4d(dtype=real),
-        g_miss: wp.array3d(dtype=real),
+        classes: wp.array4d(dtype=real),
+        depth: wp.array3d(dtype=real),
+        g_classes: wp.array4d(dtype=real),
+        g_depth: wp.array3d(dtype=real),
         g_dsum: wp.array3d(dtype=real),
+        given: int,
         grad: wp.array3d(dtype=real),
+        common: wp.array2d(dtype=real),
     ):
         """Gradients from one ray's outputs into its cells: thread (b, p) as in the forward kernel.
 
         Launch dims ``(B, h * w)``, one launch per camera. Inputs: the forward kernel's ``probs``, ``g``, ``cam``,
-        ``n``, its saved ``state``, ``log_t`` and ``tape``, and the upstream gradients ``g_acc``
-        ``(B, N, C-1, h*w)``, ``g_miss`` and ``g_dsum`` ``(B, N, h*w)``. Adds into ``grad`` ``(B, C, D*H*W)``,
-        which the caller zeroes: atomically, or with plain adds when ``exclusive`` = 1 (no two rays of this camera
-        share a cell: the grid's own view, whose pixels each own a column). The ray's cells are visited last to
-        first by undoing the taped steps; the module docstring gives the recursion.
+        ``n``, its saved ``state``, ``log_t`` and ``tape``, its outputs ``classes`` ``(B, N, C, h*w)`` and
+        ``depth`` ``(B, N, h*w)``, and the upstream gradients ``g_classes``, ``g_depth``, ``g_dsum`` of the same
+        shapes, of which ``given`` flags those that exist (the others are 1-element dummies). Adds atomically,
+        nonzero values only, into ``grad`` ``(B, C, D*H*W)`` (channel 0 and the class channels with a nonzero
+        ``G_c``) and ``common`` ``(B, D*H*W)`` (the part of every class channel's gradient that does not depend on
+        the channel). The ray's cells are visited last to first by undoing the
+        taped steps; the module docstring gives the recursion.
         """
         b, p = wp.tid()
-        r = (b * g_miss.shape[1] + n) * g_miss.shape[2] + p
+        r = (b * depth.shape[1] + n) * depth.shape[2] + p
         ncell = state[0, r]
         if ncell == 0:
             return
-        zero = real(0.0)
-        one = real(1.0)
-        ga = vec_c()
-        for c in range(wp.static(nc)):
-            ga[c] = g_acc[b, n, c, p]
-        gm = g_miss[b, n, p]
-        gd = g_dsum[b, n, p]
-        if wp.length_sq(ga) == zero and gm == zero and gd == zero:
+        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        if wp.length_sq(gc) == real(0.0) and g0 == real(0.0) and gd == real(0.0) and k == real(0.0):
             return  # a pixel the loss ignores: nothing to add
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
-        t_lo, t_hi, plane = clip_ray(g, o, d)
+        t_lo, _t_hi, _plane = clip_ray(g, o, d)
         s = step_signs(o, d)
-        idx = wp.vec3i(state[1, r], state[2, r], state[3, r])
+        su = s[0]
+        sv = s[1]
+        sz = s[2]
+        iu = state[1, r]
+        iv = state[2, r]
+        iz = state[3, r]
         logt = log_t[r]
-        rr = gm
+        rr = g0
+        # One cell of lookahead: the next cell's loads go out before this cell's atomics, which they could
+        # otherwise not pass (the compiler cannot tell that the two arrays do not overlap).
+        pm = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
         for back in range(ncell):
             m = ncell - 1 - back
-            f = int(0)  # noqa: UP018 - Warp: a variable a loop mutates is declared dynamic
+            cell = (iz * g.height + iv) * g.width + iu
             t = t_lo
+            nxt = pm
             if m > 0:
                 step = m - 1
                 f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
-                t = crossing(g, o, d, f, boundary_behind(idx[f], s[f]), s[f])
-            cell = (idx[2] * g.height + idx[1]) * g.width + idx[0]
-            p0 = wp.clamp(probs[b, 0, cell], zero, one)
-            if p0 > zero:
-                logt = logt - wp.log(p0)
-            tr = wp.exp(logt)
-            gdt = gd * real(t)
-            a = zero
+                sf = select(f, su, sv, sz)
+                t = crossing(g, o, d, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
+                iu = wp.where(f == FAMILY_U, iu - sf, iu)
+                iv = wp.where(f == FAMILY_V, iv - sf, iv)
+                iz = wp.where(f == FAMILY_Z, iz - sf, iz)
+                nxt = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
             for c in range(wp.static(nc)):
-                gc = ga[c] + gdt
-                a = a + gc * probs[b, c + 1, cell]
-                _scatter(grad, b, c + 1, cell, tr * gc, exclusive)
-            _scatter(grad, b, 0, cell, tr * rr, exclusive)
+                v = tr * gc[c]
+                if v != real(0.0):
+                    wp.atomic_add(grad, b, c + 1, cell, v)
+            v = tr * u
+            if v != real(0.0):
+                wp.atomic_add(common, b, cell, v)
+            v = tr * rr
+            if v != real(0.0):
+                wp.atomic_add(grad, b, 0, cell, v)
             rr = a + p0 * rr
-            if m > 0:
-                idx[f] = idx[f] - s[f]
+            pm = nxt
 
-    return accumulate_soft_hits_kernel, backpropagate_soft_hits_kernel
+    @wp.kernel(enable_backward=False, module=module)
+    def backpropagate_own_view_kernel(
+        probs: wp.array3d(dtype=real),
+        g: GridInfo,
+        cam: CameraInfo,
+        n: int,
+        store: int,
+        state: wp.array2d(dtype=wp.int32),
+        log_t: wp.array(dtype=real),
+        classes: wp.array4d(dtype=real),
+        depth: wp.array3d(dtype=real),
+        g_classes: wp.array4d(dtype=real),
+        g_depth: wp.array3d(dtype=real),
+        g_dsum: wp.array3d(dtype=real),
+        given: int,
+        grad: wp.array3d(dtype=real),
+    ):
+        """:func:`backpropagate_soft_hits_kernel` for the grid's own camera: thread (b, p) walks column
+        ``p = j * W + i`` back to front. Its cells belong to no other ray of the launch, so values are written
+        without atomics: with ``store`` = 1 every cell of the column and every channel is *written* (zeros
+        behind an early stop and for a ray without gradient), so ``grad`` needs no initialisation; with
+        ``store`` = 0 nonzero values are added.
+
+        Launch dims ``(B, H * W)``; arrays as for :func:`backpropagate_soft_hits_kernel` (no ``common``: the
+        common part goes straight into every class channel).
+        """
+        b, p = wp.tid()
+        r = (b * depth.shape[1] + n) * depth.shape[2] + p
+        ncell = state[0, r]
+        plane_cells = g.height * g.width
+        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        quiet = wp.length_sq(gc) == real(0.0) and g0 == real(0.0) and gd == real(0.0) and k == real(0.0)
+        if store == 1:
+            first_zero = ncell
+            if quiet:
+                first_zero = 0
+            for kk in range(first_zero, g.depth):
+                for c in range(wp.static(nc + 1)):
+                    grad[b, c, kk * plane_cells + p] = real(0.0)
+        if quiet:
+            return
+        o = cam.origin
+        d = pixel_ray(cam, p % g.width, p // g.width)
+        t_lo, _t_hi, _plane = clip_ray(g, o, d)
+        logt = log_t[r]
+        rr = g0
+        # One cell of lookahead, as in backpropagate_soft_hits_kernel: loads before this cell's stores.
+        pm = load_cell(probs, b, (ncell - 1) * plane_cells + p)
+        for back in range(ncell):
+            m = ncell - 1 - back
+            cell = m * plane_cells + p
+            t = t_lo
+            nxt = pm
+            if m > 0:
+                t = crossing(g, o, d, FAMILY_Z, m, 1)
+                nxt = load_cell(probs, b, cell - plane_cells)
+            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+            if store == 1:
+                for c in range(wp.static(nc)):
+                    grad[b, c + 1, cell] = tr * (gc[c] + u)
+                grad[b, 0, cell] = tr * rr
+            else:
+                for c in range(wp.static(nc)):
+                    v = tr * (gc[c] + u)
+                    if v != real(0.0):
+                        grad[b, c + 1, cell] = grad[b, c + 1, cell] + v
+                v = tr * rr
+                if v != real(0.0):
+                    grad[b, 0, cell] = grad[b, 0, cell] + v
+            rr = a + p0 * rr
+            pm = nxt
+
+    return {
+        "forward": accumulate_soft_hits_kernel,
+        "forward_own": accumulate_own_view_kernel,
+        "backward": backpropagate_soft_hits_kernel,
+        "backward_own": backpropagate_own_view_kernel,
+    }
 
 
 # ---------------------------------------------------------------------------------------------- host side
@@ -282,23 +510,14 @@ class SavedRays:
     log_t: Any
     """``(R,)`` torch tensor of the scalar type: ``log T`` after the last cell, saturated cells left out."""
     tape: Any
-    """``(words, R)`` int32 torch tensor: the step tape (see :data:`TAPE_STEPS_PER_WORD`)."""
-    cams: list
-    """Per camera, its :class:`CameraInfo`."""
-    own: list
-    """Per camera, whether it is the grid's own view (its rays never share a cell)."""
+    """``(words, R)`` int32 torch tensor: the step tape (see :data:`TAPE_STEPS_PER_WORD`); one word per ray when
+    every camera is an own view (no tape needed)."""
+    cams: list[Packed]
+    """Per camera, its packed :class:`~fruxel.kernels.wp.traverse.CameraInfo`."""
+    own: list[bool]
+    """Per camera, whether it is the grid's own view (the column kernels)."""
     size: tuple[int, int]
     """Image ``(h, w)`` of every camera."""
-
-
-def _stream(t: Any) -> Any:
-    """The Warp stream of the caller's current torch CUDA stream, or None on the CPU (launches stay in the
-    caller's stream order, with no synchronisation)."""
-    if t.device.type != "cuda":
-        return None
-    import torch
-
-    return wp.stream_from_torch(torch.cuda.current_stream(t.device))
 
 
 def _warp_device(t: Any) -> str:
@@ -311,8 +530,8 @@ def _flush_denormals(cpu: bool) -> Iterator[None]:
 
     Warp runs CPU kernels on the calling thread, so its floating-point mode applies. Near the end of a ray the
     products ``T p`` fall below the smallest normal number, where x86 arithmetic takes a slow microcode assist;
-    GPUs flush them anyway. The mode is probed with a denormal
-    multiplication (zero when flushing is on) and put back as it was.
+    GPUs flush them anyway. The mode is probed with a denormal multiplication (zero when flushing is on) and put
+    back as it was.
     """
     if not cpu:
         yield
@@ -347,9 +566,19 @@ def _real(t: Any) -> Any:
     raise TypeError(f"soft_first_hit kernels take float32 or float64 tensors, got {t.dtype}")
 
 
+def _own_view(cam: Camera, grid: FruxelGrid) -> bool:
+    # The size test first: is_own_view compares poses and intrinsics, which costs more than a launch.
+    return cam.width == grid.width and cam.height == grid.height and traversal.is_own_view(cam, grid)
+
+
+def _buffer(t: Any, shape: tuple[int, ...], real: Any, device: str) -> Buffer:
+    """A contiguous torch tensor seen as a Warp buffer of ``shape`` (a view, no copy)."""
+    return Buffer.of(t.view(shape), real, device)
+
+
 def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
             device: str | None = None) -> tuple[Any, ...]:
-    """Run the forward kernel: expected first hits of every pixel of every camera.
+    """Run the forward kernels: expected first hits of every pixel of every camera.
 
     Args:
         probs: ``(B, C, D, H, W)`` torch float32/float64, contiguous, on the CPU or a CUDA device: class
@@ -360,81 +589,113 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
         device: the Warp device; the kernels run where ``probs`` lives, which the caller has made this device.
 
     Returns:
-        ``(acc, miss, dsum, saved)``: ``acc`` ``(B, N, C-1, h, w)`` expected class mass, ``miss`` ``(B, N, h, w)``,
-        ``dsum`` ``(B, N, h, w)`` unnormalised expected depth (viewing-camera z), all of ``probs``' dtype and
-        device; ``saved`` a :class:`SavedRays`, or None without ``save``. Nothing waits for the kernels: on CUDA
-        they run in the caller's torch stream order.
+        ``(classes, depth, dsum, saved)``: ``classes`` ``(B, N, C, h, w)`` (channel 0 the miss probability,
+        channel c the expected class-c mass), ``depth`` ``(B, N, h, w)`` the expected entry depth given a hit (0
+        where no hit is possible), ``dsum`` ``(B, N, h, w)`` its unnormalised form (viewing-camera z), all of
+        ``probs``' dtype and device; ``saved`` a :class:`SavedRays`, or None without ``save``. Nothing waits for
+        the kernels: on CUDA they run in the caller's torch stream order.
     """
-    import torch
-
     real = _real(probs)
+    dev = _warp_device(probs)
+    ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
     h, w = cameras[0].height, cameras[0].width
     n_cam = len(cameras)
-    fwd, _ = _kernels(real, c - 1)
-    opts = {"dtype": probs.dtype, "device": probs.device}
-    acc = torch.empty((b, n_cam, c - 1, h, w), **opts)
-    miss = torch.empty((b, n_cam, h, w), **opts)
-    dsum = torch.empty((b, n_cam, h, w), **opts)
+    kernels = _kernels(real, c - 1)
+    own = [_own_view(cam, grid) for cam in cameras]
+    classes = ws.empty((b, n_cam, c, h * w), real)
+    depth = ws.empty((b, n_cam, h * w), real)
+    dsum = ws.empty((b, n_cam, h * w), real)
     rays = b * n_cam * h * w if save else 1
-    words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD) if save else 1
-    state = torch.empty((4, rays), dtype=torch.int32, device=probs.device)
-    log_t = torch.empty((rays,), **opts)
-    tape = torch.empty((words, rays), dtype=torch.int32, device=probs.device)
-    cams = [camera_info(cam) for cam in cameras]
-    inputs = [
-        wp.from_torch(probs.view(b, c, -1), dtype=real), grid_info(grid), None, 0, traversal.max_steps(grid),
-        int(save), wp.from_torch(acc.view(b, n_cam, c - 1, h * w), dtype=real),
-        wp.from_torch(miss.view(b, n_cam, h * w), dtype=real), wp.from_torch(dsum.view(b, n_cam, h * w), dtype=real),
-        wp.from_torch(state, dtype=wp.int32), wp.from_torch(log_t, dtype=real), wp.from_torch(tape, dtype=wp.int32),
-    ]
-    stream = _stream(probs)
-    with _flush_denormals(stream is None):
-        for n, cam in enumerate(cams):
-            inputs[2], inputs[3] = cam, n
-            wp.launch(fwd, dim=(b, h * w), inputs=inputs, device=None if stream else _warp_device(probs),
-                      stream=stream)
-    own = [traversal.is_own_view(cam, grid) for cam in cameras]
-    saved = SavedRays(state, log_t, tape, cams, own, (h, w)) if save else None
-    return acc, miss, dsum, saved
+    words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD) if save and not all(own) else 1
+    state = ws.empty((4, rays), wp.int32)
+    log_t = ws.empty((rays,), real)
+    tape = ws.empty((words, rays), wp.int32)
+    p = _buffer(probs, (b, c, grid.n_cells), real, dev)
+    g = grid_info(grid)
+    cams = [camera_arg(cam) for cam in cameras]
+    with _flush_denormals(not ws.is_cuda):
+        for n, (cam, is_own) in enumerate(zip(cams, own, strict=True)):
+            if is_own:
+                ws.launch(kernels["forward_own"], (b, h * w),
+                          [p, g, cam, n, int(save), classes, depth, dsum, state, log_t])
+            else:
+                ws.launch(kernels["forward"], (b, h * w), [p, g, cam, n, traversal.max_steps(grid), int(save), classes,
+                                                           depth, dsum, state, log_t, tape])
+    saved = SavedRays(state.native, log_t.native, tape.native, cams, own, (h, w)) if save else None
+    return (classes.native.view(b, n_cam, c, h, w), depth.native.view(b, n_cam, h, w),
+            dsum.native.view(b, n_cam, h, w), saved)
 
 
-def backward(probs: Any, grid: FruxelGrid, saved: SavedRays, g_acc: Any, g_miss: Any, g_dsum: Any,
-             out: Any = None) -> Any:
-    """Run the backward kernel: the gradient of a loss with respect to ``probs``.
+def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any:
+    """Run the backward kernels: the gradient of a loss with respect to ``probs``, over every camera group.
+
+    Own-view cameras go first: the first of them writes every cell (no zero fill); the others add.
 
     Args:
         probs: the forward's input (unchanged since).
         grid: the forward's grid.
-        saved: the forward's :class:`SavedRays`.
-        g_acc: ``(B, N, C-1, h, w)`` upstream gradient of ``acc``; ``g_miss``, ``g_dsum``: ``(B, N, h, w)``, of
-            ``miss`` and ``dsum``; contiguous, of ``probs``' dtype and device.
-        out: a ``(B, C, D, H, W)`` tensor like ``probs`` to add the gradient into, or None for a new one.
+        groups: per camera group of the forward, ``(saved, classes, depth, g_classes, g_depth, g_dsum)``: its
+            :class:`SavedRays`, its outputs ``classes`` ``(B, N, C, h, w)`` and ``depth`` ``(B, N, h, w)``, and
+            the upstream gradients of ``classes``, ``depth`` and ``dsum`` (contiguous, ``probs``' dtype and
+            device; None where that output gets no gradient).
 
     Returns:
-        ``(B, C, D, H, W)`` gradient (``out`` when given), of ``probs``' dtype and device (in stream order, no wait).
+        ``(B, C, D, H, W)`` gradient, of ``probs``' dtype and device (in stream order, no wait).
     """
     import torch
 
     real = _real(probs)
+    dev = _warp_device(probs)
+    ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
-    h, w = saved.size
-    n_cam = len(saved.cams)
-    _, bwd = _kernels(real, c - 1)
-    grad = torch.zeros_like(probs) if out is None else out
-    inputs = [
-        wp.from_torch(probs.view(b, c, -1), dtype=real), grid_info(grid), None, 0, 0,
-        wp.from_torch(saved.state, dtype=wp.int32), wp.from_torch(saved.log_t, dtype=real),
-        wp.from_torch(saved.tape, dtype=wp.int32), wp.from_torch(g_acc.view(b, n_cam, c - 1, h * w), dtype=real),
-        wp.from_torch(g_miss.view(b, n_cam, h * w), dtype=real),
-        wp.from_torch(g_dsum.view(b, n_cam, h * w), dtype=real), wp.from_torch(grad.view(b, c, -1), dtype=real),
-    ]
-    stream = _stream(probs)
-    with _flush_denormals(stream is None):
-        for n, (cam, own) in enumerate(zip(saved.cams, saved.own, strict=True)):
-            inputs[2], inputs[3], inputs[4] = cam, n, int(own)
-            wp.launch(bwd, dim=(b, h * w), inputs=inputs, device=None if stream else _warp_device(probs),
-                      stream=stream)
+    kernels = _kernels(real, c - 1)
+    n_cells = grid.n_cells
+    launches = [(saved.own[n], gi, n) for gi, (saved, *_rest) in enumerate(groups) for n in range(len(saved.cams))]
+    launches.sort(key=lambda x: not x[0])  # own views first (a stable sort keeps the order otherwise)
+    store = launches[0][0]
+    grad = torch.empty_like(probs) if store else torch.zeros_like(probs)
+    gbuf = _buffer(grad, (b, c, n_cells), real, dev)
+    common = None
+    if not all(own for own, _, _ in launches):
+        common = ws.empty((b, n_cells), real, zero=True)
+    p = _buffer(probs, (b, c, n_cells), real, dev)
+    g = grid_info(grid)
+    bufs = []
+    dummy = None
+    for saved, classes, depth, g_cls, g_depth, g_dsum in groups:
+        h, w = saved.size
+        n_cam = len(saved.cams)
+        hw = h * w
+        given = sum(flag for t, flag in ((g_cls, GIVEN_CLASSES), (g_depth, GIVEN_DEPTH), (g_dsum, GIVEN_DSUM))
+                    if t is not None)
+        if dummy is None and given != GIVEN_CLASSES | GIVEN_DEPTH | GIVEN_DSUM:
+            dummy = torch.empty((1,), dtype=probs.dtype, device=probs.device)
+        pixels = (b, n_cam, hw)
+        bufs.append([
+            Buffer.of(saved.state, wp.int32, dev), Buffer.of(saved.log_t, real, dev),
+            Buffer.of(saved.tape, wp.int32, dev),
+            _buffer(classes, (b, n_cam, c, hw), real, dev),
+            _buffer(dummy, (1, 1, 1, 1), real, dev) if g_cls is None else _buffer(g_cls, (b, n_cam, c, hw), real, dev),
+            *(_buffer(dummy, (1, 1, 1), real, dev) if t is None else _buffer(t, pixels, real, dev)
+              for t in (depth, g_depth, g_dsum)),
+            given,
+        ])
+    with _flush_denormals(not ws.is_cuda):
+        for own, gi, n in launches:
+            saved = groups[gi][0]
+            h, w = saved.size
+            state, log_t, tape, classes, g_cls, depth, g_depth, g_dsum, given = bufs[gi]
+            cam = saved.cams[n]
+            if own:
+                ws.launch(kernels["backward_own"], (b, h * w), [p, g, cam, n, int(store), state, log_t, classes,
+                                                                depth, g_cls, g_depth, g_dsum, given, gbuf])
+                store = False
+            else:
+                ws.launch(kernels["backward"], (b, h * w), [p, g, cam, n, state, log_t, tape, classes, depth, g_cls,
+                                                            g_depth, g_dsum, given, gbuf, common])
+    if common is not None:
+        grad.view(b, c, n_cells)[:, 1:] += common.native.unsqueeze(1)
     return grad
 
 

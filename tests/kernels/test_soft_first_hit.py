@@ -210,6 +210,11 @@ def test_batch_camera_groups_and_kinds(backend: str) -> None:
     (g_a,) = torch.autograd.grad(soft_first_hit(x, GRID, own, backend=backend).depth.sum(), x)
     (g_b,) = torch.autograd.grad(soft_first_hit(x, GRID, big, backend=backend).depth.sum(), x)
     torch.testing.assert_close(g_joint, g_a + g_b, atol=1e-12, rtol=1e-12)
+    # The own view twice, in a group after a novel view: the first own view writes every cell's gradient, the
+    # second adds to it, and the novel view's gradient is added on top (whatever the order of the cameras).
+    h_big, h_own = soft_first_hit_groups(x, GRID, [big, [own, own]], backend=backend)
+    (g_twice,) = torch.autograd.grad(h_big.depth.sum() + h_own.depth.sum(), x)
+    torch.testing.assert_close(g_twice, 2.0 * g_a + g_b, atol=1e-12, rtol=1e-12)
     out = soft_first_hit(logits.numpy(), GRID, own, backend=backend)
     assert isinstance(out.classes, np.ndarray)
     np.testing.assert_allclose(out.classes, together.classes[:, :1].numpy(), atol=1e-14)
