@@ -128,17 +128,17 @@ def measure(backend: str, args: argparse.Namespace, device: str) -> dict[str, An
     loss = ShellLoss(grid, config)
     cams = [grid.camera()] + random_poses(grid, NOVEL, np.random.default_rng(1), width=NOVEL_SIZE[0],
                                           height=NOVEL_SIZE[1])
-    targets, shell_mask = loss.targets(labels, cams)
+    targets = loss.targets(labels, cams)
 
     def losses() -> None:
         logits.grad = None
-        loss.losses(logits, labels, cams, targets, shell_mask).total.backward()
+        loss.losses(logits, labels, cams, targets).total.backward()
 
     def full() -> None:
         logits.grad = None
         loss(logits, labels, cams).total.backward()
 
-    own_t = targets[0]
+    own_t = targets.groups[0]
 
     def own(fn: Callable[[], Any]) -> Callable[[], None]:
         def run() -> None:
@@ -162,7 +162,7 @@ def measure_torch(args: argparse.Namespace, device: str) -> dict[str, Any]:
     logits.requires_grad_()
     loss = ShellLoss(grid, ShellLossConfig(novel_views=0, backend=args.backends[0] if args.backends else None,
                                            device=args.device))
-    (own_t,), _ = loss.targets(labels, [grid.camera()])
+    (own_t,) = loss.targets(labels, [grid.camera()]).groups
 
     def run() -> None:
         logits.grad = None

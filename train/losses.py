@@ -17,7 +17,9 @@ are metres along each viewing camera's z.
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,7 +35,7 @@ from fruxel.kernels.soft import SoftHits, soft_first_hit_groups
 
 # ---------------------------------------------------------------------------------------------- losses
 def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: float = 1e-6,
-                        mask: torch.Tensor | None = None) -> torch.Tensor:
+                        mask: torch.Tensor | None = None, reduction: str = "mean") -> torch.Tensor:
     """Cross-entropy of the expected first-hit class distribution against first-hit labels.
 
     Args:
@@ -43,20 +45,24 @@ def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: flo
         eps: added to the probability before the log, so that a confidently wrong pixel keeps a finite loss and a
             gradient (``-log(p + eps) <= -log(eps)``).
         mask: optional ``(B, N, h, w)`` bool, the pixels that count (all when None).
+        reduction: ``"mean"`` over the counted pixels (0 when none count), or ``"sum"`` (for averaging over
+            several camera groups at once).
 
     Returns:
-        Scalar tensor: the mean of ``-log(p[label] + eps)`` over the counted pixels (0 when none count).
+        Scalar tensor: the mean (or sum) of ``-log(p[label] + eps)`` over the counted pixels.
     """
-    p = soft.classes.gather(2, target_labels.long().unsqueeze(2)).squeeze(2)
-    nll = -torch.log(p + eps)
-    if mask is None:
-        return nll.mean()
-    m = mask.to(nll.dtype)
-    return (nll * m).sum() / m.sum().clamp_min(1.0)
+    p = soft.classes.gather(2, target_labels.long().unsqueeze(2))
+    log_p = torch.log(p + eps)
+    if mask is not None:
+        log_p = torch.where(mask.unsqueeze(2), log_p, 0.0)
+    total = -log_p.sum()
+    if reduction == "sum":
+        return total
+    return total / (p.numel() if mask is None else mask.sum().clamp_min(1))
 
 
 def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.Tensor, *,
-             scale: float = 1.0) -> torch.Tensor:
+             scale: float = 1.0, reduction: str = "mean") -> torch.Tensor:
     """L1 between the expected first-hit depth given a hit and the ground-truth first-hit depth.
 
     ``soft.depth`` is ``sum_m w_m t_m / sum_m w_m``: it says where the surface is, independently of how likely a
@@ -68,13 +74,15 @@ def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.
         target_depth: ``(B, N, h, w)`` ground-truth ``first_hit`` depth, metres (viewing camera z).
         target_hit_mask: ``(B, N, h, w)`` bool, pixels where the ground truth hits; only these count.
         scale: factor on the absolute error, e.g. ``1 / (z_far - z_near)`` for a unit-free loss.
+        reduction: ``"mean"`` over the ground truth's hits (0 when there are none), or ``"sum"``.
 
     Returns:
-        Scalar tensor: ``scale * mean |depth - target_depth|`` over the ground-truth hits (0 when there are none).
+        Scalar tensor: ``scale * mean |depth - target_depth|`` over the ground-truth hits (or the sum).
     """
-    m = target_hit_mask.to(soft.depth.dtype)
-    err = (soft.depth - target_depth.to(soft.depth.dtype)).abs() * m
-    return scale * err.sum() / m.sum().clamp_min(1.0)
+    err = torch.where(target_hit_mask, (soft.depth - target_depth.to(soft.depth.dtype)).abs(), 0.0).sum()
+    if reduction != "sum":
+        err = err / target_hit_mask.sum().clamp_min(1)
+    return err * scale if scale != 1.0 else err
 
 
 def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor, shell_mask: torch.Tensor, *,
@@ -98,6 +106,11 @@ def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor,
     ce = F.nll_loss(s, target, reduction="none") if log_probs else F.cross_entropy(s, target, reduction="none")
     w = torch.where(shell_mask, weight_visible, weight_other).to(ce.dtype)
     return (w * ce).sum() / w.sum().clamp_min(torch.finfo(ce.dtype).tiny)
+
+
+def _total(terms: Any) -> torch.Tensor:
+    """The sum of tensors, without the extra operation that adding them to ``0`` costs."""
+    return functools.reduce(operator.add, terms)
 
 
 # ---------------------------------------------------------------------------------------------- poses
@@ -199,6 +212,24 @@ class ShellLossTerms:
     """The cameras used, own view first."""
 
 
+@dataclass(frozen=True)
+class ShellTargets:
+    """The ground-truth side of :class:`ShellLoss` for one batch and set of cameras (no gradient), with the
+    normalisations that depend only on it computed once."""
+
+    groups: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    """Per camera group (:func:`group_by_size`): ``first_hit`` labels ``(B, N, h, w)`` int64, depths
+    ``(B, N, h, w)`` and hit mask ``(B, N, h, w)`` bool of the ground truth."""
+    shell_mask: torch.Tensor
+    """``(B, D, H, W)`` bool: the ground truth's shell from every camera."""
+    pixels: int
+    """Pixels of every camera together (the shell cross-entropy's mean)."""
+    depth_norm: torch.Tensor
+    """0-dim: the depth L1's factor, ``1 / ((z_far - z_near) * max(1, ground-truth hits))``."""
+    voxel_weight: torch.Tensor
+    """``(B, D, H, W)``: the voxel cross-entropy's per-cell weights divided by their sum."""
+
+
 class ShellLoss:
     """Shell-aware losses of predicted logits against a ground-truth label volume, from the grid's own view plus
     K random novel poses per call (seeded; new poses at every call).
@@ -224,9 +255,9 @@ class ShellLoss:
             raise ValueError("ShellLoss needs the own view or at least one novel view")
         return cams
 
-    def targets(self, labels: torch.Tensor, cameras: list[Camera]) -> tuple[list[tuple[Any, ...]], torch.Tensor]:
-        """The ground-truth side (no gradient): per camera group ``(labels (B, N, h, w) int64, depth
-        (B, N, h, w), hit (B, N, h, w) bool)`` from ``first_hit``, and the shell mask ``(B, D, H, W)`` bool."""
+    def targets(self, labels: torch.Tensor, cameras: list[Camera]) -> ShellTargets:
+        """The ground-truth side (no gradient): ``first_hit`` of the labels per camera group and their ``shell``
+        (see :class:`ShellTargets`)."""
         c = self.config
         out = []
         with torch.no_grad():
@@ -236,7 +267,11 @@ class ShellLoss:
                 depth = torch.stack([torch.as_tensor(h.depth) for h in hits], dim=1)
                 out.append((lab, depth, lab > 0))
             mask = torch.as_tensor(fk.shell(labels, self.grid, cameras, backend=c.backend, device=c.device)) != 0
-        return out, mask
+            hit_count = sum(t[2].sum() for t in out).clamp_min(1)
+            depth_norm = 1.0 / ((self.grid.z_far - self.grid.z_near) * hit_count)
+            weight = torch.where(mask, c.weight_visible, c.weight_other)
+            weight = weight / weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
+        return ShellTargets(out, mask, sum(t[0].numel() for t in out), depth_norm, weight)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:
@@ -252,18 +287,20 @@ class ShellLoss:
             :class:`ShellLossTerms`.
         """
         cams = self.cameras() if cameras is None else list(cameras)
-        targets, shell_mask = self.targets(labels, cams)
-        return self.losses(logits, labels, cams, targets, shell_mask)
+        return self.losses(logits, labels, cams, self.targets(labels, cams))
 
     def losses(self, logits: torch.Tensor, labels: torch.Tensor, cameras: list[Camera],
-               targets: list[tuple[Any, ...]], shell_mask: torch.Tensor) -> ShellLossTerms:
+               targets: ShellTargets) -> ShellLossTerms:
         """The differentiable part, from ground-truth targets computed beforehand (e.g. by a data loader).
+
+        Every device operation counts (on a GPU each costs its launch), so the terms are summed over the camera
+        groups and normalised once, with the factors of :class:`ShellTargets`.
 
         Args:
             logits: as for :meth:`__call__`.
             labels: as for :meth:`__call__` (the voxel cross-entropy's targets).
             cameras: the cameras :meth:`targets` was given.
-            targets, shell_mask: what :meth:`targets` returned for ``labels`` and ``cameras``.
+            targets: what :meth:`targets` returned for ``labels`` and ``cameras``.
 
         Returns:
             :class:`ShellLossTerms`.
@@ -274,14 +311,10 @@ class ShellLoss:
         log_p = torch.log_softmax(s, dim=1)
         soft = soft_first_hit_groups(log_p.exp(), self.grid, group_by_size(cameras), backend=c.backend,
                                      device=c.device, probs=True)
-        pixels = sum(t[0].numel() for t in targets)
-        hits = sum(t[2].sum() for t in targets).clamp_min(1)
-        shell_ce = sum(shell_cross_entropy(h, t[0], eps=c.eps) * (t[0].numel() / pixels)
-                       for h, t in zip(soft, targets, strict=True))
-        scale = 1.0 / (self.grid.z_far - self.grid.z_near)
-        depth = sum(depth_l1(h, t[1], t[2], scale=scale) * (t[2].sum() / hits)
-                    for h, t in zip(soft, targets, strict=True))
-        voxel = visible_weighted_voxel_ce(log_p, labels, shell_mask, weight_visible=c.weight_visible,
-                                          weight_other=c.weight_other, log_probs=True)
+        pairs = list(zip(soft, targets.groups, strict=True))
+        shell_ce = _total(shell_cross_entropy(h, t[0], eps=c.eps, reduction="sum") for h, t in pairs)
+        shell_ce = shell_ce / targets.pixels
+        depth = _total(depth_l1(h, t[1], t[2], reduction="sum") for h, t in pairs) * targets.depth_norm
+        voxel = (F.nll_loss(log_p, labels.long(), reduction="none") * targets.voxel_weight).sum()
         total = c.weight_shell * shell_ce + c.weight_depth * depth + c.weight_voxel * voxel
         return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras))

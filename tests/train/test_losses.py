@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from fruxel.grid import FruxelGrid
-from fruxel.kernels import available_backends, first_hit
+from fruxel.kernels import available_backends, first_hit, soft_first_hit
 from fruxel.kernels.soft import SoftHits
 from fruxel.train.losses import (
     ShellLoss,
@@ -140,3 +140,26 @@ def test_optimisation_brings_every_term_down() -> None:
     assert final.total < 0.3 * first.total.item()
     for name in ("shell_ce", "depth", "voxel"):
         assert getattr(final, name) < 0.5 * getattr(first, name).item(), name
+
+
+@pytest.mark.skipif(not BACKENDS, reason="no kernel backend is available")
+def test_shell_loss_terms_equal_the_loss_functions() -> None:
+    # ShellLoss sums over camera groups and normalises once; its terms must be the public losses' values.
+    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
+    labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
+    torch.manual_seed(5)
+    logits = torch.randn(2, C, *grid.shape, dtype=torch.float64)
+    config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=6, weight_visible=2.0, weight_other=0.25)
+    loss = ShellLoss(grid, config)
+    cams = loss.cameras()
+    terms = loss(logits, labels, cams)
+    targets = loss.targets(labels, cams)
+    soft = [soft_first_hit(logits, grid, group) for group in group_by_size(cams)]
+    ce = torch.cat([-torch.log(h.classes.gather(2, t[0].unsqueeze(2)) + config.eps).flatten()
+                    for h, t in zip(soft, targets.groups, strict=True)]).mean()
+    err = torch.cat([(h.depth - t[1].double()).abs()[t[2]] for h, t in zip(soft, targets.groups, strict=True)])
+    voxel = visible_weighted_voxel_ce(logits, labels, targets.shell_mask, weight_visible=2.0, weight_other=0.25)
+    torch.testing.assert_close(terms.shell_ce, ce)
+    torch.testing.assert_close(terms.depth, err.mean() / (grid.z_far - grid.z_near))
+    torch.testing.assert_close(terms.voxel, voxel)
+    torch.testing.assert_close(terms.total, ce + err.mean() / (grid.z_far - grid.z_near) + voxel)
