@@ -176,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
         report("first_hit 128^3 @ 512^2", lambda: first_hit(vol, grid, cam), args.repeat, out, args.host)
     if want("host parts"):
         host_parts(vol, grid, cam, out)
+    if want("first_hit extremes"):
+        # The same view of an empty and of a full volume: the cost of a ray's set-up and exit, and of its first hit.
+        for name, fill in (("empty", 0), ("full", 1)):
+            v = torch.full_like(vol, fill)
+            report(f"first_hit 128^3 @ 512^2, {name} volume", lambda v=v: first_hit(v, grid, cam), args.repeat, out)
     if want("shell 6 poses"):
         cams = orbit_cameras(grid, 6, width=512, height=512)
         report("shell 6 poses", lambda: shell(vol, grid, cams), args.repeat, out, args.host)
