@@ -536,40 +536,29 @@ def trace_ray(
                     k, cz = catch_up(g, o, d, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
             continue
 
-        # One step on the current level: across an empty box, or (level 0) to the next cell.
+        # One step on the current level: across an empty box, or (level 0) to the next cell. The stepped family's
+        # values are picked with selects, not a branch per family: the rays of a warp step different families,
+        # and three branches would run one after another.
         f = pick_family(cu, cv, cz)
-        old = wp.int32(0)
-        if f == FAMILY_U:
-            t = cu
-            old = i
-            i = next_box(i, si, shift)
-            if t >= t_hi or i < 0 or i >= g.width:
-                break
-            es = si
-            eb = boundary_behind(i, si)
-            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-        elif f == FAMILY_V:
-            t = cv
-            old = j
-            j = next_box(j, sj, shift)
-            if t >= t_hi or j < 0 or j >= g.height:
-                break
-            es = sj
-            eb = boundary_behind(j, sj)
-            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-        else:
-            t = cz
-            old = k
-            k = next_box(k, sk, shift)
-            if t >= t_hi or k < 0 or k >= g.depth:
-                break
-            es = sk
-            eb = boundary_behind(k, sk)
-            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+        t = select(f, cu, cv, cz)
+        sf = select(f, si, sj, sk)
+        nf = select(f, g.width, g.height, g.depth)
+        old = select(f, i, j, k)
+        new = next_box(old, sf, shift)
+        if t >= t_hi or new < 0 or new >= nf:
+            break
+        es = sf
+        eb = boundary_behind(new, sf)
+        cf = crossing(g, o, d, f, box_boundary(new, sf, shift, nf), sf)
+        i = wp.where(f == FAMILY_U, new, i)
+        j = wp.where(f == FAMILY_V, new, j)
+        k = wp.where(f == FAMILY_Z, new, k)
+        cu = wp.where(f == FAMILY_U, cf, cu)
+        cv = wp.where(f == FAMILY_V, cf, cv)
+        cz = wp.where(f == FAMILY_Z, cf, cz)
         t_entry = t
         ef = f
         # Up while the step entered an empty parent box (a parent that did not change is still occupied).
-        new = select(f, i, j, k)
         while level < LEVEL_SUPERS:
             up = level_shift(level + 1)
             if (old >> up) == (new >> up) or box_occupied(pyramid, b, g, level + 1, i, j, k):
