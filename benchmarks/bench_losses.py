@@ -101,8 +101,14 @@ def _sync(device: str) -> None:
 
 
 def timed(fn: Callable[[], Any], device: str, repeat: int) -> dict[str, float]:
-    """First call and median / min of ``repeat`` further calls, milliseconds, synchronised on CUDA."""
-    return common.time_calls(fn, repeat, sync=lambda: _sync(device))
+    """First call and median / min of ``repeat`` further calls, milliseconds, synchronised on CUDA; there also the
+    time per call of back-to-back calls (``pipelined_ms``, ``host_ms``) and the GPU time of one call
+    (``gpu_ms``)."""
+    out = common.time_calls(fn, repeat, sync=lambda: _sync(device))
+    if device.startswith("cuda"):
+        out.update(common.pipelined_ms(fn, repeat, lambda: _sync(device)))
+        out["gpu_ms"] = common.cuda_kernel_ms(fn)[0]
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- setup
@@ -177,15 +183,20 @@ def table(result: dict[str, Any]) -> str:
     """Markdown table of one run."""
     dev = "cuda" if result["device"].startswith("cuda") else "cpu"
     target = TARGETS.get((dev, result["batch"]))
-    lines = ["| backend | measurement | median ms | min ms | first call ms | target |",
-             "| --- | --- | ---: | ---: | ---: | --- |"]
+    cuda = dev == "cuda"
+    extra = " pipelined ms | GPU ms |" if cuda else ""
+    lines = ["| backend | measurement | median ms | min ms | first call ms |" + extra + " target |",
+             "| --- | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if cuda else "") + " --- |"]
     for entry in result["backends"]:
         for name, r in entry["rows"].items():
             mark = ""
             if target and name == "shell losses fwd+bwd":
                 mark = f"{target[0]}: {'met' if r['median_ms'] <= target[1] else 'NOT met'}"
+            cells = ""
+            if cuda:
+                cells = (f" {r['pipelined_ms']:,.1f} | {r['gpu_ms']:,.1f} |" if "gpu_ms" in r else " | |")
             lines.append(f"| {entry['backend']} | {name} | {r['median_ms']:,.1f} | {r['min_ms']:,.1f} | "
-                         f"{r['first_ms']:,.0f} | {mark} |")
+                         f"{r['first_ms']:,.0f} |{cells} {mark} |")
     return "\n".join(lines)
 
 
@@ -223,7 +234,9 @@ def section(results: list[dict[str, Any]]) -> str:
            "Median and minimum of the timed runs; the first call includes building or loading the kernels. On this "
            "shared 2-core machine, any other busy process stalls torch's 2-thread operations (each waits for a "
            "descheduled thread), so a run with a busy neighbour reads several times slower: the minimum is the "
-           "better guide, and the load average at the start is recorded.", ""]
+           "better guide, and the load average at the start is recorded. On CUDA, *pipelined* is the time per call of "
+           "back-to-back calls closed by one synchronisation, and *GPU* the summed device time of one call's "
+           "kernels (CUPTI); the target is judged on the median, each call synchronised.", ""]
     for res in sorted(results, key=lambda r: (r["device"], r["batch"], r["logits"])):
         m = res["machine"]
         where = m.get("gpu") or f"{m['cpu']}, {m['cores']} cores"

@@ -147,6 +147,42 @@ def time_calls(fn: Callable[[], Any], repeat: int, sync: Callable[[], Any] | Non
     return {"first_ms": first, "median_ms": statistics.median(runs), "min_ms": min(runs), "runs": len(runs)}
 
 
+def pipelined_ms(fn: Callable[[], Any], repeat: int, sync: Callable[[], Any]) -> dict[str, float]:
+    """Back-to-back calls of ``fn`` closed by one ``sync``: milliseconds per call, and the host's share (the time
+    to issue a call, measured before the synchronisation). A render or training loop that never waits runs at
+    the first; when the two are close, the host is the bottleneck."""
+    sync()
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        fn()
+    t1 = time.perf_counter()
+    sync()
+    t2 = time.perf_counter()
+    return {"pipelined_ms": (t2 - t0) / repeat * 1e3, "host_ms": (t1 - t0) / repeat * 1e3}
+
+
+def cuda_kernel_ms(fn: Callable[[], Any], calls: int = 10) -> tuple[float, list[tuple[str, float, int]]]:
+    """Summed device time of one call's kernels and copies (torch's profiler, CUPTI), milliseconds, and the
+    kernels by device time per call ``(name, ms, launches)``; needs torch with CUDA."""
+    from collections import defaultdict
+
+    import torch
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            fn()
+        torch.cuda.synchronize()
+    per: dict[str, list[float]] = defaultdict(list)
+    for e in prof.events():
+        if e.device_type == DeviceType.CUDA:
+            per[e.name].append(e.device_time / 1e3)  # us -> ms
+    rows = sorted(((name, sum(v) / calls, len(v) // calls) for name, v in per.items()), key=lambda r: -r[1])
+    return sum(r[1] for r in rows), rows
+
+
 def pyplot() -> Any:
     """``matplotlib.pyplot`` on the Agg backend (charts go to files, and the machines have no display); imported
     on first use, so that scripts run without matplotlib until they draw."""

@@ -29,7 +29,6 @@ import argparse
 import statistics
 import sys
 import time
-from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_kernels  # noqa: E402
 import bench_losses  # noqa: E402
+import common  # noqa: E402
 
 from fruxel.data import rooms  # noqa: E402
 from fruxel.kernels import first_hit, orbit_cameras, shell  # noqa: E402
@@ -62,32 +62,13 @@ def latency(fn: Callable[[], Any], repeat: int) -> float:
 
 def pipelined(fn: Callable[[], Any], repeat: int) -> tuple[float, float]:
     """``(per call, host issue per call)`` of ``repeat`` back-to-back calls, ms."""
-    torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    for _ in range(repeat):
-        fn()
-    t1 = time.perf_counter()
-    torch.cuda.synchronize()
-    t2 = time.perf_counter()
-    return (t2 - t0) / repeat * 1e3, (t1 - t0) / repeat * 1e3
+    r = common.pipelined_ms(fn, repeat, torch.cuda.synchronize)
+    return r["pipelined_ms"], r["host_ms"]
 
 
 def gpu_time(fn: Callable[[], Any], calls: int = 10) -> tuple[float, list[tuple[str, float, int]]]:
     """Summed device time per call (ms) and the kernels by device time per call, from torch's profiler."""
-    from torch.autograd import DeviceType
-    from torch.profiler import ProfilerActivity, profile
-
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        for _ in range(calls):
-            fn()
-        torch.cuda.synchronize()
-    per: dict[str, list[float]] = defaultdict(list)
-    for e in prof.events():
-        if e.device_type == DeviceType.CUDA:
-            per[e.name].append(e.device_time / 1e3)  # us -> ms
-    rows = sorted(((name, sum(v) / calls, len(v) // calls) for name, v in per.items()), key=lambda r: -r[1])
-    return sum(r[1] for r in rows), rows
+    return common.cuda_kernel_ms(fn, calls)
 
 
 def host_profile(fn: Callable[[], Any], calls: int = 100) -> str:
