@@ -63,6 +63,8 @@ Precision
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from fruxel.camera import Camera
@@ -106,10 +108,22 @@ def camera_params(camera: Camera) -> np.ndarray:
 def is_own_view(camera: Camera, grid: FruxelGrid) -> bool:
     """True when ``camera`` is the grid's own camera at native resolution (identity pose, same intrinsics), for
     which ``shell`` takes the column fast path: pixel (i, j) then looks straight down column (j, i)."""
+    own = _own_intrinsics(grid)
+    if (camera.width, camera.height) != own[:2]:
+        return False
+    for value, ref in zip((camera.fx, camera.fy, camera.cx, camera.cy), own[2:], strict=True):
+        if abs(value - ref) > 1e-9 * abs(ref) + 1e-8:  # np.allclose(rtol=1e-9), written out: it is on every call
+            return False
+    return bool(np.all(np.abs(np.asarray(camera.pose) - _EYE4) <= _POSE_TOLERANCE))
+
+
+_EYE4 = np.eye(4)
+_POSE_TOLERANCE = 1e-12 + 1e-5 * _EYE4
+"""np.allclose(pose, eye(4), atol=1e-12) per entry: 1e-12 plus the default relative 1e-5 on the diagonal."""
+
+
+@lru_cache(maxsize=64)
+def _own_intrinsics(grid: FruxelGrid) -> tuple[int, int, float, float, float, float]:
+    """``(width, height, fx, fy, cx, cy)`` of the grid's own camera."""
     own = grid.camera()
-    return (
-        camera.width == own.width
-        and camera.height == own.height
-        and np.allclose([camera.fx, camera.fy, camera.cx, camera.cy], [own.fx, own.fy, own.cx, own.cy], rtol=1e-9)
-        and np.allclose(camera.pose, np.eye(4), atol=1e-12)
-    )
+    return own.width, own.height, own.fx, own.fy, own.cx, own.cy
