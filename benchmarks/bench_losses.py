@@ -138,7 +138,7 @@ def measure(backend: str, args: argparse.Namespace, device: str) -> dict[str, An
 
     def losses() -> None:
         logits.grad = None
-        loss.losses(logits, labels, cams, targets).total.backward()
+        loss.losses(logits, cams, targets).total.backward()
 
     def full() -> None:
         logits.grad = None

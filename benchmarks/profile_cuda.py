@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
 
         def losses() -> None:
             logits.grad = None
-            loss.losses(logits, labels, cams, targets).total.backward()
+            loss.losses(logits, cams, targets).total.backward()
 
         def own() -> None:
             logits.grad = None

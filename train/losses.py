@@ -51,14 +51,13 @@ def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: flo
     Returns:
         Scalar tensor: the mean (or sum) of ``-log(p[label] + eps)`` over the counted pixels.
     """
-    p = soft.classes.gather(2, target_labels.long().unsqueeze(2))
-    log_p = torch.log(p + eps)
+    log_p = torch.log(soft.classes.gather(2, target_labels.long().unsqueeze(2)) + eps)
     if mask is not None:
         log_p = torch.where(mask.unsqueeze(2), log_p, 0.0)
     total = -log_p.sum()
     if reduction == "sum":
         return total
-    return total / (p.numel() if mask is None else mask.sum().clamp_min(1))
+    return total / (target_labels.numel() if mask is None else mask.sum().clamp_min(1))
 
 
 def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.Tensor, *,
@@ -228,6 +227,12 @@ class ShellTargets:
     """0-dim: the depth L1's factor, ``1 / ((z_far - z_near) * max(1, ground-truth hits))``."""
     voxel_weight: torch.Tensor
     """``(B, D, H, W)``: the voxel cross-entropy's per-cell weights divided by their sum."""
+    voxel_labels: torch.Tensor
+    """``(B, D, H, W)`` int64: the ground-truth labels as the voxel cross-entropy takes them."""
+    depth_flat: torch.Tensor
+    """Every group's ground-truth depths, flattened and concatenated in group order."""
+    hit_flat: torch.Tensor
+    """Every group's ground-truth hit mask, flattened and concatenated like ``depth_flat``."""
 
 
 class ShellLoss:
@@ -271,7 +276,10 @@ class ShellLoss:
             depth_norm = 1.0 / ((self.grid.z_far - self.grid.z_near) * hit_count)
             weight = torch.where(mask, c.weight_visible, c.weight_other)
             weight = weight / weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
-        return ShellTargets(out, mask, sum(t[0].numel() for t in out), depth_norm, weight)
+            depth_flat = torch.cat([t[1].reshape(-1) for t in out])
+            hit_flat = torch.cat([t[2].reshape(-1) for t in out])
+        return ShellTargets(out, mask, sum(t[0].numel() for t in out), depth_norm, weight, labels.long(),
+                            depth_flat, hit_flat)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:
@@ -287,10 +295,9 @@ class ShellLoss:
             :class:`ShellLossTerms`.
         """
         cams = self.cameras() if cameras is None else list(cameras)
-        return self.losses(logits, labels, cams, self.targets(labels, cams))
+        return self.losses(logits, cams, self.targets(labels, cams))
 
-    def losses(self, logits: torch.Tensor, labels: torch.Tensor, cameras: list[Camera],
-               targets: ShellTargets) -> ShellLossTerms:
+    def losses(self, logits: torch.Tensor, cameras: list[Camera], targets: ShellTargets) -> ShellLossTerms:
         """The differentiable part, from ground-truth targets computed beforehand (e.g. by a data loader).
 
         Every device operation counts (on a GPU each costs its launch), so the terms are summed over the camera
@@ -298,9 +305,9 @@ class ShellLoss:
 
         Args:
             logits: as for :meth:`__call__`.
-            labels: as for :meth:`__call__` (the voxel cross-entropy's targets).
             cameras: the cameras :meth:`targets` was given.
-            targets: what :meth:`targets` returned for ``labels`` and ``cameras``.
+            targets: what :meth:`targets` returned for the batch's labels and ``cameras`` (they carry the labels
+                the voxel cross-entropy needs).
 
         Returns:
             :class:`ShellLossTerms`.
@@ -311,10 +318,14 @@ class ShellLoss:
         log_p = torch.log_softmax(s, dim=1)
         soft = soft_first_hit_groups(log_p.exp(), self.grid, group_by_size(cameras), backend=c.backend,
                                      device=c.device, probs=True)
-        pairs = list(zip(soft, targets.groups, strict=True))
-        shell_ce = _total(shell_cross_entropy(h, t[0], eps=c.eps, reduction="sum") for h, t in pairs)
-        shell_ce = shell_ce / targets.pixels
-        depth = _total(depth_l1(h, t[1], t[2], reduction="sum") for h, t in pairs) * targets.depth_norm
-        voxel = (F.nll_loss(log_p, labels.long(), reduction="none") * targets.voxel_weight).sum()
-        total = c.weight_shell * shell_ce + c.weight_depth * depth + c.weight_voxel * voxel
+        # Every group's pixels in one vector per quantity, so that each operation runs once for all groups.
+        p_label = torch.cat([h.classes.gather(2, t[0].unsqueeze(2)).reshape(-1)
+                             for h, t in zip(soft, targets.groups, strict=True)])
+        shell_ce = torch.log(p_label + c.eps).sum() * (-1.0 / targets.pixels)
+        pred_depth = torch.cat([h.depth.reshape(-1) for h in soft])
+        err = torch.where(targets.hit_flat, (pred_depth - targets.depth_flat.to(pred_depth.dtype)).abs(), 0.0)
+        depth = err.sum() * targets.depth_norm
+        voxel = (F.nll_loss(log_p, targets.voxel_labels, reduction="none") * targets.voxel_weight).sum()
+        total = _total(x if w == 1.0 else w * x
+                       for w, x in ((c.weight_shell, shell_ce), (c.weight_depth, depth), (c.weight_voxel, voxel)))
         return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras))

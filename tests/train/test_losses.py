@@ -41,6 +41,7 @@ def test_shell_cross_entropy_value() -> None:
     torch.testing.assert_close(got, -(torch.log(torch.tensor(0.7)) + torch.log(torch.tensor(0.8))) / 2)
     masked = shell_cross_entropy(soft, labels, eps=0.0, mask=torch.tensor([[[[False, True]]]]))
     torch.testing.assert_close(masked, -torch.log(torch.tensor(0.8)))
+    torch.testing.assert_close(shell_cross_entropy(soft, labels, eps=0.0, reduction="sum"), 2 * got)
     # A confidently wrong pixel stays finite, with a gradient.
     p = torch.tensor([1.0, 0.0, 0.0]).reshape(1, 1, 3, 1, 1).requires_grad_()
     loss = shell_cross_entropy(_soft(p, torch.zeros(1, 1, 1, 1)), torch.tensor([[[[1]]]]))
@@ -55,6 +56,7 @@ def test_depth_l1_counts_ground_truth_hits_only() -> None:
     mask = torch.tensor([True, False, True]).reshape(1, 1, 1, 3)
     torch.testing.assert_close(depth_l1(soft, target, mask), torch.tensor(0.75))
     torch.testing.assert_close(depth_l1(soft, target, mask, scale=0.5), torch.tensor(0.375))
+    torch.testing.assert_close(depth_l1(soft, target, mask, reduction="sum"), torch.tensor(1.5))
     assert depth_l1(soft, target, torch.zeros_like(mask)) == 0
 
 
