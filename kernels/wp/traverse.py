@@ -419,14 +419,12 @@ def level_shift(level: int) -> int:
 
 @inline_func
 def box_occupied(pyramid: wp.array2d(dtype=wp.uint8), b: int, g: GridInfo, level: int, i: int, j: int, k: int) -> bool:
-    """Whether the block (level 1) or super-block (level 2) holding cell ``(k, j, i)`` holds an occupied cell. One
-    expression for both levels (selects, no branch), so rays of a warp on different levels stay together."""
-    blocks = level == 1
-    sh = wp.where(blocks, BLOCK_SHIFT, SUPER_SHIFT)
-    nu = wp.where(blocks, g.blocks_u, g.supers_u)
-    nv = wp.where(blocks, g.blocks_v, g.supers_v)
-    flat = wp.where(blocks, 0, g.supers_offset) + ((k >> sh) * nv + (j >> sh)) * nu + (i >> sh)
-    return int(pyramid[b, flat]) != 0
+    """Whether the block (level 1) or super-block (level 2) holding cell ``(k, j, i)`` holds an occupied cell."""
+    if level == 1:
+        flat = ((k >> BLOCK_SHIFT) * g.blocks_v + (j >> BLOCK_SHIFT)) * g.blocks_u + (i >> BLOCK_SHIFT)
+        return int(pyramid[b, flat]) != 0
+    flat = ((k >> SUPER_SHIFT) * g.supers_v + (j >> SUPER_SHIFT)) * g.supers_u + (i >> SUPER_SHIFT)
+    return int(pyramid[b, g.supers_offset + flat]) != 0
 
 
 @inline_func
@@ -434,50 +432,27 @@ def catch_up(
     g: GridInfo,
     o: wp.vec3,
     d: wp.vec3,
-    i: int,
-    j: int,
-    k: int,
-    si: int,
-    sj: int,
-    sk: int,
+    family: int,
+    index: int,
+    s: int,
     shift: int,
-    cu: float,
-    cv: float,
-    cz: float,
+    n: int,
+    t_next: float,
     t: float,
     f: int,
 ):
-    """After a descent at crossing ``(t, f)`` to a level of boxes of ``2^shift`` cells: advance each family but
-    ``f`` past every crossing of that level the plain loop takes before ``(t, f)``, without leaving the parent box
-    (``2^(shift + PARENT_SHIFT)`` cells) just entered. ``cu, cv, cz`` are the crossings of the far sides of the
-    current boxes. The families advance one crossing at a time in one loop (each family's advances depend only on
-    its own crossings, so their order does not matter), with selects rather than a loop per family.
+    """Advance one family on a level (boxes of ``2^shift`` cells; ``index`` a cell of the current box, ``t_next``
+    the crossing of its far side) past every crossing of that level the plain loop takes before crossing
+    ``(t, f)``, without leaving the parent box (``2^(shift + 2)`` cells) just entered.
 
     Returns:
-        The new ``(i, j, k, cu, cv, cz)``.
+        The new ``(index, t_next)``: the first cell of the box reached (or ``index`` unchanged), and its crossing.
     """
-    up = shift + PARENT_SHIFT
-    lu = last_in_box(i, si, up, g.width) >> shift
-    lv = last_in_box(j, sj, up, g.height) >> shift
-    lz = last_in_box(k, sk, up, g.depth) >> shift
-    while True:
-        au = f != FAMILY_U and (i >> shift) != lu and precedes(cu, FAMILY_U, t, f)
-        av = f != FAMILY_V and (j >> shift) != lv and precedes(cv, FAMILY_V, t, f)
-        az = f != FAMILY_Z and (k >> shift) != lz and precedes(cz, FAMILY_Z, t, f)
-        if not (au or av or az):
-            break
-        h = wp.where(au, FAMILY_U, wp.where(av, FAMILY_V, FAMILY_Z))
-        sh_ = select(h, si, sj, sk)
-        nh = select(h, g.width, g.height, g.depth)
-        new = next_box(select(h, i, j, k), sh_, shift)
-        ch = crossing(g, o, d, h, box_boundary(new, sh_, shift, nh), sh_)
-        i = wp.where(h == FAMILY_U, new, i)
-        j = wp.where(h == FAMILY_V, new, j)
-        k = wp.where(h == FAMILY_Z, new, k)
-        cu = wp.where(h == FAMILY_U, ch, cu)
-        cv = wp.where(h == FAMILY_V, ch, cv)
-        cz = wp.where(h == FAMILY_Z, ch, cz)
-    return i, j, k, cu, cv, cz
+    last = last_in_box(index, s, shift + PARENT_SHIFT, n) >> shift
+    while (index >> shift) != last and precedes(t_next, family, t, f):
+        index = next_box(index, s, shift)
+        t_next = crossing(g, o, d, family, box_boundary(index, s, shift, n), s)
+    return index, t_next
 
 
 # ---------------------------------------------------------------------------------------------- step 5: the loop
@@ -553,7 +528,12 @@ def trace_ray(
             cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
             cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
             if f >= 0:
-                i, j, k, cu, cv, cz = catch_up(g, o, d, i, j, k, si, sj, sk, shift, cu, cv, cz, t, f)
+                if f != FAMILY_U:
+                    i, cu = catch_up(g, o, d, FAMILY_U, i, si, shift, g.width, cu, t, f)
+                if f != FAMILY_V:
+                    j, cv = catch_up(g, o, d, FAMILY_V, j, sj, shift, g.height, cv, t, f)
+                if f != FAMILY_Z:
+                    k, cz = catch_up(g, o, d, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
             continue
 
         # One step on the current level: across an empty box, or (level 0) to the next cell. The stepped family's
