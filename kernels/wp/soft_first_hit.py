@@ -95,10 +95,6 @@ TAPE_STEPS_PER_WORD = 15
 """Steps stored per int32 word of the step tape, 2 bits each (the plane family crossed); 15 keeps the sign bit
 clear, so no shift overflows."""
 
-CHUNK = wp.constant(4)
-"""Cells of a ray whose probabilities the backward kernels load at once (registers: ``CHUNK * C`` values per
-thread)."""
-
 GIVEN_CLASSES = wp.constant(1)
 GIVEN_DEPTH = wp.constant(2)
 GIVEN_DSUM = wp.constant(4)
@@ -113,9 +109,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
     ``wp.float64``) and ``nc`` classes (``C - 1``, channel 0 = empty excluded), in one module of their own: built
     once per process and device (and cached on disk by Warp)."""
     vec_c = wp.types.vector(length=nc, dtype=real)
-    mat_chunk = wp.types.matrix(shape=(CHUNK, nc + 1), dtype=real)
-    vec_cells = wp.types.vector(length=CHUNK, dtype=wp.int32)
-    vec_ts = wp.types.vector(length=CHUNK, dtype=wp.float32)
+    vec_p = wp.types.vector(length=nc + 1, dtype=real)
     module = f"fruxel_soft_first_hit_{nc}_{real.__name__}"
     spw = wp.constant(TAPE_STEPS_PER_WORD)
     tiny = float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
@@ -180,8 +174,16 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         return gc, g0, gd, k
 
     @wp.func
+    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):
+        """All C probabilities of one cell, channel 0 first."""
+        v = vec_p()
+        for c in range(wp.static(nc + 1)):
+            v[c] = probs[b, c, cell]
+        return v
+
+    @wp.func
     def cell_gradient(pm: Any, t: float, logt: real, gc: Any, gd: real, k: real):
-        """One cell of the backward walk from its C probabilities ``pm`` (channel 0 first):
+        """One cell of the backward walk from its probabilities ``pm`` (:func:`load_cell`):
         ``(log T_m, T_m, u_m, a_m, p_m0)`` from ``log T_{m+1}``."""
         p0 = wp.clamp(pm[0], real(0.0), real(1.0))
         lt = logt
@@ -387,46 +389,36 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         iz = state[3, r]
         logt = log_t[r]
         rr = g0
-        # The ray in chunks of CHUNK cells, last to first: a chunk's cells are found (undoing taped steps) and
-        # their probabilities loaded before its atomics, which loads could otherwise not pass (the compiler cannot
-        # tell that the arrays do not overlap), so a thread waits for memory once per chunk, not once per cell.
-        for chunk in range((ncell + CHUNK - 1) // CHUNK):
-            top = ncell - 1 - chunk * CHUNK
-            rows = mat_chunk()
-            cells = vec_cells()
-            ts = vec_ts()
-            for q in range(wp.static(CHUNK)):
-                m = top - q
-                if m >= 0:
-                    cell = (iz * g.height + iv) * g.width + iu
-                    t = t_lo
-                    if m > 0:
-                        step = m - 1
-                        f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
-                        sf = select(f, su, sv, sz)
-                        t = crossing(g, o, d, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
-                        iu = wp.where(f == FAMILY_U, iu - sf, iu)
-                        iv = wp.where(f == FAMILY_V, iv - sf, iv)
-                        iz = wp.where(f == FAMILY_Z, iz - sf, iz)
-                    cells[q] = cell
-                    ts[q] = t
-                    for c in range(wp.static(nc + 1)):
-                        rows[q, c] = probs[b, c, cell]
-            for q in range(wp.static(CHUNK)):
-                if top - q >= 0:
-                    cell = cells[q]
-                    logt, tr, u, a, p0 = cell_gradient(rows[q], ts[q], logt, gc, gd, k)
-                    for c in range(wp.static(nc)):
-                        v = tr * gc[c]
-                        if v != real(0.0):
-                            wp.atomic_add(grad, b, c + 1, cell, v)
-                    v = tr * u
-                    if v != real(0.0):
-                        wp.atomic_add(common, b, cell, v)
-                    v = tr * rr
-                    if v != real(0.0):
-                        wp.atomic_add(grad, b, 0, cell, v)
-                    rr = a + p0 * rr
+        # One cell of lookahead: the next cell's loads go out before this cell's atomics, which they could
+        # otherwise not pass (the compiler cannot tell that the two arrays do not overlap).
+        pm = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+        for back in range(ncell):
+            m = ncell - 1 - back
+            cell = (iz * g.height + iv) * g.width + iu
+            t = t_lo
+            nxt = pm
+            if m > 0:
+                step = m - 1
+                f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
+                sf = select(f, su, sv, sz)
+                t = crossing(g, o, d, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
+                iu = wp.where(f == FAMILY_U, iu - sf, iu)
+                iv = wp.where(f == FAMILY_V, iv - sf, iv)
+                iz = wp.where(f == FAMILY_Z, iz - sf, iz)
+                nxt = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+            for c in range(wp.static(nc)):
+                v = tr * gc[c]
+                if v != real(0.0):
+                    wp.atomic_add(grad, b, c + 1, cell, v)
+            v = tr * u
+            if v != real(0.0):
+                wp.atomic_add(common, b, cell, v)
+            v = tr * rr
+            if v != real(0.0):
+                wp.atomic_add(grad, b, 0, cell, v)
+            rr = a + p0 * rr
+            pm = nxt
 
     @wp.kernel(enable_backward=False, module=module)
     def backpropagate_own_view_kernel(
@@ -474,37 +466,31 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
         logt = log_t[r]
         rr = g0
-        # The column in chunks of CHUNK cells, back to front: a chunk's loads all go out before its stores
-        # (the compiler cannot move loads past stores to another array that might overlap), so a thread waits
-        # for memory once per chunk, not once per cell.
-        for chunk in range((ncell + CHUNK - 1) // CHUNK):
-            top = ncell - 1 - chunk * CHUNK
-            rows = mat_chunk()
-            for q in range(wp.static(CHUNK)):
-                if top - q >= 0:
-                    for c in range(wp.static(nc + 1)):
-                        rows[q, c] = probs[b, c, (top - q) * plane_cells + p]
-            for q in range(wp.static(CHUNK)):
-                m = top - q
-                if m >= 0:
-                    cell = m * plane_cells + p
-                    t = t_lo
-                    if m > 0:
-                        t = crossing(g, o, d, FAMILY_Z, m, 1)
-                    logt, tr, u, a, p0 = cell_gradient(rows[q], t, logt, gc, gd, k)
-                    if store == 1:
-                        for c in range(wp.static(nc)):
-                            grad[b, c + 1, cell] = tr * (gc[c] + u)
-                        grad[b, 0, cell] = tr * rr
-                    else:
-                        for c in range(wp.static(nc)):
-                            v = tr * (gc[c] + u)
-                            if v != real(0.0):
-                                grad[b, c + 1, cell] = grad[b, c + 1, cell] + v
-                        v = tr * rr
-                        if v != real(0.0):
-                            grad[b, 0, cell] = grad[b, 0, cell] + v
-                    rr = a + p0 * rr
+        # One cell of lookahead, as in backpropagate_soft_hits_kernel: loads before this cell's stores.
+        pm = load_cell(probs, b, (ncell - 1) * plane_cells + p)
+        for back in range(ncell):
+            m = ncell - 1 - back
+            cell = m * plane_cells + p
+            t = t_lo
+            nxt = pm
+            if m > 0:
+                t = crossing(g, o, d, FAMILY_Z, m, 1)
+                nxt = load_cell(probs, b, cell - plane_cells)
+            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+            if store == 1:
+                for c in range(wp.static(nc)):
+                    grad[b, c + 1, cell] = tr * (gc[c] + u)
+                grad[b, 0, cell] = tr * rr
+            else:
+                for c in range(wp.static(nc)):
+                    v = tr * (gc[c] + u)
+                    if v != real(0.0):
+                        grad[b, c + 1, cell] = grad[b, c + 1, cell] + v
+                v = tr * rr
+                if v != real(0.0):
+                    grad[b, 0, cell] = grad[b, 0, cell] + v
+            rr = a + p0 * rr
+            pm = nxt
 
     return {
         "forward": accumulate_soft_hits_kernel,
