@@ -86,6 +86,7 @@ from .traverse import (
     pick_family,
     pixel_ray,
     select,
+    set_family,
     step_signs,
 )
 
@@ -276,13 +277,9 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     if step % spw == spw - 1:
                         tape[step // spw, r] = word
                         word = 0
-                cf = crossing(g, o, d, f, boundary_ahead(nxt, sf), sf)
-                iu = wp.where(f == FAMILY_U, nxt, iu)
-                iv = wp.where(f == FAMILY_V, nxt, iv)
-                iz = wp.where(f == FAMILY_Z, nxt, iz)
-                cu = wp.where(f == FAMILY_U, cf, cu)
-                cv = wp.where(f == FAMILY_V, cf, cv)
-                cz = wp.where(f == FAMILY_Z, cf, cz)
+                iu, iv, iz, cu, cv, cz = set_family(
+                    f, nxt, crossing(g, o, d, f, boundary_ahead(nxt, sf), sf), iu, iv, iz, cu, cv, cz
+                )
                 t_entry = tf
             if save == 1 and (ncell - 1) % spw != 0:
                 tape[(ncell - 1) // spw, r] = word

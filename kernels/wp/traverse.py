@@ -381,6 +381,20 @@ def pick_family(tu: float, tv: float, tz: float) -> int:
 
 
 @inline_func
+def set_family(f: int, index: int, t_next: float, i: int, j: int, k: int, cu: float, cv: float, cz: float):
+    """The walk's per-family state ``(i, j, k, cu, cv, cz)`` with family ``f``'s cell index set to ``index`` and its
+    next crossing to ``t_next`` (selects, no branch: the rays of a warp step different families)."""
+    return (
+        wp.where(f == FAMILY_U, index, i),
+        wp.where(f == FAMILY_V, index, j),
+        wp.where(f == FAMILY_Z, index, k),
+        wp.where(f == FAMILY_U, t_next, cu),
+        wp.where(f == FAMILY_V, t_next, cv),
+        wp.where(f == FAMILY_Z, t_next, cz),
+    )
+
+
+@inline_func
 def precedes(t_a: float, family_a: int, t_b: float, family_b: int) -> bool:
     """Whether the plain loop takes crossing ``(t_a, family_a)`` before ``(t_b, family_b)``."""
     return t_a < t_b or (t_a == t_b and family_a < family_b)
@@ -549,13 +563,9 @@ def trace_ray(
             break
         es = sf
         eb = boundary_behind(new, sf)
-        cf = crossing(g, o, d, f, box_boundary(new, sf, shift, nf), sf)
-        i = wp.where(f == FAMILY_U, new, i)
-        j = wp.where(f == FAMILY_V, new, j)
-        k = wp.where(f == FAMILY_Z, new, k)
-        cu = wp.where(f == FAMILY_U, cf, cu)
-        cv = wp.where(f == FAMILY_V, cf, cv)
-        cz = wp.where(f == FAMILY_Z, cf, cz)
+        i, j, k, cu, cv, cz = set_family(
+            f, new, crossing(g, o, d, f, box_boundary(new, sf, shift, nf), sf), i, j, k, cu, cv, cz
+        )
         t_entry = t
         ef = f
         # Up while the step entered an empty parent box (a parent that did not change is still occupied).
