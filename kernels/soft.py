@@ -18,7 +18,13 @@ hit probability is small: the ``1 / hit`` of the normalisation meets ``d o / d l
 The kernels take the class probabilities ``p`` (channel 0 = empty), in which ``w_m q_m(c) = T_m p_m(c)``: the
 renormalisation cancels and neither pass divides (see :mod:`fruxel.kernels.wp.soft_first_hit` for the derivation
 of the written backward pass; Warp's automatic differentiation is wrong through loops with a dynamic bound or an
-early exit). The softmax is one torch operation outside the kernels, differentiated by torch.
+early exit). The softmax is one torch operation outside the kernels, differentiated by torch. The forward kernels
+also finish each pixel (``classes``, ``depth``), so that no per-pixel torch operation follows, and the backward
+kernels take the upstream gradients of those outputs directly (None for an output a loss does not use).
+
+Every backend module ``soft_first_hit`` has ``forward(probs, grid, cameras, *, save, device=None)`` returning
+``(classes, depth, depth_sum, saved)`` and ``backward(probs, grid, groups)`` with one ``(saved, classes, depth,
+g_classes, g_depth, g_depth_sum)`` per camera group, returning the gradient with respect to ``probs``.
 
 torch is imported on first use: ``import fruxel.kernels`` does not need it.
 """
