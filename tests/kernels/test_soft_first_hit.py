@@ -145,6 +145,15 @@ def test_exact_zero_one_is_first_hit_with_finite_gradients(backend: str) -> None
     weights = tuple(torch.randn_like(o) for o in _outputs(soft))
     (g,) = torch.autograd.grad(_weighted(_outputs(soft), weights), probs)
     assert torch.isfinite(g).all()
+    # The own view alone (its backward writes every cell, zeros included): behind a column's first occupied cell
+    # the transmittance is exactly 0, and so is every gradient there.
+    own = soft_first_hit(probs, grid, grid.camera(), backend=backend, probs=True)
+    (g_own,) = torch.autograd.grad(_weighted(_outputs(own), tuple(w[:, :1] for w in weights)), probs)
+    first = np.argmax(labels > 0, axis=1)  # (B, H, W): the first occupied slice of each column (0 if none)
+    behind = np.arange(grid.depth)[None, :, None, None] > first[:, None]
+    behind &= (labels > 0).any(axis=1)[:, None]
+    assert behind.any()
+    assert torch.all(g_own.permute(0, 2, 3, 4, 1)[torch.from_numpy(behind)] == 0)
     # The same through the occupancy interface, with o and its class distribution at the ends of [0, 1].
     occ = (torch.from_numpy(labels) > 0).double().requires_grad_()
     cls = probs.detach()[:, 1:].clone().requires_grad_()
