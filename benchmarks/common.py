@@ -14,6 +14,7 @@ import platform
 import re
 import statistics
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
 from importlib import metadata
@@ -72,8 +73,9 @@ def load_average() -> float:
 
 
 def package_versions(names: Iterable[str] | Mapping[str, str]) -> dict[str, str | None]:
-    """Installed versions of distributions, None for those missing. Reads the installed metadata only, so
-    nothing is imported (importing warp or torch would cost seconds and print).
+    """Installed versions of distributions, None for those missing. Reads the installed metadata, so nothing is
+    imported (importing warp or torch would cost seconds and print), except for a package that is already imported
+    without metadata (Warp copied onto a machine by ``../shared/gpu/stage.sh``): its own version attribute then.
 
     Args:
         names: distribution names, e.g. ``("numpy", "warp-lang")``; or a mapping from the key wanted in the
@@ -88,8 +90,21 @@ def package_versions(names: Iterable[str] | Mapping[str, str]) -> dict[str, str 
         try:
             out[key] = metadata.version(dist)
         except metadata.PackageNotFoundError:
-            out[key] = None
+            out[key] = _imported_version(dist)
     return out
+
+
+_MODULES = {"warp-lang": ("warp", "config.version"), "torch": ("torch", "__version__")}
+"""Distributions whose module can say its version when no metadata is installed: (module, attribute path)."""
+
+
+def _imported_version(dist: str) -> str | None:
+    """The version an already imported module reports, or None."""
+    name, attr = _MODULES.get(dist, (None, None))
+    value = sys.modules.get(name) if name else None
+    for part in (attr or "").split("."):
+        value = getattr(value, part, None)
+    return str(value) if value is not None else None
 
 
 def machine_info(packages: Iterable[str] | Mapping[str, str] = ()) -> dict[str, Any]:
