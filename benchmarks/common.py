@@ -75,7 +75,8 @@ def load_average() -> float:
 def package_versions(names: Iterable[str] | Mapping[str, str]) -> dict[str, str | None]:
     """Installed versions of distributions, None for those missing. Reads the installed metadata, so nothing is
     imported (importing warp or torch would cost seconds and print), except for a package that is already imported
-    without metadata (Warp copied onto a machine by ``../shared/gpu/stage.sh``): its own version attribute then.
+    without metadata (a Warp copied onto the GPU machine without its package files): its own version attribute
+    then.
 
     Args:
         names: distribution names, e.g. ``("numpy", "warp-lang")``; or a mapping from the key wanted in the
@@ -166,12 +167,12 @@ def pipelined_ms(fn: Callable[[], Any], repeat: int, sync: Callable[[], Any]) ->
     """Back-to-back calls of ``fn`` closed by one ``sync``: milliseconds per call, and the host's share (the time
     to issue a call, measured before the synchronisation). A render or training loop that never waits runs at
     the first; when the two are close, the host is the bottleneck."""
-    sync()
+    sync()  # the device is idle when the clock starts
     t0 = time.perf_counter()
     for _ in range(repeat):
         fn()
     t1 = time.perf_counter()
-    sync()
+    sync()  # every queued call is done when the clock stops
     t2 = time.perf_counter()
     return {"pipelined_ms": (t2 - t0) / repeat * 1e3, "host_ms": (t1 - t0) / repeat * 1e3}
 
@@ -185,11 +186,11 @@ def cuda_kernel_ms(fn: Callable[[], Any], calls: int = 10) -> tuple[float, list[
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
-    torch.cuda.synchronize()
+    torch.cuda.synchronize()  # earlier work stays out of the profile
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         for _ in range(calls):
             fn()
-        torch.cuda.synchronize()
+        torch.cuda.synchronize()  # every kernel of the calls ends inside the profile
     per: dict[str, list[float]] = defaultdict(list)
     for e in prof.events():
         if e.device_type == DeviceType.CUDA:

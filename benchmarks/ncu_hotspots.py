@@ -16,6 +16,7 @@ import csv
 import io
 import sys
 from collections import Counter
+from pathlib import Path
 
 
 def rows(text: str) -> list[dict[str, str]]:
@@ -32,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("csv", help="output of ncu --page source --print-source sass --csv")
     ap.add_argument("--top", type=int, default=40, help="instructions to list")
     args = ap.parse_args(argv)
-    table = rows(open(args.csv, encoding="utf-8", errors="replace").read())
+    table = rows(Path(args.csv).read_text(encoding="utf-8", errors="replace"))
     key = next(k for k in table[0] if "Instructions Executed" in k and "Predicated" not in k)
     src = next(k for k in table[0] if k.strip('"') in ("Source", "SASS"))
 

@@ -52,23 +52,12 @@ def latency(fn: Callable[[], Any], repeat: int) -> float:
     """Median of ``repeat`` synchronised single calls, ms."""
     runs = []
     for _ in range(repeat):
-        torch.cuda.synchronize()
+        torch.cuda.synchronize()  # the device is idle when the clock starts
         t0 = time.perf_counter()
         fn()
-        torch.cuda.synchronize()
+        torch.cuda.synchronize()  # the call's kernels are done when it stops
         runs.append(time.perf_counter() - t0)
     return statistics.median(runs) * 1e3
-
-
-def pipelined(fn: Callable[[], Any], repeat: int) -> tuple[float, float]:
-    """``(per call, host issue per call)`` of ``repeat`` back-to-back calls, ms."""
-    r = common.pipelined_ms(fn, repeat, torch.cuda.synchronize)
-    return r["pipelined_ms"], r["host_ms"]
-
-
-def gpu_time(fn: Callable[[], Any], calls: int = 10) -> tuple[float, list[tuple[str, float, int]]]:
-    """Summed device time per call (ms) and the kernels by device time per call, from torch's profiler."""
-    return common.cuda_kernel_ms(fn, calls)
 
 
 def host_profile(fn: Callable[[], Any], calls: int = 100) -> str:
@@ -89,12 +78,15 @@ def host_profile(fn: Callable[[], Any], calls: int = 100) -> str:
 
 
 def report(name: str, fn: Callable[[], Any], repeat: int, out: list[str], host: bool = False) -> None:
+    """Time one case (after three warm-up calls), print its line and largest kernels, and append them to ``out``;
+    with ``host``, also a cProfile of its host side."""
     for _ in range(3):
         fn()
     lat = latency(fn, repeat)
-    pipe, host = pipelined(fn, repeat)
-    gpu, rows = gpu_time(fn)
-    lines = [f"== {name}: latency {lat:.3f} ms, pipelined {pipe:.3f} ms, host {host:.3f} ms, GPU {gpu:.3f} ms"]
+    p = common.pipelined_ms(fn, repeat, torch.cuda.synchronize)
+    pipe, host_ms = p["pipelined_ms"], p["host_ms"]
+    gpu, rows = common.cuda_kernel_ms(fn)
+    lines = [f"== {name}: latency {lat:.3f} ms, pipelined {pipe:.3f} ms, host {host_ms:.3f} ms, GPU {gpu:.3f} ms"]
     for kname, ms, n in rows[:12]:
         lines.append(f"     {ms:8.4f} ms x{n:<3d} {kname[:110]}")
     if host:
@@ -137,6 +129,7 @@ def host_parts(vol: Any, grid: Any, cam: Any, out: list[str], n: int = 2000) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the cases that ``--only`` selects on ``cuda:0`` and print (and with ``--out`` write) the report."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--only", default="", help="run only the cases whose name contains this text")
     ap.add_argument("--repeat", type=int, default=50, help="calls per timing")

@@ -52,6 +52,8 @@ class SoftHits:
 
     Arrays are torch tensors (numpy arrays when the input was numpy), on the input's device, float64 for float64
     input and float32 otherwise. Depths are in metres along the viewing camera's z (= the ray parameter t).
+    ``classes`` and ``depth`` are what the backward pass reads back, so a loss must not change them in place
+    (autograd then raises); ``miss`` is a view of ``classes``.
     """
 
     classes: Any
@@ -238,7 +240,8 @@ def soft_first_hit(
         ``depth_sum`` ``(B, N, h, w)``; float64 for float64 scores, else float32 (bfloat16 and float16 are
         computed in float32). torch autograd flows back to ``scores``; under ``torch.no_grad``, or when
         ``scores`` needs no gradient, nothing is kept for a backward pass. Otherwise the forward keeps, per ray,
-        about ``5 + (W + H + D + 3) / 15`` 32-bit words on the compute device (its step tape and end state).
+        its end state (5 words) and, unless every camera of its group is the grid's own view, a step tape of 2 bits
+        per step (about ``(W + H + D + 3) / 15`` 32-bit words), besides the outputs ``classes`` and ``depth``.
 
     Raises:
         VolumeError, fruxel.CameraError: bad shapes, dtypes or cameras (nothing is computed). Values are not

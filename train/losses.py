@@ -45,19 +45,36 @@ def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: flo
         eps: added to the probability before the log, so that a confidently wrong pixel keeps a finite loss and a
             gradient (``-log(p + eps) <= -log(eps)``).
         mask: optional ``(B, N, h, w)`` bool, the pixels that count (all when None).
-        reduction: ``"mean"`` over the counted pixels (0 when none count), or ``"sum"`` (for averaging over
-            several camera groups at once).
+        reduction: ``"mean"`` over the counted pixels (0 when none count), or ``"sum"`` (to pool several calls,
+            e.g. camera groups of different image sizes, before one division).
 
     Returns:
         Scalar tensor: the mean (or sum) of ``-log(p[label] + eps)`` over the counted pixels.
+
+    Raises:
+        ValueError: a mask that is not bool, or an unknown reduction.
     """
-    log_p = torch.log(soft.classes.gather(2, target_labels.long().unsqueeze(2)) + eps)
+    _check_reduction(reduction)
+    q = soft.classes.gather(2, target_labels.long().unsqueeze(2)) + eps
     if mask is not None:
-        log_p = torch.where(mask.unsqueeze(2), log_p, 0.0)
-    total = -log_p.sum()
+        _check_mask(mask, "mask")
+        # Masked pixels get log(1) = 0 before the log, not after it: a p of 0 there (with eps 0) would otherwise
+        # send NaN back through the log.
+        q = torch.where(mask.unsqueeze(2), q, 1.0)
+    total = -torch.log(q).sum()
     if reduction == "sum":
         return total
     return total / (target_labels.numel() if mask is None else mask.sum().clamp_min(1))
+
+
+def _check_reduction(reduction: str) -> None:
+    if reduction not in ("mean", "sum"):
+        raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+
+
+def _check_mask(mask: torch.Tensor, name: str) -> None:
+    if mask.dtype != torch.bool:
+        raise ValueError(f"{name} must be a bool tensor, got {mask.dtype}")
 
 
 def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.Tensor, *,
@@ -77,7 +94,12 @@ def depth_l1(soft: SoftHits, target_depth: torch.Tensor, target_hit_mask: torch.
 
     Returns:
         Scalar tensor: ``scale * mean |depth - target_depth|`` over the ground-truth hits (or the sum).
+
+    Raises:
+        ValueError: a mask that is not bool, or an unknown reduction.
     """
+    _check_reduction(reduction)
+    _check_mask(target_hit_mask, "target_hit_mask")
     err = torch.where(target_hit_mask, (soft.depth - target_depth.to(soft.depth.dtype)).abs(), 0.0).sum()
     if reduction != "sum":
         err = err / target_hit_mask.sum().clamp_min(1)
@@ -218,21 +240,23 @@ class ShellTargets:
 
     groups: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     """Per camera group (:func:`group_by_size`): ``first_hit`` labels ``(B, N, h, w)`` int64, depths
-    ``(B, N, h, w)`` and hit mask ``(B, N, h, w)`` bool of the ground truth."""
+    ``(B, N, h, w)`` float32 (metres along each viewing camera's z) and hit mask ``(B, N, h, w)`` bool of the
+    ground truth."""
     shell_mask: torch.Tensor
     """``(B, D, H, W)`` bool: the ground truth's shell from every camera."""
     pixels: int
     """Pixels of every camera together (the shell cross-entropy's mean)."""
     depth_norm: torch.Tensor
-    """0-dim: the depth L1's factor, ``1 / ((z_far - z_near) * max(1, ground-truth hits))``."""
+    """0-dim float32: the depth L1's factor, ``1 / ((z_far - z_near) * max(1, ground-truth hits))``."""
     voxel_weight: torch.Tensor
-    """``(B, D, H, W)``: the voxel cross-entropy's per-cell weights divided by their sum."""
+    """``(B, D, H, W)`` float32: the voxel cross-entropy's per-cell weights divided by their sum."""
     voxel_labels: torch.Tensor
     """``(B, D, H, W)`` int64: the ground-truth labels as the voxel cross-entropy takes them."""
     depth_flat: torch.Tensor
-    """Every group's ground-truth depths, flattened and concatenated in group order."""
+    """``(sum of B * N * h * w over the groups,)`` float32: every group's ground-truth depths, flattened and
+    concatenated in group order."""
     hit_flat: torch.Tensor
-    """Every group's ground-truth hit mask, flattened and concatenated like ``depth_flat``."""
+    """``(sum of B * N * h * w over the groups,)`` bool: every group's ground-truth hit mask, like ``depth_flat``."""
 
 
 class ShellLoss:

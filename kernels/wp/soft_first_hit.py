@@ -96,11 +96,11 @@ TAPE_STEPS_PER_WORD = 15
 """Steps stored per int32 word of the step tape, 2 bits each (the plane family crossed); 15 keeps the sign bit
 clear, so no shift overflows."""
 
+# Flags of the backward kernels' ``given`` argument: which upstream gradients exist (an output that a loss does not
+# use gets none, and costs no zero-filled tensor).
 GIVEN_CLASSES = wp.constant(1)
 GIVEN_DEPTH = wp.constant(2)
 GIVEN_DSUM = wp.constant(4)
-"""Flags of the backward kernels' ``given`` argument: which upstream gradients exist (an output that a loss does
-not use gets none, and costs no zero-filled tensor)."""
 
 
 # ---------------------------------------------------------------------------------------------- kernels
@@ -109,6 +109,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
     """The forward and backward kernels, general and own view, for scalar type ``real`` (``wp.float32`` /
     ``wp.float64``) and ``nc`` classes (``C - 1``, channel 0 = empty excluded), in one module of their own: built
     once per process and device (and cached on disk by Warp)."""
+    # Warp evaluates a function's annotations with the closure variables its body uses, so a function whose body
+    # does not use ``real`` or ``vec_c`` annotates those parameters as Any (same code once specialised).
     vec_c = wp.types.vector(length=nc, dtype=real)
     vec_p = wp.types.vector(length=nc + 1, dtype=real)
     module = f"fruxel_soft_first_hit_{nc}_{real.__name__}"
@@ -175,12 +177,21 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         return gc, g0, gd, k
 
     @wp.func
-    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):
+    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):  # Any: see _kernels' note on annotations
         """All C probabilities of one cell, channel 0 first."""
         v = vec_p()
         for c in range(wp.static(nc + 1)):
             v[c] = probs[b, c, cell]
         return v
+
+    @wp.func
+    def no_gradient(gc: Any, g0: real, gd: real, k: real) -> bool:
+        """Whether a ray's upstream gradients are all zero, tested value by value (a sum of squares would
+        underflow for tiny gradients and drop them)."""
+        quiet = g0 == real(0.0) and gd == real(0.0) and k == real(0.0)
+        for c in range(wp.static(nc)):
+            quiet = quiet and gc[c] == real(0.0)
+        return quiet
 
     @wp.func
     def cell_gradient(pm: Any, t: float, logt: real, gc: Any, gd: real, k: real):
@@ -363,8 +374,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         shapes, of which ``given`` flags those that exist (the others are 1-element dummies). Adds atomically,
         nonzero values only, into ``grad`` ``(B, C, D*H*W)`` (channel 0 and the class channels with a nonzero
         ``G_c``) and ``common`` ``(B, D*H*W)`` (the part of every class channel's gradient that does not depend on
-        the channel). The ray's cells are visited last to first by undoing the
-        taped steps; the module docstring gives the recursion.
+        the channel). The ray's cells are visited last to first by undoing the taped steps; the module docstring
+        gives the recursion.
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
@@ -372,7 +383,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         if ncell == 0:
             return
         gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        if wp.length_sq(gc) == real(0.0) and g0 == real(0.0) and gd == real(0.0) and k == real(0.0):
+        if no_gradient(gc, g0, gd, k):
             return  # a pixel the loss ignores: nothing to add
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
@@ -448,7 +459,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         ncell = state[0, r]
         plane_cells = g.height * g.width
         gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        quiet = wp.length_sq(gc) == real(0.0) and g0 == real(0.0) and gd == real(0.0) and k == real(0.0)
+        quiet = no_gradient(gc, g0, gd, k)
         if store == 1:
             first_zero = ncell
             if quiet:
@@ -563,11 +574,6 @@ def _real(t: Any) -> Any:
     raise TypeError(f"soft_first_hit kernels take float32 or float64 tensors, got {t.dtype}")
 
 
-def _own_view(cam: Camera, grid: FruxelGrid) -> bool:
-    # The size test first: is_own_view compares poses and intrinsics, which costs more than a launch.
-    return cam.width == grid.width and cam.height == grid.height and traversal.is_own_view(cam, grid)
-
-
 def _buffer(t: Any, shape: tuple[int, ...], real: Any, device: str) -> Buffer:
     """A contiguous torch tensor seen as a Warp buffer of ``shape`` (a view, no copy)."""
     return Buffer.of(t.view(shape), real, device)
@@ -599,7 +605,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     h, w = cameras[0].height, cameras[0].width
     n_cam = len(cameras)
     kernels = _kernels(real, c - 1)
-    own = [_own_view(cam, grid) for cam in cameras]
+    own = [traversal.is_own_view(cam, grid) for cam in cameras]
     classes = ws.empty((b, n_cam, c, h * w), real)
     depth = ws.empty((b, n_cam, h * w), real)
     dsum = ws.empty((b, n_cam, h * w), real)

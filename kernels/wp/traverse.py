@@ -198,17 +198,6 @@ def camera_arg(camera: Camera) -> Packed:
     return Packed(c)
 
 
-def camera_info(camera: Camera) -> CameraInfo:
-    """The :class:`CameraInfo` of ``camera``."""
-    p = traversal.camera_params(camera)
-    c = CameraInfo()
-    c.fx, c.fy, c.cx, c.cy = (float(x) for x in p[:4])
-    c.rotation = wp.mat33(*(float(x) for x in p[4:13]))
-    c.origin = wp.vec3(*(float(x) for x in p[13:16]))
-    c.width, c.height = camera.width, camera.height
-    return c
-
-
 # ---------------------------------------------------------------------------------------------- ray
 @inline_func
 def pixel_ray(cam: CameraInfo, x: int, y: int) -> wp.vec3:

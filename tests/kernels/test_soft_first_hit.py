@@ -56,7 +56,7 @@ def _onehot_probs(labels: np.ndarray, dtype: torch.dtype = torch.float64) -> tor
 
 
 @pytest.mark.parametrize("backend", REAL_BACKENDS)
-def test_gradcheck_float64(backend: str) -> None:
+def test_gradcheck_float64(backend: str, poisoned_allocations: None) -> None:
     torch.manual_seed(0)
     logits = torch.randn(1, C, *GRID.shape, dtype=torch.float64, requires_grad=True)
     cams = [GRID.camera(), _novel(GRID)]
@@ -98,6 +98,28 @@ def test_own_view_equals_torch_cumprod(backend: str, dtype: torch.dtype) -> None
     torch.testing.assert_close(g_got, g_ref, **tol)
 
 
+@pytest.mark.skipif(not any(b.startswith("warp") for b in REAL_BACKENDS), reason="needs the Warp backend")
+def test_own_view_column_kernels_equal_the_general_walk(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Warp runs the grid's own view on column kernels; they must visit the general walk's cells at its depths.
+    backend = next(b for b in REAL_BACKENDS if b.startswith("warp"))
+    torch.manual_seed(8)
+    logits = 3.0 * torch.randn(2, C, *GRID.shape, dtype=torch.float64)
+    logits[0, 0, 2:] -= 40.0  # saturated cells: some columns stop early
+    results = []
+    for columns in (True, False):
+        if not columns:
+            monkeypatch.setattr("fruxel.kernels.traversal.is_own_view", lambda camera, grid: False)
+        x = logits.clone().requires_grad_()
+        h = soft_first_hit(x, GRID, GRID.camera(), backend=backend)
+        weights = tuple(torch.randn_like(o, generator=torch.Generator().manual_seed(9)) for o in _outputs(h))
+        (g,) = torch.autograd.grad(_weighted(_outputs(h), weights), x)
+        results.append((h, g))
+    (h_col, g_col), (h_gen, g_gen) = results
+    for name in ("classes", "depth", "depth_sum"):
+        torch.testing.assert_close(getattr(h_col, name), getattr(h_gen, name), atol=0, rtol=0, msg=name)
+    torch.testing.assert_close(g_col, g_gen, atol=1e-14, rtol=1e-12)
+
+
 def test_own_view_entry_depths() -> None:
     t = own_view_entry_depths(GRID)
     np.testing.assert_allclose(t, GRID.z_bounds()[:-1], rtol=1e-6)
@@ -126,8 +148,21 @@ def test_backends_agree() -> None:
         torch.testing.assert_close(g, g0, atol=1e-4, rtol=1e-4)
 
 
+@pytest.fixture
+def poisoned_allocations(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``torch.empty_like`` returns NaN-filled tensors, so that a kernel that must write every element of an
+    uninitialised output (the own view's store-mode backward) cannot pass by finding zeros there."""
+    real = torch.empty_like
+
+    def poisoned(t: torch.Tensor, **kwargs: object) -> torch.Tensor:
+        out = real(t, **kwargs)
+        return out.fill_(float("nan")) if out.dtype.is_floating_point else out
+
+    monkeypatch.setattr(torch, "empty_like", poisoned)
+
+
 @pytest.mark.parametrize("backend", REAL_BACKENDS)
-def test_exact_zero_one_is_first_hit_with_finite_gradients(backend: str) -> None:
+def test_exact_zero_one_is_first_hit_with_finite_gradients(backend: str, poisoned_allocations: None) -> None:
     rng = np.random.default_rng(4)
     grid = FruxelGrid(width=8, height=6, depth=7, z_near=0.5, z_far=4.0, hfov=65.0)
     labels = np.stack([random_labels(rng, grid, 0.2) % C for _ in range(2)]).astype(np.uint8)

@@ -117,6 +117,27 @@ def test_first_hit_matches_brute_force(device: str) -> None:
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_prepared_launches_follow_buffers_shapes_and_evictions(device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Prepared launch commands keep their descriptors between calls: every call must still read its own volume
+    # and write its own outputs, across image sizes (new commands) and with a cache of one command (evictions).
+    from fruxel.kernels.wp import arrays
+
+    vols = [scene(seed) for seed in range(3)]
+    cams = [cameras()[0], cameras()[2]]  # 24 x 18 and 20 x 16: different launch dimensions
+    assert (cams[0].width, cams[0].height) != (cams[1].width, cams[1].height)
+    fresh = {(v, c): np_hits(first_hit(vols[v], GRID, cams[c], backend="warp", device=device))
+             for v in range(3) for c in range(2)}
+    for cache_size in (arrays._COMMAND_CACHE_SIZE, 1):
+        monkeypatch.setattr(arrays, "_COMMAND_CACHE_SIZE", cache_size)
+        arrays._commands().clear()
+        for v, c in [(0, 0), (1, 1), (2, 0), (0, 1), (1, 0), (2, 1)]:
+            got = np_hits(first_hit(vols[v], GRID, cams[c], backend="warp", device=device))
+            for name, ref in fresh[(v, c)].items():
+                np.testing.assert_array_equal(got[name], ref, err_msg=f"{name} of volume {v}, camera {c}")
+    assert len(arrays._commands()) <= 1
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_torch_batches_and_scores(device: str) -> None:
     """Torch in, torch out on the caller's device; a batch equals its items; scores equal their labels."""
     labs = np.stack([scene(0), scene(1)])

@@ -146,22 +146,44 @@ def test_optimisation_brings_every_term_down() -> None:
 
 @pytest.mark.skipif(not BACKENDS, reason="no kernel backend is available")
 def test_shell_loss_terms_equal_the_loss_functions() -> None:
-    # ShellLoss sums over camera groups and normalises once; its terms must be the public losses' values.
+    # ShellLoss pools every camera group's pixels and normalises once; its terms must be the public losses',
+    # summed over the groups and normalised over all of them, and its total their weighted sum.
     grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
     labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
     torch.manual_seed(5)
     logits = torch.randn(2, C, *grid.shape, dtype=torch.float64)
-    config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=6, weight_visible=2.0, weight_other=0.25)
+    config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=6, weight_visible=2.0, weight_other=0.25,
+                             weight_shell=0.5, weight_depth=3.0, weight_voxel=0.7)
     loss = ShellLoss(grid, config)
     cams = loss.cameras()
     terms = loss(logits, labels, cams)
     targets = loss.targets(labels, cams)
-    soft = [soft_first_hit(logits, grid, group) for group in group_by_size(cams)]
-    ce = torch.cat([-torch.log(h.classes.gather(2, t[0].unsqueeze(2)) + config.eps).flatten()
-                    for h, t in zip(soft, targets.groups, strict=True)]).mean()
-    err = torch.cat([(h.depth - t[1].double()).abs()[t[2]] for h, t in zip(soft, targets.groups, strict=True)])
+    pairs = list(zip([soft_first_hit(logits, grid, g) for g in group_by_size(cams)], targets.groups, strict=True))
+    pixels = sum(t[0].numel() for _, t in pairs)
+    hits = sum(int(t[2].sum()) for _, t in pairs)
+    ce = sum(shell_cross_entropy(h, t[0], eps=config.eps, reduction="sum") for h, t in pairs) / pixels
+    depth = sum(depth_l1(h, t[1], t[2], reduction="sum") for h, t in pairs) / hits / (grid.z_far - grid.z_near)
     voxel = visible_weighted_voxel_ce(logits, labels, targets.shell_mask, weight_visible=2.0, weight_other=0.25)
     torch.testing.assert_close(terms.shell_ce, ce)
-    torch.testing.assert_close(terms.depth, err.mean() / (grid.z_far - grid.z_near))
+    torch.testing.assert_close(terms.depth, depth)
     torch.testing.assert_close(terms.voxel, voxel)
-    torch.testing.assert_close(terms.total, ce + err.mean() / (grid.z_far - grid.z_near) + voxel)
+    torch.testing.assert_close(terms.total, 0.5 * ce + 3.0 * depth + 0.7 * voxel)
+
+
+def test_loss_arguments_are_checked() -> None:
+    soft = _soft(torch.full((1, 1, C, 1, 2), 1.0 / C), torch.ones(1, 1, 1, 2))
+    labels = torch.zeros(1, 1, 1, 2, dtype=torch.long)
+    with pytest.raises(ValueError, match="reduction"):
+        shell_cross_entropy(soft, labels, reduction="none")
+    with pytest.raises(ValueError, match="bool"):
+        shell_cross_entropy(soft, labels, mask=torch.ones(1, 1, 1, 2))
+    with pytest.raises(ValueError, match="bool"):
+        depth_l1(soft, torch.ones(1, 1, 1, 2), torch.ones(1, 1, 1, 2, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="reduction"):
+        depth_l1(soft, torch.ones(1, 1, 1, 2), torch.ones(1, 1, 1, 2, dtype=torch.bool), reduction="max")
+    # A masked-out pixel whose probability is exactly 0 (eps 0) counts for nothing, gradient included.
+    p = torch.tensor([0.0, 1.0, 0.0, 0.5, 0.5, 0.0]).reshape(1, 1, C, 1, 2).requires_grad_()
+    loss = shell_cross_entropy(_soft(p, torch.ones(1, 1, 1, 2)), torch.tensor([[[[1, 0]]]]), eps=0.0,
+                               mask=torch.tensor([[[[False, True]]]]))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(p.grad).all() and torch.all(p.grad[..., 0] == 0)
