@@ -120,6 +120,21 @@ def test_own_view_column_kernels_equal_the_general_walk(monkeypatch: pytest.Monk
     torch.testing.assert_close(g_col, g_gen, atol=1e-14, rtol=1e-12)
 
 
+@pytest.mark.parametrize("backend", REAL_BACKENDS)
+def test_tiny_upstream_gradients_are_kept(backend: str) -> None:
+    # A ray whose only upstream gradient is tiny (its square underflows float32) still sends it back.
+    torch.manual_seed(10)
+    logits = torch.randn(1, C, *GRID.shape)
+    cams = [GRID.camera(), _novel(GRID)]
+    grads = []
+    for scale in (1.0, 1e-25):
+        x = logits.clone().requires_grad_()
+        (g,) = torch.autograd.grad(scale * soft_first_hit(x, GRID, cams, backend=backend).classes[:, :, 1].sum(), x)
+        grads.append(g.double() / scale)
+    assert grads[0].abs().max() > 0
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-6 * grads[0].abs().max().item())
+
+
 def test_own_view_entry_depths() -> None:
     t = own_view_entry_depths(GRID)
     np.testing.assert_allclose(t, GRID.z_bounds()[:-1], rtol=1e-6)
