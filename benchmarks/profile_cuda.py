@@ -26,7 +26,6 @@ Needs torch with CUDA; writes nothing (``--out FILE`` also writes the report as 
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -46,18 +45,6 @@ from fruxel.data import rooms  # noqa: E402
 from fruxel.kernels import first_hit, orbit_cameras, shell  # noqa: E402
 from fruxel.kernels.soft import soft_first_hit  # noqa: E402
 from fruxel.train.losses import ShellLoss, ShellLossConfig, depth_l1, random_poses, shell_cross_entropy  # noqa: E402
-
-
-def latency(fn: Callable[[], Any], repeat: int) -> float:
-    """Median of ``repeat`` synchronised single calls, ms."""
-    runs = []
-    for _ in range(repeat):
-        torch.cuda.synchronize()  # the device is idle when the clock starts
-        t0 = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()  # the call's kernels are done when it stops
-        runs.append(time.perf_counter() - t0)
-    return statistics.median(runs) * 1e3
 
 
 def host_profile(fn: Callable[[], Any], calls: int = 100) -> str:
@@ -82,7 +69,7 @@ def report(name: str, fn: Callable[[], Any], repeat: int, out: list[str], host: 
     with ``host``, also a cProfile of its host side."""
     for _ in range(3):
         fn()
-    lat = latency(fn, repeat)
+    lat = common.time_calls(fn, repeat, sync=torch.cuda.synchronize)["median_ms"]
     p = common.pipelined_ms(fn, repeat, torch.cuda.synchronize)
     pipe, host_ms = p["pipelined_ms"], p["host_ms"]
     gpu, rows = common.cuda_kernel_ms(fn)

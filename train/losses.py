@@ -21,7 +21,6 @@ import functools
 import math
 import operator
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
@@ -127,11 +126,6 @@ def visible_weighted_voxel_ce(scores: torch.Tensor, target_labels: torch.Tensor,
     ce = F.nll_loss(s, target, reduction="none") if log_probs else F.cross_entropy(s, target, reduction="none")
     w = torch.where(shell_mask, weight_visible, weight_other).to(ce.dtype)
     return (w * ce).sum() / w.sum().clamp_min(torch.finfo(ce.dtype).tiny)
-
-
-def _total(terms: Any) -> torch.Tensor:
-    """The sum of tensors, without the extra operation that adding them to ``0`` costs."""
-    return functools.reduce(operator.add, terms)
 
 
 # ---------------------------------------------------------------------------------------------- poses
@@ -244,8 +238,6 @@ class ShellTargets:
     ground truth."""
     shell_mask: torch.Tensor
     """``(B, D, H, W)`` bool: the ground truth's shell from every camera."""
-    pixels: int
-    """Pixels of every camera together (the shell cross-entropy's mean)."""
     depth_norm: torch.Tensor
     """0-dim float32: the depth L1's factor, ``1 / ((z_far - z_near) * max(1, ground-truth hits))``."""
     voxel_weight: torch.Tensor
@@ -257,6 +249,11 @@ class ShellTargets:
     concatenated in group order."""
     hit_flat: torch.Tensor
     """``(sum of B * N * h * w over the groups,)`` bool: every group's ground-truth hit mask, like ``depth_flat``."""
+
+    @property
+    def pixels(self) -> int:
+        """Pixels of every camera together (the shell cross-entropy's mean)."""
+        return self.hit_flat.numel()
 
 
 class ShellLoss:
@@ -302,8 +299,7 @@ class ShellLoss:
             weight = weight / weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
             depth_flat = torch.cat([t[1].reshape(-1) for t in out])
             hit_flat = torch.cat([t[2].reshape(-1) for t in out])
-        return ShellTargets(out, mask, sum(t[0].numel() for t in out), depth_norm, weight, labels.long(),
-                            depth_flat, hit_flat)
+        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:
@@ -350,6 +346,7 @@ class ShellLoss:
         err = torch.where(targets.hit_flat, (pred_depth - targets.depth_flat.to(pred_depth.dtype)).abs(), 0.0)
         depth = err.sum() * targets.depth_norm
         voxel = (F.nll_loss(log_p, targets.voxel_labels, reduction="none") * targets.voxel_weight).sum()
-        total = _total(x if w == 1.0 else w * x
-                       for w, x in ((c.weight_shell, shell_ce), (c.weight_depth, depth), (c.weight_voxel, voxel)))
+        # reduce, not sum(): adding to 0 would cost one more device operation; unit weights cost none.
+        total = functools.reduce(operator.add, (x if w == 1.0 else w * x for w, x in (
+            (c.weight_shell, shell_ce), (c.weight_depth, depth), (c.weight_voxel, voxel))))
         return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras))

@@ -150,6 +150,16 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         depth[b, n, p] = dep
 
     @wp.func
+    def save_ray(state: wp.array2d(dtype=wp.int32), log_t: wp.array(dtype=Any), r: int, ncell: int, i: int, j: int,
+                 k: int, logt: Any):
+        """Keep ray r's end state for the backward pass: cells on the ray, the last one's indices, ``log T``."""
+        state[0, r] = ncell
+        state[1, r] = i
+        state[2, r] = j
+        state[3, r] = k
+        log_t[r] = logt
+
+    @wp.func
     def ray_gradients(classes: wp.array4d(dtype=real), depth: wp.array3d(dtype=real),
                       g_classes: wp.array4d(dtype=real), g_depth: wp.array3d(dtype=real),
                       g_dsum: wp.array3d(dtype=real), given: int, b: int, n: int, p: int):
@@ -296,11 +306,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                 tape[(ncell - 1) // spw, r] = word
         finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            state[0, r] = ncell
-            state[1, r] = iu
-            state[2, r] = iv
-            state[3, r] = iz
-            log_t[r] = logt
+            save_ray(state, log_t, r, ncell, iu, iv, iz, logt)
 
     @wp.kernel(enable_backward=False, module=module)
     def accumulate_own_view_kernel(
@@ -342,11 +348,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             t_entry = crossing(g, o, d, FAMILY_Z, k + 1, 1)
         finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            state[0, r] = ncell
-            state[1, r] = p % g.width
-            state[2, r] = p // g.width
-            state[3, r] = ncell - 1
-            log_t[r] = logt
+            save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
 
     @wp.kernel(enable_backward=False, module=module)
     def backpropagate_soft_hits_kernel(
@@ -610,7 +612,8 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     depth = ws.empty((b, n_cam, h * w), real)
     dsum = ws.empty((b, n_cam, h * w), real)
     rays = b * n_cam * h * w if save else 1
-    words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD) if save and not all(own) else 1
+    steps = traversal.max_steps(grid)
+    words = -(-steps // TAPE_STEPS_PER_WORD) if save and not all(own) else 1
     state = ws.empty((4, rays), wp.int32)
     log_t = ws.empty((rays,), real)
     tape = ws.empty((words, rays), wp.int32)
@@ -623,8 +626,8 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
                 ws.launch(kernels["forward_own"], (b, h * w),
                           [p, g, cam, n, int(save), classes, depth, dsum, state, log_t])
             else:
-                ws.launch(kernels["forward"], (b, h * w), [p, g, cam, n, traversal.max_steps(grid), int(save), classes,
-                                                           depth, dsum, state, log_t, tape])
+                ws.launch(kernels["forward"], (b, h * w), [p, g, cam, n, steps, int(save), classes, depth, dsum, state,
+                                                           log_t, tape])
     saved = SavedRays(state.native, log_t.native, tape.native, cams, own, (h, w)) if save else None
     return (classes.native.view(b, n_cam, c, h, w), depth.native.view(b, n_cam, h, w),
             dsum.native.view(b, n_cam, h, w), saved)
