@@ -329,22 +329,55 @@ def select(family: int, a: Any, b: Any, c: Any):
 
 
 @inline_func
+def ray_coefficients(g: GridInfo, o: wp.vec3, d: wp.vec3):
+    """Per-ray coefficients of :func:`ray_crossing` for the families u, v, z (components 0, 1, 2).
+
+    Plane ``boundary`` of a family is crossed at ``t = (na + boundary nb) / (da + boundary db)``: for u,
+    ``na = u_0 o_z - o_x``, ``nb = du o_z``, ``da = d_x - u_0 d_z``, ``db = -du d_z`` (:func:`crossing`'s
+    expression with ``w = u_0 + boundary du`` expanded), likewise for v; for z, ``na = z_near - o_z``, ``nb = dz``,
+    ``da = d_z``, ``db = 0``. A walk computes them once per ray; a crossing then costs two multiply-adds and one
+    division.
+
+    Returns:
+        ``(na, nb, da, db)``, four vec3.
+    """
+    na = wp.vec3(g.u0 * o[2] - o[0], g.v0 * o[2] - o[1], g.z_near - o[2])
+    nb = wp.vec3(g.du * o[2], g.dv * o[2], g.dz)
+    da = wp.vec3(d[0] - g.u0 * d[2], d[1] - g.v0 * d[2], d[2])
+    db = wp.vec3(-(g.du * d[2]), -(g.dv * d[2]), 0.0)
+    return na, nb, da, db
+
+
+@inline_func
+def ray_crossing(na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, family: int, boundary: int, s: int) -> float:
+    """Step 4 from per-ray coefficients (:func:`ray_coefficients`): ``t`` where the ray crosses plane ``boundary``
+    of ``family`` moving with sign ``s``; +inf where the ray does not approach the plane (``s * den <= 0``).
+
+    Every crossing of every Warp walk comes from this one expression (:func:`crossing` included), so a plane's
+    crossing is bit-identical on every level and in every kernel."""
+    b = float(boundary)
+    num = select(family, na[0], na[1], na[2]) + b * select(family, nb[0], nb[1], nb[2])
+    den = select(family, da[0], da[1], da[2]) + b * select(family, db[0], db[1], db[2])
+    return wp.where(float(s) * den > 0.0, num / den, wp.inf)
+
+
+@inline_func
 def crossing(g: GridInfo, o: wp.vec3, d: wp.vec3, family: int, boundary: int, s: int) -> float:
     """Step 4: ``t`` where the ray crosses plane ``boundary`` of ``family`` moving with sign ``s``; +inf when it
-    never does. Boundaries come from their index (``w = w_0 + boundary * dw``), never accumulated.
+    never does. Boundaries come from their index, never accumulated.
 
-    u and v: ``t = (w o_z - o_a) / (d_a - w d_z)`` for the plane ``a = w z`` (a = x or y). The crossing exists only
-    where the ray approaches the plane, ``s (d_a - w d_z) > 0``: ``a - w z`` is linear in t and must change sign
-    in the direction of motion, else the root lies behind the apex (the ray's u converges short of the plane).
-    z: ``t = (w - o_z) / d_z``, the same expression with ``o_z``, ``d_z`` replaced by 1, 0, which is exact.
-    One branch-free expression for all three families makes every crossing of a plane bit-identical wherever it
-    is computed (the block walk relies on that).
+    u and v: ``t = (w o_z - o_a) / (d_a - w d_z)`` for the plane ``a = w z`` (a = x or y), ``w = w_0 + boundary
+    dw``. The crossing exists only where the ray approaches the plane, ``s (d_a - w d_z) > 0``: ``a - w z`` is
+    linear in t and must change sign in the direction of motion, else the root lies behind the apex (the ray's u
+    converges short of the plane). z: ``t = (w - o_z) / d_z``, the same expression with ``o_z``, ``d_z`` replaced
+    by 1, 0, which is exact.
+
+    Computed as :func:`ray_crossing` of :func:`ray_coefficients` (``w`` expanded, so that a walk can compute the
+    per-ray parts once): every Warp kernel that walks rays gets a plane's crossing bit-identical, on every level
+    of the block walk and in ``soft_first_hit``'s walks alike.
     """
-    side = wp.where(family == FAMILY_Z, 0.0, 1.0)
-    w = select(family, g.u0, g.v0, g.z_near) + float(boundary) * select(family, g.du, g.dv, g.dz)
-    den = select(family, d[0], d[1], d[2]) - w * (side * d[2])
-    num = w * wp.where(family == FAMILY_Z, 1.0, o[2]) - select(family, o[0], o[1], o[2])
-    return wp.where(float(s) * den > 0.0, num / den, wp.inf)
+    na, nb, da, db = ray_coefficients(g, o, d)
+    return ray_crossing(na, nb, da, db, family, boundary, s)
 
 
 @inline_func
@@ -432,9 +465,10 @@ def box_occupied(pyramid: wp.array2d(dtype=wp.uint8), b: int, g: GridInfo, level
 
 @inline_func
 def catch_up(
-    g: GridInfo,
-    o: wp.vec3,
-    d: wp.vec3,
+    na: wp.vec3,
+    nb: wp.vec3,
+    da: wp.vec3,
+    db: wp.vec3,
     family: int,
     index: int,
     s: int,
@@ -454,7 +488,7 @@ def catch_up(
     last = last_in_box(index, s, shift + PARENT_SHIFT, n) >> shift
     while (index >> shift) != last and precedes(t_next, family, t, f):
         index = next_box(index, s, shift)
-        t_next = crossing(g, o, d, family, box_boundary(index, s, shift, n), s)
+        t_next = ray_crossing(na, nb, da, db, family, box_boundary(index, s, shift, n), s)
     return index, t_next
 
 
@@ -471,7 +505,8 @@ def trace_ray(
     """Steps 1-5 with empty-space skipping: the first occupied cell along the ray ``o + t d`` in batch item ``b``.
 
     One walk on three levels (cells, blocks, super-blocks), with one state per family: the cell index ``i, j, k``
-    and the next crossing ``cu, cv, cz`` of the far side of the current box on the current level. A step on a
+    and the next crossing ``cu, cv, cz`` of the far side of the current box on the current level. Crossings come
+    from the ray's coefficients (:func:`ray_coefficients`), computed once. A step on a
     level moves the stepped family's cell index to the first cell of the next box, which is where the plain loop
     stands at that crossing; the other families' cell indices lie in their current boxes but may lag inside them,
     until a descent catches them up (see the module docstring). After each step the walk goes up while the step
@@ -492,6 +527,8 @@ def trace_ray(
     Returns:
         ``(cell, t, family, boundary, sign)``: the flat index of the hit cell (-1 on a miss), the ``t`` where the
         ray enters it, and its entry face for :func:`face_normal` (``NO_FAMILY`` when the ray starts inside it).
+        The entry face is the last step's crossing, read off at the end rather than kept up to date in the loop:
+        descents never move the stepped family's index.
     """
     t_lo, t_hi, plane = clip_ray(g, o, d)
     if t_lo >= t_hi:
@@ -500,19 +537,18 @@ def trace_ray(
     i = c[0]
     j = c[1]
     k = c[2]
-    ef, eb, es = entry_face(g, plane)
-    t_entry = t_lo
     s = step_signs(o, d)
     si = s[0]
     sj = s[1]
     sk = s[2]
+    na, nb, da, db = ray_coefficients(g, o, d)
 
     # Start on the super-block level; the first pass of the loop descends as far as the boxes are occupied.
     level = int(LEVEL_SUPERS)
     shift = int(SUPER_SHIFT)
-    cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-    cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-    cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+    cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+    cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+    cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
     t = t_lo
     f = int(NO_FAMILY)
     cell = wp.int32(-1)
@@ -527,16 +563,16 @@ def trace_ray(
             # the others catch up inside the box just entered. Then look at the new box again.
             level -= 1
             shift = level_shift(level)
-            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+            cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+            cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+            cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
             if f >= 0:
                 if f != FAMILY_U:
-                    i, cu = catch_up(g, o, d, FAMILY_U, i, si, shift, g.width, cu, t, f)
+                    i, cu = catch_up(na, nb, da, db, FAMILY_U, i, si, shift, g.width, cu, t, f)
                 if f != FAMILY_V:
-                    j, cv = catch_up(g, o, d, FAMILY_V, j, sj, shift, g.height, cv, t, f)
+                    j, cv = catch_up(na, nb, da, db, FAMILY_V, j, sj, shift, g.height, cv, t, f)
                 if f != FAMILY_Z:
-                    k, cz = catch_up(g, o, d, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
+                    k, cz = catch_up(na, nb, da, db, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
             continue
 
         # One step on the current level: across an empty box, or (level 0) to the next cell. The stepped family's
@@ -550,13 +586,9 @@ def trace_ray(
         new = next_box(old, sf, shift)
         if t >= t_hi or new < 0 or new >= nf:
             break
-        es = sf
-        eb = boundary_behind(new, sf)
         i, j, k, cu, cv, cz = set_family(
-            f, new, crossing(g, o, d, f, box_boundary(new, sf, shift, nf), sf), i, j, k, cu, cv, cz
+            f, new, ray_crossing(na, nb, da, db, f, box_boundary(new, sf, shift, nf), sf), i, j, k, cu, cv, cz
         )
-        t_entry = t
-        ef = f
         # Up while the step entered an empty parent box (a parent that did not change is still occupied).
         while level < LEVEL_SUPERS:
             up = level_shift(level + 1)
@@ -564,10 +596,14 @@ def trace_ray(
                 break
             level += 1
             shift = up
-            cu = crossing(g, o, d, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-            cv = crossing(g, o, d, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-            cz = crossing(g, o, d, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
-    return cell, t_entry, ef, eb, es
+            cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+            cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+            cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+    if f < 0:
+        ef, eb, es = entry_face(g, plane)
+        return cell, t_lo, ef, eb, es
+    sf = select(f, si, sj, sk)
+    return cell, t, f, boundary_behind(select(f, i, j, k), sf), sf
 
 
 @inline_func
