@@ -383,17 +383,13 @@ def crossing(g: GridInfo, o: wp.vec3, d: wp.vec3, family: int, boundary: int, s:
 @inline_func
 def boundary_ahead(index: int, s: int) -> int:
     """Step 4: the boundary in front of cell ``index`` moving with sign ``s``, ``index + (s > 0)``."""
-    if s > 0:
-        return index + 1
-    return index
+    return wp.where(s > 0, index + 1, index)
 
 
 @inline_func
 def boundary_behind(index: int, s: int) -> int:
     """The boundary a ray moving with sign ``s`` crossed to enter cell ``index``."""
-    if s > 0:
-        return index
-    return index + 1
+    return wp.where(s > 0, index, index + 1)
 
 
 @inline_func
@@ -426,25 +422,19 @@ def precedes(t_a: float, family_a: int, t_b: float, family_b: int) -> bool:
 def box_boundary(index: int, s: int, shift: int, n: int) -> int:
     """The cell boundary in front of the box (``2^shift`` cells per box, ``n`` cells on the axis) that holds cell
     ``index``, moving with sign ``s``; shift 0 gives :func:`boundary_ahead`."""
-    if s > 0:
-        return wp.min(((index >> shift) + 1) << shift, n)
-    return (index >> shift) << shift
+    return wp.where(s > 0, wp.min(((index >> shift) + 1) << shift, n), (index >> shift) << shift)
 
 
 @inline_func
 def next_box(index: int, s: int, shift: int) -> int:
     """The first cell a ray moving with sign ``s`` enters in the box after the one holding cell ``index``."""
-    if s > 0:
-        return ((index >> shift) + 1) << shift
-    return ((index >> shift) << shift) - 1
+    return wp.where(s > 0, ((index >> shift) + 1) << shift, ((index >> shift) << shift) - 1)
 
 
 @inline_func
 def last_in_box(index: int, s: int, shift: int, n: int) -> int:
     """The last cell, moving with sign ``s``, of the box (``2^shift`` cells) that holds cell ``index``."""
-    if s > 0:
-        return wp.min(((index >> shift) + 1) << shift, n) - 1
-    return (index >> shift) << shift
+    return wp.where(s > 0, wp.min(((index >> shift) + 1) << shift, n) - 1, (index >> shift) << shift)
 
 
 @inline_func
@@ -454,13 +444,26 @@ def level_shift(level: int) -> int:
 
 
 @inline_func
-def box_occupied(pyramid: wp.array2d(dtype=wp.uint8), b: int, g: GridInfo, level: int, i: int, j: int, k: int) -> bool:
-    """Whether the block (level 1) or super-block (level 2) holding cell ``(k, j, i)`` holds an occupied cell."""
-    if level == 1:
-        flat = ((k >> BLOCK_SHIFT) * g.blocks_v + (j >> BLOCK_SHIFT)) * g.blocks_u + (i >> BLOCK_SHIFT)
-        return int(pyramid[b, flat]) != 0
-    flat = ((k >> SUPER_SHIFT) * g.supers_v + (j >> SUPER_SHIFT)) * g.supers_u + (i >> SUPER_SHIFT)
-    return int(pyramid[b, g.supers_offset + flat]) != 0
+def box_flag(
+    labels: wp.array2d(dtype=wp.uint8),
+    pyramid: wp.array2d(dtype=wp.uint8),
+    b: int,
+    g: GridInfo,
+    level: int,
+    i: int,
+    j: int,
+    k: int,
+) -> int:
+    """The label of cell ``(k, j, i)`` (level 0), or the flag of the block (1) or super-block (2) holding it;
+    nonzero where occupied. One expression for every level, both arrays read (no branch: the rays of a warp stand
+    on different levels)."""
+    shift = level_shift(level)
+    nv = wp.where(level == 1, g.blocks_v, g.supers_v)
+    nu = wp.where(level == 1, g.blocks_u, g.supers_u)
+    flat = wp.where(level == 2, g.supers_offset, 0) + ((k >> shift) * nv + (j >> shift)) * nu + (i >> shift)
+    cell = int(labels[b, (k * g.height + j) * g.width + i])
+    box = int(pyramid[b, wp.where(level == 0, 0, flat)])
+    return wp.where(level == 0, cell, box)
 
 
 @inline_func
@@ -480,12 +483,14 @@ def catch_up(
 ):
     """Advance one family on a level (boxes of ``2^shift`` cells; ``index`` a cell of the current box, ``t_next``
     the crossing of its far side) past every crossing of that level the plain loop takes before crossing
-    ``(t, f)``, without leaving the parent box (``2^(shift + 2)`` cells) just entered.
+    ``(t, f)``, without leaving the parent box (``2^(shift + 2)`` cells) just entered. The stepped family itself
+    (``family == f``) and a walk that has not stepped yet (``f < 0``) stay: the loop runs no iteration for them, so
+    every family's call is unconditional (no branch around it).
 
     Returns:
         The new ``(index, t_next)``: the first cell of the box reached (or ``index`` unchanged), and its crossing.
     """
-    last = last_in_box(index, s, shift + PARENT_SHIFT, n) >> shift
+    last = wp.where(f >= 0 and f != family, last_in_box(index, s, shift + PARENT_SHIFT, n) >> shift, index >> shift)
     while (index >> shift) != last and precedes(t_next, family, t, f):
         index = next_box(index, s, shift)
         t_next = ray_crossing(na, nb, da, db, family, box_boundary(index, s, shift, n), s)
@@ -553,12 +558,10 @@ def trace_ray(
     f = int(NO_FAMILY)
     cell = wp.int32(-1)
     while True:
-        if level == 0:
-            n = (k * g.height + j) * g.width + i
-            if int(labels[b, n]) != 0:
-                cell = n
+        if box_flag(labels, pyramid, b, g, level, i, j, k) != 0:
+            if level == 0:
+                cell = (k * g.height + j) * g.width + i
                 break
-        elif box_occupied(pyramid, b, g, level, i, j, k):
             # Down one level at the last crossing (t, f): the stepped family stands at its box's first cell,
             # the others catch up inside the box just entered. Then look at the new box again.
             level -= 1
@@ -566,13 +569,9 @@ def trace_ray(
             cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
             cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
             cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
-            if f >= 0:
-                if f != FAMILY_U:
-                    i, cu = catch_up(na, nb, da, db, FAMILY_U, i, si, shift, g.width, cu, t, f)
-                if f != FAMILY_V:
-                    j, cv = catch_up(na, nb, da, db, FAMILY_V, j, sj, shift, g.height, cv, t, f)
-                if f != FAMILY_Z:
-                    k, cz = catch_up(na, nb, da, db, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
+            i, cu = catch_up(na, nb, da, db, FAMILY_U, i, si, shift, g.width, cu, t, f)
+            j, cv = catch_up(na, nb, da, db, FAMILY_V, j, sj, shift, g.height, cv, t, f)
+            k, cz = catch_up(na, nb, da, db, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
             continue
 
         # One step on the current level: across an empty box, or (level 0) to the next cell. The stepped family's
@@ -592,7 +591,8 @@ def trace_ray(
         # Up while the step entered an empty parent box (a parent that did not change is still occupied).
         while level < LEVEL_SUPERS:
             up = level_shift(level + 1)
-            if (old >> up) == (new >> up) or box_occupied(pyramid, b, g, level + 1, i, j, k):
+            parent_occupied = box_flag(labels, pyramid, b, g, level + 1, i, j, k) != 0
+            if (old >> up) == (new >> up) or parent_occupied:
                 break
             level += 1
             shift = up
