@@ -216,16 +216,10 @@ def clip_half_space(a: float, b: float, t_lo: float, t_hi: float, plane: int, wh
         The updated ``(t_lo, t_hi, plane)``; ``plane`` becomes ``which`` when this half-space raises ``t_lo``
         strictly. A ray parallel to the plane and outside gets ``t_hi = -inf`` (a miss).
     """
-    if a == 0.0:
-        if b < 0.0:
-            return t_lo, -wp.inf, plane
-    elif a > 0.0:
-        t = -b / a
-        if t > t_lo:
-            return t, t_hi, which
-    else:
-        return t_lo, wp.min(t_hi, -b / a), plane
-    return t_lo, t_hi, plane
+    t = -b / a
+    raise_lo = a > 0.0 and t > t_lo
+    t_hi = wp.where(a < 0.0, wp.min(t_hi, t), wp.where(a == 0.0 and b < 0.0, -wp.inf, t_hi))
+    return wp.where(raise_lo, t, t_lo), t_hi, wp.where(raise_lo, which, plane)
 
 
 @inline_func
@@ -254,12 +248,7 @@ def clip_ray(g: GridInfo, o: wp.vec3, d: wp.vec3):
 @inline_func
 def floor_index(x: float, n: int) -> int:
     """``floor(x)`` clamped to ``[0, n - 1]``; NaN gives 0."""
-    f = wp.floor(x)
-    if f >= float(n - 1):
-        return n - 1
-    if f >= 0.0:
-        return int(f)
-    return 0
+    return int(wp.clamp(wp.floor(x), 0.0, float(n - 1)))
 
 
 @inline_func
@@ -270,18 +259,9 @@ def entry_cell(g: GridInfo, o: wp.vec3, d: wp.vec3, t: float, plane: int) -> wp.
     i = floor_index((p[0] / p[2] - g.u0) / g.du, g.width)
     j = floor_index((p[1] / p[2] - g.v0) / g.dv, g.height)
     k = floor_index((p[2] - g.z_near) / g.dz, g.depth)
-    if plane == PLANE_LEFT:
-        i = 0
-    elif plane == PLANE_RIGHT:
-        i = g.width - 1
-    elif plane == PLANE_TOP:
-        j = 0
-    elif plane == PLANE_BOTTOM:
-        j = g.height - 1
-    elif plane == PLANE_NEAR:
-        k = 0
-    elif plane == PLANE_FAR:
-        k = g.depth - 1
+    i = wp.where(plane == PLANE_LEFT, 0, wp.where(plane == PLANE_RIGHT, g.width - 1, i))
+    j = wp.where(plane == PLANE_TOP, 0, wp.where(plane == PLANE_BOTTOM, g.height - 1, j))
+    k = wp.where(plane == PLANE_NEAR, 0, wp.where(plane == PLANE_FAR, g.depth - 1, k))
     return wp.vec3i(i, j, k)
 
 
