@@ -208,6 +208,56 @@ def test_shell_paths(device: str) -> None:
     assert removed.size and np.all(removed[:, 1:] == 0)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_batches_split_across_launches(device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A batch too large for one launch of int32 thread indices runs as several (here: one item per launch, as
+    if each image had 2^31 pixels) and gives what one launch gives."""
+    from fruxel.kernels.wp import traverse
+
+    vols = np.stack([scene(seed) for seed in range(3)])
+    cam = cameras()[0]
+    whole = np_hits(first_hit(vols, GRID, cam, backend="warp", device=device))
+    monkeypatch.setattr(traverse, "MAX_LAUNCH", cam.width * cam.height + 1)
+    split = np_hits(first_hit(vols, GRID, cam, backend="warp", device=device))
+    for name, ref in whole.items():
+        np.testing.assert_array_equal(split[name], ref, err_msg=name)
+    assert (whole["cell"][0] != whole["cell"][2]).any()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_pyramid_word_path_equals_byte_path(device: str) -> None:
+    """The pyramid read four cells per word (the CUDA path when W % 4 == 0) flags exactly what the byte path
+    flags, partial blocks and super-blocks included; layouts the word path cannot read fall back to bytes."""
+    from fruxel.kernels.wp import occupancy
+    from fruxel.kernels.wp.arrays import Workspace, compute_device
+    from fruxel.kernels.wp.traverse import grid_info, pyramid_size
+
+    grid = FruxelGrid(width=20, height=18, depth=37, z_near=0.5, z_far=3.0, hfov=60.0)
+    rng = np.random.default_rng(3)
+    vol = (rng.random((2, *grid.shape)) < 0.002).astype(np.uint8) * rng.integers(1, 5, (2, *grid.shape), np.uint8)
+    vol[1, 36, 17, 19] = 3  # the last cell: the partial last block and super-block of every axis
+    t = torch.from_numpy(vol).to("cuda" if device == "cuda" else "cpu")
+    ws = Workspace.like(t, compute_device(t, device))
+    labels = ws.input(t, shape=(2, grid.n_cells), dtype=wp.uint8)
+    g = grid_info(grid)
+    byte = ws.empty((2, pyramid_size(grid)), wp.uint8, zero=True)
+    ws.launch(occupancy.build_pyramid_kernel, (2, grid.depth, grid.height, g.blocks_u), [labels, g, 1, byte])
+    words = occupancy.label_words(labels, grid)
+    assert words is not None and words.shape == (2 * grid.n_cells // 4,)
+    word = ws.empty((2, pyramid_size(grid)), wp.uint8, zero=True)
+    ws.launch(occupancy.build_pyramid_words_kernel, words.shape, [words, g, word])
+    want, got = byte.native.cpu().numpy(), word.native.cpu().numpy()
+    assert 0 < want.sum() < want.size
+    np.testing.assert_array_equal(got, want)
+    # W % 4 != 0, or labels one byte off a word boundary: no word view.
+    odd = ws.input(torch.zeros(GRID.shape, dtype=torch.uint8, device=t.device), shape=(1, GRID.n_cells),
+                   dtype=wp.uint8)
+    assert occupancy.label_words(odd, GRID) is None
+    flat = t.reshape(-1)[1 : 1 + grid.n_cells]
+    shifted = ws.input(flat, shape=(1, grid.n_cells), dtype=wp.uint8)
+    assert shifted.ptr % 4 == 1 and occupancy.label_words(shifted, grid) is None
+
+
 def test_bad_input_raises_before_work() -> None:
     lab = scene()
     cam = cameras()[0]
