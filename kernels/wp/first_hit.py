@@ -27,6 +27,7 @@ def trace_first_hit_kernel(
     pyramid: wp.array2d(dtype=wp.uint8),
     grid: GridInfo,
     camera: CameraInfo,
+    b0: int,
     label: wp.array3d(dtype=wp.int32),
     cell: wp.array3d(dtype=wp.int64),
     depth: wp.array3d(dtype=wp.float32),
@@ -34,19 +35,27 @@ def trace_first_hit_kernel(
 ):
     """Trace one pixel's ray to its first occupied cell.
 
-    Launch: ``(B, h, w)``, one thread per batch item and pixel (x fastest, so a warp shares a row of rays).
+    Launch: ``(n * h * w,)``, one thread per pixel of batch items ``b0 .. b0 + n - 1`` (x fastest, so a warp shares
+    a row of rays). One-dimensional, with the coordinates unravelled here in 32 bits: Warp unravels
+    multi-dimensional launches with 64-bit divisions, which cost every thread about a hundred instructions.
 
     Args:
         labels: ``(B, N)`` uint8 labels, flat cell index ``(k * H + j) * W + i``, 0 = empty.
         pyramid: ``(B, bd * bh * bw + sd * sh * sw)`` uint8 block and super-block flags.
         grid: the grid.
         camera: the viewing camera (pose camera-to-grid).
+        b0: first batch item of this launch.
         label: ``(B, h, w)`` int32 output: the hit cell's label, 0 on a miss.
         cell: ``(B, h, w)`` int64 output: the hit cell's flat index, -1 on a miss.
         depth: ``(B, h, w)`` float32 output: ray parameter (= viewing-camera z) of the entry point, 0 on a miss.
         normal: ``(B, h, w)`` vec3 output: unit entry-face normal, grid frame, facing the camera; zero on a miss.
     """
-    b, y, x = wp.tid()
+    tid = wp.tid()
+    row = tid // camera.width
+    x = tid - row * camera.width
+    item = row // camera.height
+    y = row - item * camera.height
+    b = b0 + item
     d = pixel_ray(camera, x, y)
     n, t, family, boundary, s = trace_ray(labels, pyramid, b, grid, camera.origin, d)
     if n < 0:
@@ -103,12 +112,17 @@ def first_hit(
     cell = ws.empty(dims, wp.int64)
     depth = ws.empty(dims, wp.float32)
     normal = ws.empty(dims, wp.vec3)
-    ws.launch(
-        trace_first_hit_kernel,
-        dims,
-        [labels, pyramid, g, camera_arg(cam), label, cell, depth, normal],
-        block_dim=traverse.TRACE_BLOCK_DIM,
-    )
+    pixels = cam.height * cam.width
+    per_launch = max(1, traverse.MAX_LAUNCH // pixels)  # int32 thread indices
+    cam_arg = camera_arg(cam)
+    for b0 in range(0, spec.batch, per_launch):
+        n = min(per_launch, spec.batch - b0)
+        ws.launch(
+            trace_first_hit_kernel,
+            (n * pixels,),
+            [labels, pyramid, g, cam_arg, b0, label, cell, depth, normal],
+            block_dim=traverse.TRACE_BLOCK_DIM,
+        )
     lead = dims if spec.batched else dims[1:]
     return Hits(
         label=ws.result(label, shape=lead),

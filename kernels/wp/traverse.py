@@ -78,6 +78,8 @@ TRACE_BLOCK_DIM = 128
 
 # Largest cell count per batch item: cell indices are int32 inside the kernels.
 MAX_CELLS = 2**31 - 1
+MAX_LAUNCH = 2**31 - 1
+"""Most threads of one one-dimensional launch (thread indices are int32); larger batches take several launches."""
 
 
 @wp.struct
