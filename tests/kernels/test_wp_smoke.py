@@ -209,6 +209,24 @@ def test_shell_paths(device: str) -> None:
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_centre_out_rows_are_a_permutation(device: str) -> None:
+    """The trace kernel's row order visits every row once, middle first, for odd and even heights."""
+    from fruxel.kernels.wp.first_hit import centre_out
+
+    @wp.kernel
+    def rows_kernel(h: int, out: wp.array(dtype=wp.int32)):
+        r = wp.tid()
+        out[r] = centre_out(r, h)
+
+    for h in (1, 2, 3, 8, 17, 512):
+        out = wp.zeros(h, dtype=wp.int32, device=device)
+        wp.launch(rows_kernel, (h,), [h, out], device=device)
+        rows = out.numpy()
+        assert sorted(rows.tolist()) == list(range(h)), h
+        assert rows[0] == h // 2 and np.all(np.diff(np.abs(rows - (h - 1) / 2)) >= 0), h
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_batches_split_across_launches(device: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """A batch too large for one launch of int32 thread indices runs as several (here: one item per launch, as
     if each image had 2^31 pixels) and gives what one launch gives."""
