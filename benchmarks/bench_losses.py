@@ -283,6 +283,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for b in backends:
         result["backends"].append(measure(b, args, device))
     result["backends"].append(measure_torch(args, device))
+    # A Warp staged without package metadata (the GPU machine) tells its version only once imported, which the
+    # measurements have done by now.
+    result["machine"].update({k: v for k, v in common.package_versions({"warp": "warp-lang"}).items() if v})
     print(table(result))
     if not args.no_write:
         tag = "cuda" if device.startswith("cuda") else "cpu"
