@@ -560,7 +560,7 @@ def trace_ray(
         # values are picked with selects, not a branch per family: the rays of a warp step different families,
         # and three branches would run one after another.
         f = pick_family(cu, cv, cz)
-        t = select(f, cu, cv, cz)
+        t = wp.min(cu, wp.min(cv, cz))  # select(f, cu, cv, cz), without waiting for f
         sf = select(f, si, sj, sk)
         nf = select(f, g.width, g.height, g.depth)
         old = select(f, i, j, k)
