@@ -248,12 +248,13 @@ def build_pyramid(ws: Workspace, labels: Buffer, grid: FruxelGrid) -> Buffer:
 
 def label_words(labels: Buffer, grid: FruxelGrid) -> Buffer | None:
     """``(B, N)`` uint8 labels as ``(B * N / 4,)`` int32 words (no copy) when each block row is one aligned word
-    (``BLOCK == 4``, ``W % 4 == 0``, 4-byte aligned data, a numpy or torch array); else None."""
+    (``BLOCK == 4``, ``W % 4 == 0``, 4-byte aligned data) and the labels are a torch tensor (as they are on CUDA,
+    but for numpy callers, whose data Warp holds); else None."""
     native = labels.native
-    if BLOCK != 4 or grid.width % 4 or labels.ptr % 4 or isinstance(native, wp.array):
+    if BLOCK != 4 or grid.width % 4 or labels.ptr % 4 or isinstance(native, (np.ndarray, wp.array)):
         return None
-    view = native.view(np.int32) if isinstance(native, np.ndarray) else native.view(torch_dtype(wp.int32))
-    return Buffer(view.reshape(-1), (labels.size // 4,), wp.int32, labels.ptr, labels.device)
+    view = native.view(torch_dtype(wp.int32)).reshape(-1)
+    return Buffer(view, (labels.size // 4,), wp.int32, labels.ptr, labels.device)
 
 
 def occupancy(ws: Workspace, volume: Any, spec: VolumeSpec, grid: FruxelGrid) -> tuple[Buffer, Buffer]:

@@ -274,6 +274,9 @@ def test_pyramid_word_path_equals_byte_path(device: str) -> None:
     flat = t.reshape(-1)[1 : 1 + grid.n_cells]
     shifted = ws.input(flat, shape=(1, grid.n_cells), dtype=wp.uint8)
     assert shifted.ptr % 4 == 1 and occupancy.label_words(shifted, grid) is None
+    if device == "cpu":  # numpy labels (Warp holds a numpy caller's data on CUDA): the byte path
+        as_numpy = Workspace.like(vol, "cpu").input(vol, shape=(2, grid.n_cells), dtype=wp.uint8)
+        assert isinstance(as_numpy.native, np.ndarray) and occupancy.label_words(as_numpy, grid) is None
 
 
 def test_bad_input_raises_before_work() -> None:
