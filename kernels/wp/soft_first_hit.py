@@ -80,11 +80,12 @@ from .traverse import (
     boundary_behind,
     camera_arg,
     clip_ray,
-    crossing,
     entry_cell,
     grid_info,
     pick_family,
     pixel_ray,
+    ray_coefficients,
+    ray_crossing,
     select,
     set_family,
     step_signs,
@@ -269,9 +270,10 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             su = s[0]
             sv = s[1]
             sz = s[2]
-            cu = crossing(g, o, d, FAMILY_U, boundary_ahead(iu, su), su)
-            cv = crossing(g, o, d, FAMILY_V, boundary_ahead(iv, sv), sv)
-            cz = crossing(g, o, d, FAMILY_Z, boundary_ahead(iz, sz), sz)
+            na, nb, da, db = ray_coefficients(g, o, d)
+            cu = ray_crossing(na, nb, da, db, FAMILY_U, boundary_ahead(iu, su), su)
+            cv = ray_crossing(na, nb, da, db, FAMILY_V, boundary_ahead(iv, sv), sv)
+            cz = ray_crossing(na, nb, da, db, FAMILY_Z, boundary_ahead(iz, sz), sz)
             t_entry = t_lo
             word = int(0)  # noqa: UP018
             for _it in range(max_steps):
@@ -299,7 +301,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                         tape[step // spw, r] = word
                         word = 0
                 iu, iv, iz, cu, cv, cz = set_family(
-                    f, nxt, crossing(g, o, d, f, boundary_ahead(nxt, sf), sf), iu, iv, iz, cu, cv, cz
+                    f, nxt, ray_crossing(na, nb, da, db, f, boundary_ahead(nxt, sf), sf), iu, iv, iz, cu, cv, cz
                 )
                 t_entry = tf
             if save == 1 and (ncell - 1) % spw != 0:
@@ -332,6 +334,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         o = cam.origin
         d = pixel_ray(cam, p % g.width, p // g.width)
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
+        na, nb, da, db = ray_coefficients(g, o, d)
         plane_cells = g.height * g.width
         acc = vec_c()
         ds = real(0.0)
@@ -345,7 +348,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             if tr < real(tiny):
                 tr = real(0.0)
                 break
-            t_entry = crossing(g, o, d, FAMILY_Z, k + 1, 1)
+            t_entry = ray_crossing(na, nb, da, db, FAMILY_Z, k + 1, 1)
         finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
             save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
@@ -390,6 +393,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
+        na, nb, da, db = ray_coefficients(g, o, d)
         s = step_signs(o, d)
         su = s[0]
         sv = s[1]
@@ -411,7 +415,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                 step = m - 1
                 f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
                 sf = select(f, su, sv, sz)
-                t = crossing(g, o, d, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
+                t = ray_crossing(na, nb, da, db, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
                 iu = wp.where(f == FAMILY_U, iu - sf, iu)
                 iv = wp.where(f == FAMILY_V, iv - sf, iv)
                 iz = wp.where(f == FAMILY_Z, iz - sf, iz)
@@ -474,6 +478,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         o = cam.origin
         d = pixel_ray(cam, p % g.width, p // g.width)
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
+        na, nb, da, db = ray_coefficients(g, o, d)
         logt = log_t[r]
         rr = g0
         # One cell of lookahead, as in backpropagate_soft_hits_kernel: loads before this cell's stores.
@@ -484,7 +489,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             t = t_lo
             nxt = pm
             if m > 0:
-                t = crossing(g, o, d, FAMILY_Z, m, 1)
+                t = ray_crossing(na, nb, da, db, FAMILY_Z, m, 1)
                 nxt = load_cell(probs, b, cell - plane_cells)
             logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
             if store == 1:

@@ -10,7 +10,7 @@ blocks of ``BLOCK`` cells and super-blocks of ``SUPER`` blocks along each axis (
 axis may be partial). :func:`trace_ray` walks one level at a time, cells, blocks or super-blocks, each exactly as
 step 5 walks cells: the next crossing of each family is the far side of the current box, ties in the order u, v,
 z. Box boundaries are cell boundaries with the same index, and every crossing comes from one expression
-(:func:`crossing`), so a boundary's crossing is bit-identical on every level: a coarse walk meets the boundaries
+(:func:`ray_crossing`), so a boundary's crossing is bit-identical on every level: a coarse walk meets the boundaries
 of its level in exactly the order, ties included, in which the plain cell loop would.
 
 The walk keeps one cell index per family. A step on any level moves the stepped family to the first cell of the
@@ -312,13 +312,14 @@ def select(family: int, a: Any, b: Any, c: Any):
 
 @inline_func
 def ray_coefficients(g: GridInfo, o: wp.vec3, d: wp.vec3):
-    """Per-ray coefficients of :func:`ray_crossing` for the families u, v, z (components 0, 1, 2).
+    """Step 4's per-ray coefficients (:func:`ray_crossing`) for the families u, v, z (components 0, 1, 2).
 
-    Plane ``boundary`` of a family is crossed at ``t = (na + boundary nb) / (da + boundary db)``: for u,
-    ``na = u_0 o_z - o_x``, ``nb = du o_z``, ``da = d_x - u_0 d_z``, ``db = -du d_z`` (:func:`crossing`'s
-    expression with ``w = u_0 + boundary du`` expanded), likewise for v; for z, ``na = z_near - o_z``, ``nb = dz``,
-    ``da = d_z``, ``db = 0``. A walk computes them once per ray; a crossing then costs two multiply-adds and one
-    division.
+    u and v: the plane ``a = w z`` (a = x or y), ``w = w_0 + boundary dw``, is crossed at
+    ``t = (w o_z - o_a) / (d_a - w d_z)``; expanded in ``boundary``, ``na = u_0 o_z - o_x``, ``nb = du o_z``,
+    ``da = d_x - u_0 d_z``, ``db = -du d_z`` for u, likewise for v. z: ``t = (w - o_z) / d_z``, the same expression
+    with ``o_z``, ``d_z`` replaced by 1, 0, which is exact: ``na = z_near - o_z``, ``nb = dz``, ``da = d_z``,
+    ``db = 0``. Boundaries come from their index, never accumulated. A walk computes these once per ray; a crossing
+    then costs two multiply-adds and one division.
 
     Returns:
         ``(na, nb, da, db)``, four vec3.
@@ -333,33 +334,16 @@ def ray_coefficients(g: GridInfo, o: wp.vec3, d: wp.vec3):
 @inline_func
 def ray_crossing(na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, family: int, boundary: int, s: int) -> float:
     """Step 4 from per-ray coefficients (:func:`ray_coefficients`): ``t`` where the ray crosses plane ``boundary``
-    of ``family`` moving with sign ``s``; +inf where the ray does not approach the plane (``s * den <= 0``).
+    of ``family`` moving with sign ``s``; +inf where it never does.
 
-    Every crossing of every Warp walk comes from this one expression (:func:`crossing` included), so a plane's
-    crossing is bit-identical on every level and in every kernel."""
+    The crossing exists only where the ray approaches the plane, ``s * den > 0``: for u and v, ``a - w z`` is
+    linear in t and must change sign in the direction of motion, else the root lies behind the apex (the ray's u
+    converges short of the plane). Every crossing of every Warp walk comes from this one expression, so a plane's
+    crossing is bit-identical on every level of the block walk and in ``soft_first_hit``'s walks alike."""
     b = float(boundary)
     num = select(family, na[0], na[1], na[2]) + b * select(family, nb[0], nb[1], nb[2])
     den = select(family, da[0], da[1], da[2]) + b * select(family, db[0], db[1], db[2])
     return wp.where(float(s) * den > 0.0, num / den, wp.inf)
-
-
-@inline_func
-def crossing(g: GridInfo, o: wp.vec3, d: wp.vec3, family: int, boundary: int, s: int) -> float:
-    """Step 4: ``t`` where the ray crosses plane ``boundary`` of ``family`` moving with sign ``s``; +inf when it
-    never does. Boundaries come from their index, never accumulated.
-
-    u and v: ``t = (w o_z - o_a) / (d_a - w d_z)`` for the plane ``a = w z`` (a = x or y), ``w = w_0 + boundary
-    dw``. The crossing exists only where the ray approaches the plane, ``s (d_a - w d_z) > 0``: ``a - w z`` is
-    linear in t and must change sign in the direction of motion, else the root lies behind the apex (the ray's u
-    converges short of the plane). z: ``t = (w - o_z) / d_z``, the same expression with ``o_z``, ``d_z`` replaced
-    by 1, 0, which is exact.
-
-    Computed as :func:`ray_crossing` of :func:`ray_coefficients` (``w`` expanded, so that a walk can compute the
-    per-ray parts once): every Warp kernel that walks rays gets a plane's crossing bit-identical, on every level
-    of the block walk and in ``soft_first_hit``'s walks alike.
-    """
-    na, nb, da, db = ray_coefficients(g, o, d)
-    return ray_crossing(na, nb, da, db, family, boundary, s)
 
 
 @inline_func
