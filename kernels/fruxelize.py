@@ -56,7 +56,7 @@ from fruxel.camera import check_pose
 from fruxel.grid import FruxelGrid
 
 from .inputs import MAX_LABEL, VolumeError
-from .registry import BackendError
+from .registry import BACKENDS, BackendError, BackendUnavailable, split_name
 
 MAX_CROSSINGS = 32
 """Crossings one column may collect through one closed part before that part falls back to the parity vote."""
@@ -315,23 +315,19 @@ def prepare_meshes(meshes: Sequence[Any]) -> MeshParts:
 
 def _warp_device(backend: str | None, device: str | None) -> str | None:
     """Check the backend name (only Warp implements ``fruxelize``) and return the device asked for."""
-    if backend in (None, "warp"):
-        return device
-    if backend in ("warp-cpu", "warp-cuda"):
-        return device or backend.partition("-")[2]
-    if backend == "opencl":
-        raise BackendError("fruxelize is implemented on the Warp backend only (CPU or CUDA); use backend='warp'")
-    raise BackendError(f"unknown backend {backend!r} for fruxelize; use 'warp', 'warp-cpu' or 'warp-cuda'")
+    base, dev = split_name(backend or "warp")  # BackendError for an unknown name
+    if base != "warp":
+        raise BackendError(f"fruxelize is implemented on the Warp backend only (CPU or CUDA); use backend='warp', "
+                           f"not {backend!r}")
+    return device or dev
 
 
 def _warp_module() -> Any:
-    from .registry import BackendUnavailable
-
     try:
         return importlib.import_module("fruxel.kernels.wp.fruxelize")
     except ImportError as e:
-        raise BackendUnavailable(f"fruxelize needs NVIDIA Warp ({e}). Install it with: pip install "
-                                 "'fruxel[warp]'") from None
+        raise BackendUnavailable(f"fruxelize needs NVIDIA Warp ({e}). Install it with: "
+                                 f"{BACKENDS['warp'].install_hint}") from None
 
 
 class MeshSet:

@@ -160,6 +160,24 @@ def check_cameras(cameras: Any) -> list[Camera]:
     return cams
 
 
+def empty_scores(spec: VolumeSpec) -> tuple[float, float]:
+    """Channel 0 and each of channels 1..C-1 of the canonical empty cell in a score volume: ``(0, EMPTY_LOGIT)``
+    for logits, ``(1, 0)`` for probabilities (what ``shell`` writes into removed cells)."""
+    return (1.0, 0.0) if spec.probs else (0.0, EMPTY_LOGIT)
+
+
+def check_camera(camera: Any) -> Camera:
+    """The one camera of a call that takes exactly one (``first_hit``), given alone or as a one-item sequence.
+
+    Raises:
+        VolumeError: not exactly one :class:`fruxel.Camera`.
+    """
+    cams = check_cameras(camera)
+    if len(cams) != 1:
+        raise VolumeError(f"first_hit takes one camera, got {len(cams)}")
+    return cams[0]
+
+
 @dataclass(frozen=True)
 class Hits:
     """Per-pixel result of ``first_hit`` (SPEC section 4), in the caller's kind of array and on its device.

@@ -333,9 +333,7 @@ def own_view_entry_depths(grid: FruxelGrid) -> np.ndarray:
     """Entry depth of each slice along the grid's own camera rays, ``(D,)`` float32, as the kernels compute it:
     ``z_near`` for the first slice (the near-plane clip), then the slice boundary ``z_near + k dz`` in float32."""
     g = traversal.grid_params(grid)
-    t = g[4] + np.arange(grid.depth, dtype=np.float32) * g[5]
-    t[0] = g[4]
-    return t
+    return g[4] + np.arange(grid.depth, dtype=np.float32) * g[5]
 
 
 def soft_first_hit_own_view_torch(scores: Any, grid: FruxelGrid, *, probs: bool = False) -> SoftHits:

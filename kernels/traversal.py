@@ -108,10 +108,10 @@ def camera_params(camera: Camera) -> np.ndarray:
 def is_own_view(camera: Camera, grid: FruxelGrid) -> bool:
     """True when ``camera`` is the grid's own camera at native resolution (identity pose, same intrinsics), for
     which ``shell`` takes the column fast path: pixel (i, j) then looks straight down column (j, i)."""
-    own = _own_intrinsics(grid)
-    if (camera.width, camera.height) != own[:2]:
+    if camera.width != grid.width or camera.height != grid.height:  # before the cached lookup, which hashes the grid
         return False
-    for value, ref in zip((camera.fx, camera.fy, camera.cx, camera.cy), own[2:], strict=True):
+    own = _own_intrinsics(grid)
+    for value, ref in zip((camera.fx, camera.fy, camera.cx, camera.cy), own, strict=True):
         if abs(value - ref) > 1e-9 * abs(ref) + 1e-8:  # np.allclose(rtol=1e-9), written out: it is on every call
             return False
     return bool(np.all(np.abs(np.asarray(camera.pose) - _EYE4) <= _POSE_TOLERANCE))
@@ -123,7 +123,7 @@ _POSE_TOLERANCE = 1e-12 + 1e-5 * _EYE4
 
 
 @lru_cache(maxsize=64)
-def _own_intrinsics(grid: FruxelGrid) -> tuple[int, int, float, float, float, float]:
-    """``(width, height, fx, fy, cx, cy)`` of the grid's own camera."""
+def _own_intrinsics(grid: FruxelGrid) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` of the grid's own camera (whose image is ``grid.width`` x ``grid.height``)."""
     own = grid.camera()
-    return own.width, own.height, own.fx, own.fy, own.cx, own.cy
+    return own.fx, own.fy, own.cx, own.cy

@@ -1,7 +1,8 @@
 /*
  * First-hit ray traversal through a fruxel grid: kernels/traversal.py step by step, with exact empty-space
  * skipping over a coarse occupancy pyramid. shell.cl and soft_first_hit.cl are compiled after this file and reuse
- * its Ray, setup_ray(), crossings(), pick(), LANES (and shell.cl trace()): keep those stable.
+ * parts of it: shell.cl trace_pixel() and Hit; soft_first_hit.cl Ray, setup_ray(), pick() and LANES, and its
+ * crossing_of() repeats one lane of crossings() bit for bit. Keep those stable.
  *
  * Build options (-D), all set by the host from kernels/traversal.py so that no number is copied here:
  *   BLOCK, LOG_BLOCK                 edge of a pyramid block in cells, and its log2 (BLOCK is a power of 2)

@@ -13,7 +13,7 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
-from ..inputs import Hits, VolumeError, VolumeSpec, check_cameras, inspect_volume
+from ..inputs import Hits, VolumeSpec, check_camera, inspect_volume
 from . import occupancy
 from .runtime import Runtime, get_runtime, host_array, to_caller
 
@@ -50,10 +50,7 @@ def first_hit(
     """
     spec = inspect_volume(volume, grid, threshold, probs)
     occupancy.check_spec(spec)
-    cams = check_cameras(camera)
-    if len(cams) != 1:
-        raise VolumeError(f"first_hit takes one camera, got {len(cams)}")
-    cam = cams[0]
+    cam = check_camera(camera)
     arr = host_array(volume)
     rt = get_runtime(device)
     with rt.lock:

@@ -13,7 +13,6 @@ pyramid's levels, and both :mod:`.first_hit` and :mod:`.shell` launch the traver
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,7 +33,7 @@ if 1 << LOG_BLOCK != traversal.BLOCK:  # pragma: no cover - guards a future edit
     raise ImportError(f"the OpenCL pyramid needs traversal.BLOCK to be a power of two, got {traversal.BLOCK}")
 
 _SOURCE = source(__file__)
-TRACE_SOURCE = (Path(__file__).parent / "first_hit.cl").read_text(encoding="utf-8")
+TRACE_SOURCE = source(__file__, "first_hit")
 """The traversal source, :file:`first_hit.cl`; :file:`shell.cl` is compiled after it."""
 
 TRACE_LOCAL = (16, 4)
@@ -64,18 +63,21 @@ class DeviceVolume:
     levels: list[Any]
     """Pyramid buffers: level 1 ``(B, *level_shape(grid, 1))`` uint8, level 2 likewise (a 1-byte dummy when the
     traversal uses fewer levels); empty when not built."""
-    batch: int
-    """B."""
-    host: np.ndarray
-    """The host array the call was given (after :func:`runtime.host_array`)."""
     data: Any = None
-    """A device view of :attr:`host` when one was made (float scores, uint8 labels), else None."""
+    """A device view of the host array the call was given (after :func:`runtime.host_array`) when one was made
+    (float scores, uint8 labels), else None."""
     keep: list[Any] = field(default_factory=list)
     """Host arrays the device may still read; they must outlive the call's kernels."""
 
 
-def _round_up(x: int, m: int) -> int:
+def round_up(x: int, m: int) -> int:
+    """``x`` rounded up to a multiple of ``m`` (an NDRange padded to whole work-groups)."""
     return -(-x // m) * m
+
+
+def cell_counts(grid: FruxelGrid) -> np.ndarray:
+    """Cells per family as the kernels' int4 argument ``(W, H, D, 1)``."""
+    return np.array([grid.width, grid.height, grid.depth, 1], np.int32)
 
 
 def check_spec(spec: VolumeSpec) -> None:
@@ -117,7 +119,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         real = np.float64 if kind == "SCORE_DOUBLE" else np.float32
         labels = rt.scratch("labels", b * cells)
         data = rt.input("scores", scores)
-        k(rt.queue, (_round_up(cells, _LOCAL_CELLS), b), (_LOCAL_CELLS, 1), data, labels, np.int64(cells),
+        k(rt.queue, (round_up(cells, _LOCAL_CELLS), b), (_LOCAL_CELLS, 1), data, labels, np.int64(cells),
           real(spec.threshold or 0.0))
         if scores is not arr:
             data = None
@@ -132,7 +134,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         labels = rt.input("labels", lab)
         data = labels if lab is arr else None
     levels = build_pyramid(rt, labels, grid, b) if pyramid else []
-    return DeviceVolume(labels=labels, levels=levels, batch=b, host=arr, data=data, keep=keep)
+    return DeviceVolume(labels=labels, levels=levels, data=data, keep=keep)
 
 
 def build_pyramid(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> list[Any]:
@@ -146,7 +148,7 @@ def build_pyramid(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> lis
         nf = level_shape(grid, level - 1)
         nc = level_shape(grid, level)
         coarse = rt.scratch(f"pyramid{level}", batch * int(np.prod(nc)))
-        k(rt.queue, (_round_up(nc[2], _LOCAL_PYRAMID), nc[1], nc[0] * batch), (_LOCAL_PYRAMID, 1, 1), fine, coarse,
+        k(rt.queue, (round_up(nc[2], _LOCAL_PYRAMID), nc[1], nc[0] * batch), (_LOCAL_PYRAMID, 1, 1), fine, coarse,
           np.array([nf[2], nf[1], nf[0], 1], np.int32), np.array([nc[2], nc[1], nc[0], 1], np.int32))
         out.append(coarse)
         fine = coarse
@@ -165,11 +167,11 @@ def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:
     """The traversal kernels' scalar arguments after the three map buffers: grid (float8), camera (float16),
     cells per family (int4 ``(W, H, D, 1)``), image width and height, and the iteration guard."""
     return (traversal.grid_params(grid), traversal.camera_params(camera),
-            np.array([grid.width, grid.height, grid.depth, 1], np.int32), np.int32(camera.width),
+            cell_counts(grid), np.int32(camera.width),
             np.int32(camera.height), np.int32((LEVELS + 1) * traversal.max_steps(grid)))
 
 
 def trace_global(camera: Camera, batch: int) -> tuple[int, int, int]:
     """NDRange of the per-pixel kernels: the image rounded up to whole work-groups, times the batch."""
     lx, ly = TRACE_LOCAL
-    return (_round_up(camera.width, lx), _round_up(camera.height, ly), batch)
+    return (round_up(camera.width, lx), round_up(camera.height, ly), batch)

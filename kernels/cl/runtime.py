@@ -229,9 +229,11 @@ def get_runtime(selector: str | None) -> Runtime:
     return _runtime_for(devs[0])
 
 
-def source(module_file: str) -> str:
-    """The OpenCL source that lies beside a Python module (``foo.py`` -> ``foo.cl``)."""
-    return Path(module_file).with_suffix(".cl").read_text(encoding="utf-8")
+def source(module_file: str, stem: str | None = None) -> str:
+    """The OpenCL source that lies beside a Python module: ``foo.py`` -> ``foo.cl``, or ``stem.cl`` in the same
+    folder."""
+    path = Path(module_file)
+    return (path.with_suffix(".cl") if stem is None else path.with_name(f"{stem}.cl")).read_text(encoding="utf-8")
 
 
 def defines(**values: int | float) -> tuple[str, ...]:

@@ -16,7 +16,7 @@ from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
 from .. import traversal
-from ..inputs import EMPTY_LOGIT, VolumeSpec, check_cameras, inspect_volume
+from ..inputs import VolumeSpec, check_cameras, empty_scores, inspect_volume
 from . import occupancy
 from .runtime import Runtime, get_runtime, host_array, source, to_caller
 
@@ -68,12 +68,7 @@ def shell(
 
 def empty_bits(spec: VolumeSpec, dtype: np.dtype) -> tuple[Any, Any]:
     """Bit patterns (unsigned integers of ``dtype``'s size) of a removed cell's channel 0 and other channels."""
-    if not spec.is_scores:
-        e0, e1 = 0, 0
-    elif spec.probs:
-        e0, e1 = 1.0, 0.0
-    else:
-        e0, e1 = 0.0, EMPTY_LOGIT
+    e0, e1 = empty_scores(spec) if spec.is_scores else (0, 0)
     bits = np.dtype(f"u{dtype.itemsize}")
     return np.array(e0, dtype).view(bits)[()], np.array(e1, dtype).view(bits)[()]
 
@@ -87,11 +82,11 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
     opts = occupancy.trace_options()
     mask = rt.scratch("shell_mask", b * cells)
     rt.zero(mask, b * cells)
-    n = np.array([grid.width, grid.height, grid.depth, 1], np.int32)
+    n = occupancy.cell_counts(grid)
     for cam, own_view in zip(cams, own, strict=True):
         if own_view:
             k = rt.kernel(_SOURCE, "mark_columns_kernel", opts)
-            k(rt.queue, (-(-grid.width // _LOCAL_COLUMNS) * _LOCAL_COLUMNS, grid.height, b), (_LOCAL_COLUMNS, 1, 1),
+            k(rt.queue, (occupancy.round_up(grid.width, _LOCAL_COLUMNS), grid.height, b), (_LOCAL_COLUMNS, 1, 1),
               vol.labels, n, mask)
         else:
             k = rt.kernel(_SOURCE, "mark_shell_kernel", opts)
@@ -104,7 +99,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
     channels = spec.channels if spec.is_scores else 1
     e0, e1 = empty_bits(spec, arr.dtype)
     k = rt.kernel(_SOURCE, f"write_shell_kernel_{arr.dtype.itemsize}", opts)
-    k(rt.queue, (-(-cells // _LOCAL_SELECT) * _LOCAL_SELECT, channels, b), (_LOCAL_SELECT, 1, 1), data, mask, dst,
+    k(rt.queue, (occupancy.round_up(cells, _LOCAL_SELECT), channels, b), (_LOCAL_SELECT, 1, 1), data, mask, dst,
       np.int64(cells), e0, e1)
     # The call's one synchronisation: the result goes to the caller next.
     rt.fetch([(dst, out)])

@@ -64,10 +64,6 @@ def _kernel(rt: Runtime, name: str, real: np.dtype, nc: int) -> Any:
     return rt.kernel(_SOURCE, name, opts)
 
 
-def _dims(grid: FruxelGrid) -> np.ndarray:
-    return np.array([grid.width, grid.height, grid.depth, 1], np.int32)
-
-
 def _global(cam: Camera, batch: int) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
     return occupancy.trace_global(cam, batch), (*occupancy.TRACE_LOCAL, 1)
 
@@ -117,7 +113,9 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     depth = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
     dsum = torch.empty((b, n_cam, h, w), dtype=probs.dtype)
     rays = b * n_cam * h * w
-    words = -(-traversal.max_steps(grid) // TAPE_STEPS_PER_WORD)
+    max_steps = traversal.max_steps(grid)
+    words = -(-max_steps // TAPE_STEPS_PER_WORD)
+    grid_args = (traversal.grid_params(grid), occupancy.cell_counts(grid))
     with rt.lock:
         k = _kernel(rt, "accumulate_soft_hits_kernel", real, c - 1)
         p_buf = rt.input("soft_probs", _host(probs, real))
@@ -132,8 +130,8 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
         else:
             state = log_t = tape = rt.scratch("soft_dummy", 16)
         for slot, cam in enumerate(cameras):
-            k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam), _dims(grid),
-              np.int32(w), np.int32(h), np.int32(traversal.max_steps(grid)), np.int32(slot), np.int32(n_cam),
+            k(rt.queue, *_global(cam, b), p_buf, grid_args[0], traversal.camera_params(cam), grid_args[1],
+              np.int32(w), np.int32(h), np.int32(max_steps), np.int32(slot), np.int32(n_cam),
               np.int32(save), np.int32(words), *(buf for buf, _ in outs), state, log_t, tape)
         # Host synchronisation (the call's only one): waits for the kernels, whose results are torch tensors.
         rt.fetch(outs)
@@ -167,6 +165,7 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
     grad = (torch.zeros if rt.zero_copy else torch.empty)(probs.shape, dtype=probs.dtype)
     # Host arrays the enqueued commands read: alive until the synchronisation below.
     keep = [_host(probs, real)]
+    grid_args = (traversal.grid_params(grid), occupancy.cell_counts(grid))
     with rt.lock:
         k = _kernel(rt, "backpropagate_soft_hits_kernel", real, c - 1)
         p_buf = rt.input("soft_probs", keep[0])
@@ -191,8 +190,8 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
                 ("soft_classes", "soft_depth", "soft_g_classes", "soft_g_depth", "soft_g_dsum"), arrays, strict=True)]
             for slot, cam in enumerate(cams):
                 own = traversal.is_own_view(cam, grid)
-                k(rt.queue, *_global(cam, b), p_buf, traversal.grid_params(grid), traversal.camera_params(cam),
-                  _dims(grid), np.int32(w), np.int32(h), np.int32(slot), np.int32(len(cams)), np.int32(own),
+                k(rt.queue, *_global(cam, b), p_buf, grid_args[0], traversal.camera_params(cam), grid_args[1],
+                  np.int32(w), np.int32(h), np.int32(slot), np.int32(len(cams)), np.int32(own),
                   np.int32(saved.words), saved.state, saved.log_t, saved.tape, *bufs, g_buf)
         # Host synchronisation (the call's only one): waits for every group's kernels; the gradient is a torch
         # tensor.

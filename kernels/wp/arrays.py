@@ -106,7 +106,7 @@ class Buffer:
             return cls(native, tuple(native.shape), dtype, native.ptr or 0, device)
         else:
             shape, ptr = tuple(native.shape), native.data_ptr()
-        inner = len(getattr(dtype, "_shape_", ()))
+        inner = len(inner_shape(dtype))
         return cls(native, shape[: len(shape) - inner] if inner else shape, dtype, ptr, device)
 
     def make_descriptor(self) -> Any:

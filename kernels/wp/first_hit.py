@@ -1,7 +1,7 @@
 """``first_hit`` on Warp: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
 
 One call: labels from the volume (one launch for scores, none for uint8 labels), the coarse pyramid (one launch),
-then one thread per pixel and batch item walks its ray (:func:`~fruxel.kernels.traverse.trace_ray`).
+then one thread per pixel and batch item walks its ray (:func:`~fruxel.kernels.wp.traverse.trace_ray`).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 from fruxel.grid import FruxelGrid
 
-from ..inputs import Hits, VolumeError, check_cameras, inspect_volume
+from ..inputs import Hits, check_camera, inspect_volume
 from . import traverse
 from .arrays import Workspace, compute_device
 from .occupancy import occupancy
@@ -114,10 +114,7 @@ def first_hit(
         BackendError, BackendUnavailable: an unknown or absent device.
     """
     spec = inspect_volume(volume, grid, threshold, probs)
-    cams = check_cameras(camera)
-    if len(cams) != 1:
-        raise VolumeError(f"first_hit takes one camera, got {len(cams)}")
-    cam = cams[0]
+    cam = check_camera(camera)
     g = grid_info(grid)
     ws = Workspace.like(volume, compute_device(volume, device))
 

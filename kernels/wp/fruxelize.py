@@ -15,6 +15,7 @@ from ..fruxelize import MAX_CROSSINGS, MeshParts
 from .runtime import resolve_device, warp
 
 wp = warp()
+wp.set_module_options({"enable_backward": False})
 
 _Crossings = wp.types.vector(length=MAX_CROSSINGS, dtype=wp.float32)
 

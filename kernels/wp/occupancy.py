@@ -113,6 +113,19 @@ for _t in SCORE_DTYPES:
     wp.overload(label_scores_kernel, {"scores": wp.array3d(dtype=_t)})
 
 
+@wp.func
+def mark_boxes(pyramid: wp.array2d(dtype=wp.uint8), b: int, grid: GridInfo, bk: int, bj: int, bi: int):
+    """Flag block ``(bk, bj, bi)`` of batch item ``b`` and its super-block occupied. Flags start at zero and are
+    only ever set to 1, so many threads may set one; each is read first, because stores to one address queue up in
+    the cache."""
+    blk = (bk * grid.blocks_v + bj) * grid.blocks_u + bi
+    if pyramid[b, blk] == wp.uint8(0):
+        pyramid[b, blk] = wp.uint8(1)
+    sup = grid.supers_offset + ((bk // SUPER) * grid.supers_v + bj // SUPER) * grid.supers_u + bi // SUPER
+    if pyramid[b, sup] == wp.uint8(0):
+        pyramid[b, sup] = wp.uint8(1)
+
+
 @wp.kernel
 def build_pyramid_kernel(
     labels: wp.array2d(dtype=wp.uint8),
@@ -143,13 +156,7 @@ def build_pyramid_kernel(
         for i in range(bi * BLOCK, wp.min(bi * BLOCK + BLOCK, grid.width)):
             occupied = occupied | int(labels[b, base + i])
         if occupied != 0:
-            # Read before writing: many rows share a flag, and stores to one address queue up in the cache.
-            blk = (bk * grid.blocks_v + bj) * grid.blocks_u + bi
-            if pyramid[b, blk] == wp.uint8(0):
-                pyramid[b, blk] = wp.uint8(1)
-            sup = grid.supers_offset + ((bk // SUPER) * grid.supers_v + bj // SUPER) * grid.supers_u + bi // SUPER
-            if pyramid[b, sup] == wp.uint8(0):
-                pyramid[b, sup] = wp.uint8(1)
+            mark_boxes(pyramid, b, grid, bk, bj, bi)
 
 
 @wp.kernel
@@ -179,12 +186,7 @@ def build_pyramid_words_kernel(
         bj = (row - slab * grid.height) // BLOCK
         b = slab // grid.depth
         bk = (slab - b * grid.depth) // BLOCK
-        blk = (bk * grid.blocks_v + bj) * grid.blocks_u + bi
-        if pyramid[b, blk] == wp.uint8(0):
-            pyramid[b, blk] = wp.uint8(1)
-        sup = grid.supers_offset + ((bk // SUPER) * grid.supers_v + bj // SUPER) * grid.supers_u + bi // SUPER
-        if pyramid[b, sup] == wp.uint8(0):
-            pyramid[b, sup] = wp.uint8(1)
+        mark_boxes(pyramid, b, grid, bk, bj, bi)
 
 
 # ---------------------------------------------------------------------------------------------- host side

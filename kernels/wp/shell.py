@@ -2,7 +2,7 @@
 first hit.
 
 General path: labels and pyramid (see :mod:`.occupancy`), a zeroed uint8 mask ``(B, N)``, one launch per camera
-marking every pixel's first-hit cell (:func:`~fruxel.kernels.traverse.trace_ray`, the same walk as
+marking every pixel's first-hit cell (:func:`~fruxel.kernels.wp.traverse.trace_ray`, the same walk as
 ``first_hit``), then one launch writing the output from the mask.
 
 Fast path: the grid's own camera at native resolution (:func:`~fruxel.kernels.traversal.is_own_view`) looks
@@ -21,7 +21,7 @@ from typing import Any
 
 from fruxel.grid import FruxelGrid
 
-from ..inputs import EMPTY_LOGIT, check_cameras, inspect_volume
+from ..inputs import check_cameras, empty_scores, inspect_volume
 from ..traversal import is_own_view
 from . import traverse
 from .arrays import Buffer, Workspace, compute_device
@@ -255,8 +255,7 @@ def shell(
     spec = inspect_volume(volume, grid, threshold, probs)
     cams = check_cameras(cameras)
     ws = Workspace.like(volume, compute_device(volume, device))
-    # The size test first: is_own_view compares poses and intrinsics, which costs more than a launch.
-    own_view = [c.width == grid.width and c.height == grid.height and is_own_view(c, grid) for c in cams]
+    own_view = [is_own_view(c, grid) for c in cams]
     own = any(own_view)
     others = [c for c, o in zip(cams, own_view, strict=True) if not o]
     g = grid_info(grid)
@@ -267,7 +266,7 @@ def shell(
     if spec.is_scores:
         scores = scores_input(ws, volume, spec, grid)
         mode, thr = score_mode(spec.threshold, spec.probs)
-        first, rest = (1.0, 0.0) if spec.probs else (0.0, EMPTY_LOGIT)
+        first, rest = empty_scores(spec)
         out = ws.empty(scores.shape, scores.dtype)
         if not others:
             ws.launch(

@@ -68,7 +68,7 @@ from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
 from .. import traversal
-from .arrays import Buffer, Packed, Workspace
+from .arrays import Buffer, Packed, Workspace, device_of
 from .runtime import warp
 from .traverse import (
     FAMILY_U,
@@ -535,10 +535,6 @@ class SavedRays:
     """Image ``(h, w)`` of every camera."""
 
 
-def _warp_device(t: Any) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
 @contextmanager
 def _flush_denormals(cpu: bool) -> Iterator[None]:
     """Run the enclosed CPU launches with denormals flushed to zero (FTZ/DAZ), restoring the caller's mode after.
@@ -606,7 +602,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
         the kernels: on CUDA they run in the caller's torch stream order.
     """
     real = _real(probs)
-    dev = _warp_device(probs)
+    dev = device_of(probs)
     ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
     h, w = cameras[0].height, cameras[0].width
@@ -657,7 +653,7 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
     import torch
 
     real = _real(probs)
-    dev = _warp_device(probs)
+    dev = device_of(probs)
     ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
     kernels = _kernels(real, c - 1)

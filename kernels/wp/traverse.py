@@ -110,14 +110,10 @@ class GridInfo:
     """Pyramid blocks along i, ``ceil(W / BLOCK)``."""
     blocks_v: wp.int32
     """Pyramid blocks along j, ``ceil(H / BLOCK)``."""
-    blocks_z: wp.int32
-    """Pyramid blocks along k, ``ceil(D / BLOCK)``."""
     supers_u: wp.int32
     """Super-blocks along i, ``ceil(blocks_u / SUPER)``."""
     supers_v: wp.int32
     """Super-blocks along j, ``ceil(blocks_v / SUPER)``."""
-    supers_z: wp.int32
-    """Super-blocks along k, ``ceil(blocks_z / SUPER)``."""
     supers_offset: wp.int32
     """Where the super-block flags start in a pyramid row: the number of blocks, ``bd * bh * bw``."""
 
@@ -184,9 +180,8 @@ def grid_info(grid: FruxelGrid) -> GridInfo:
     g.u0, g.v0, g.du, g.dv, g.z_near, g.dz, g.z_far = (float(x) for x in p[:7])
     g.width, g.height, g.depth = grid.width, grid.height, grid.depth
     g.blocks_v, g.blocks_u = blocks(grid.height), blocks(grid.width)
-    g.blocks_z = blocks(grid.depth)
-    g.supers_u, g.supers_v, g.supers_z = supers(grid.width), supers(grid.height), supers(grid.depth)
-    g.supers_offset = g.blocks_u * g.blocks_v * g.blocks_z
+    g.supers_u, g.supers_v = supers(grid.width), supers(grid.height)
+    g.supers_offset = math.prod(pyramid_shape(grid))
     return g
 
 
