@@ -1,0 +1,25 @@
+"""Every script in benchmarks/ starts and answers ``--help``: the scripts run outside the test suite (on lent
+machines, for BENCHMARKS.md), so an import that a refactoring broke would otherwise surface only there."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPTS = sorted(p for p in BENCHMARKS.glob("*.py") if p.name != "common.py")
+
+
+def test_there_are_scripts() -> None:
+    assert len(SCRIPTS) >= 8 and any(p.name == "table1.py" for p in SCRIPTS)
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=[p.stem for p in SCRIPTS])
+def test_script_answers_help(script: Path) -> None:
+    out = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120,
+                         cwd=BENCHMARKS.parent)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("usage:"), out.stdout[:200]
