@@ -449,9 +449,6 @@ class FrameRenderer:
         """The mesh for ``camera``: built once, or per camera for ``shell="view"``."""
         if self.mesh is None or self.opts.shell == "view":
             self.mesh = build_mesh(self.inp, self.opts, camera)
-            if self._view is not None:
-                self._view.set_camera(camera)
-                self._view.set_mesh(self.mesh)
         return self.mesh
 
     def mesh_image(self, camera: Camera) -> tuple[np.ndarray, list[int]]:
@@ -462,10 +459,11 @@ class FrameRenderer:
         mesh = self.mesh_for(camera)
         if self._view is None:
             self._view = MeshView(self.inp.grid, MeshStyle(shading=self.opts.shading, frustum=self.opts.frustum))
-            self._view.set_camera(camera)
+        # A new mesh is shaded once, for this camera: the old one is not re-shaded on the way.
+        new = self._view.mesh is not mesh
+        self._view.set_camera(camera, reshade=not new)
+        if new:
             self._view.set_mesh(mesh)
-        else:
-            self._view.set_camera(camera)
         return self._view.render(), present_labels(mesh.labels)
 
     def raycast_image(self, camera: Camera) -> tuple[np.ndarray, list[int]]:

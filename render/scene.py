@@ -291,12 +291,13 @@ class MeshView:
         return self._camera
 
     @property
-    def n_triangles(self) -> int:
-        """Triangles of the current mesh (0 when none)."""
-        return 0 if self._mesh is None else self._mesh.n_faces
+    def mesh(self) -> TriMesh | None:
+        """The mesh shown, None before :meth:`set_mesh`."""
+        return self._mesh
 
-    def set_camera(self, camera: Camera) -> None:
-        """View from ``camera`` (the image gets its size); re-shades a ``"lit"`` mesh when the view turned."""
+    def set_camera(self, camera: Camera, *, reshade: bool = True) -> None:
+        """View from ``camera`` (the image gets its size); re-shades a ``"lit"`` mesh when the view turned, unless
+        ``reshade`` is False (the caller replaces the mesh next, which shades it for this camera)."""
         znear, zfar = clip_range(camera, self.grid)
         if self._camera_node is None:
             self._camera_node = self.scene.add(pyrender_camera(camera, znear, zfar), pose=camera.opengl_pose())
@@ -306,7 +307,7 @@ class MeshView:
             cam.znear, cam.zfar = znear, zfar
             self.scene.set_pose(self._camera_node, camera.opengl_pose())
         self._camera = camera
-        if self._mesh is not None and self._needs_reshade():
+        if reshade and self._mesh is not None and self._needs_reshade():
             self.set_mesh(self._mesh)
 
     def _needs_reshade(self) -> bool:

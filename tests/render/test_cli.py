@@ -321,3 +321,22 @@ def test_unwritable_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     blocker.write_text("not a folder")
     rc = run_cli("--backend", BACKEND, "--mode", "raycast", "--size", SIZE, "--out", blocker / "sub")
     _one_error_line(rc, capsys.readouterr().err, "cannot write")
+
+
+def test_view_shell_frames_shade_each_new_mesh_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a shell per view and lit shading, each orbit frame builds one pyrender mesh (its own, shaded for its
+    camera; the previous one is not re-shaded on the way), and the frames equal those of fresh renderers."""
+    from fruxel.render import cli, scene
+
+    inp = cli.load_input(None)
+    opts = cli.RenderOptions(mode="mesh", shell="view", shading="lit", legend=False)
+    cams = cli.orbit(inp.grid, default_camera(inp.grid, 160, 120), 3)
+    calls = []
+    real = scene.pyrender_mesh
+    monkeypatch.setattr(scene, "pyrender_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    frames = cli.FrameRenderer(inp, opts)
+    images = [frames.mesh_image(c)[0] for c in cams]
+    assert len(calls) == len(cams)
+    for cam, img in zip(cams, images, strict=True):
+        np.testing.assert_array_equal(img, cli.FrameRenderer(inp, opts).mesh_image(cam)[0])
+    assert not np.array_equal(images[0], images[1])
