@@ -1,7 +1,7 @@
 # The two commands of the README. Both create .venv and install the pinned dependencies when needed.
 #   make demo   renders the bundled sample model (the main job) into out/
 #   make test   runs the test suite
-.PHONY: demo test env lint bench-cpu
+.PHONY: demo test env lint
 
 export PYOPENGL_PLATFORM ?= egl
 

@@ -179,16 +179,12 @@ class Scene:
         the input of :func:`fruxel.kernels.fruxelize`."""
         return [(np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces), o.label) for o in self.objects]
 
-    def mesh_set(self, device: str | None = None) -> Any:
+    def mesh_set(self, backend: str | None = None, device: str | None = None) -> Any:
         """The scene uploaded once for many :func:`fruxel.kernels.fruxelize` calls (a user-held
-        :class:`fruxel.kernels.fruxelize.MeshSet`)."""
+        :class:`fruxel.kernels.fruxelize.MeshSet`; ``backend``, ``device`` as for it)."""
         from fruxel.kernels.fruxelize import MeshSet
 
-        return MeshSet(self.labelled_meshes(), device=device)
-
-    def objects_with_label(self, label: int) -> list[SceneObject]:
-        """The objects of one class."""
-        return [o for o in self.objects if o.label == label]
+        return MeshSet(self.labelled_meshes(), backend=backend, device=device)
 
 
 @dataclass(frozen=True)

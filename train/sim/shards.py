@@ -216,7 +216,6 @@ class SampleMaker:
     def _load_room(self, split: str, scene: int) -> _Room:
         if self._room is not None and self._room.key == (split, scene):
             return self._room
-        from fruxel.kernels.fruxelize import MeshSet
 
         from .robot import TrajectoryError, random_trajectory
         from .scene import make_scene
@@ -237,7 +236,7 @@ class SampleMaker:
             t2 = time.perf_counter()
             self.timings["trajectory"] += t2 - t1
             self._room = None
-            mesh_set = MeshSet(room.labelled_meshes(), backend=self.backend, device=self.device)
+            mesh_set = room.mesh_set(backend=self.backend, device=self.device)
             self.timings["upload"] += time.perf_counter() - t2
             self._room = _Room((split, scene), room, np.asarray(traj.poses, dtype=np.float64), mesh_set, s_seed)
             return self._room
