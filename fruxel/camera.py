@@ -29,6 +29,22 @@ RIGID_TOLERANCE = 1e-5
 MAX_PIXELS = 2**28
 
 
+def orbit_direction(azimuth: Any, elevation: Any) -> np.ndarray:
+    """Unit direction from an orbit's centre to its eye, grid frame (OpenCV axes: y down, z forward).
+
+    Azimuth 0 is the grid's own viewing side (the eye towards -z, behind the apex); positive azimuth turns towards
+    +x. Elevation lifts the eye towards -y (up).
+
+    Args:
+        azimuth, elevation: radians, scalars or arrays (broadcast against each other).
+
+    Returns:
+        ``(..., 3)`` float64 unit vectors.
+    """
+    az, el = np.asarray(azimuth, np.float64), np.asarray(elevation, np.float64)
+    return np.stack(np.broadcast_arrays(np.sin(az) * np.cos(el), -np.sin(el), -np.cos(az) * np.cos(el)), axis=-1)
+
+
 class CameraError(ValueError):
     """Raised for impossible camera parameters: non-positive focal lengths or sizes, non-finite numbers,
     a pose that is not a rigid 4x4 transform."""

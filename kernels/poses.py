@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from fruxel.camera import Camera, CameraError
+from fruxel.camera import Camera, CameraError, orbit_direction
 from fruxel.grid import FruxelGrid
 
 
@@ -53,7 +53,7 @@ def orbit_cameras(
     if int(m) != m or m < 1:
         raise CameraError(f"m must be a positive integer, got {m}")
     box = grid.bounds()
-    centre = box.mean(axis=0)
+    centre = grid.centre()
     if radius is None:
         half_h = math.radians(hfov) / 2.0
         half_v = math.atan(math.tan(half_h) * height / width)
@@ -72,7 +72,7 @@ def orbit_cameras(
             az = np.arange(m) * (2 * math.pi / m)
         else:
             az = np.linspace(-span / 2, span / 2, m)
-        dirs = np.stack([np.sin(az) * math.cos(el), -np.full(m, math.sin(el)), -np.cos(az) * math.cos(el)], axis=-1)
+        dirs = orbit_direction(az, el)
     elif layout == "sphere":
         idx = np.arange(m) + 0.5
         polar = np.arccos(1 - 2 * idx / m)

@@ -285,11 +285,11 @@ def _look_from(grid: FruxelGrid, azimuth: float, elevation: float, width: int, h
     import numpy as np
 
     from fruxel import Camera
+    from fruxel.camera import orbit_direction
 
     from .scene import frustum_corners
 
-    az, el = math.radians(azimuth), math.radians(elevation)
-    d = np.array([math.sin(az) * math.cos(el), -math.sin(el), -math.cos(az) * math.cos(el)])
+    d = orbit_direction(math.radians(azimuth), math.radians(elevation))
     corners = frustum_corners(grid)
     target = grid.centre()
 

@@ -257,3 +257,16 @@ def test_with_pose_and_scaled_keep_the_view() -> None:
     p = np.array([0.2, 0.1, 3.0])
     # Doubling the resolution doubles continuous pixel coordinates and keeps the depth.
     np.testing.assert_allclose(big.project(p), cam.project(p) * [2.0, 2.0, 1.0], rtol=1e-12)
+
+
+def test_orbit_direction_axes_and_broadcast() -> None:
+    """Azimuth 0 looks from -z (the grid's own side), +90 degrees from +x; elevation 90 degrees from above (-y)."""
+    from fruxel.camera import orbit_direction
+
+    np.testing.assert_allclose(orbit_direction(0.0, 0.0), [0.0, 0.0, -1.0], atol=1e-15)
+    np.testing.assert_allclose(orbit_direction(np.pi / 2, 0.0), [1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(orbit_direction(0.3, np.pi / 2), [0.0, -1.0, 0.0], atol=1e-15)
+    d = orbit_direction(np.linspace(-3, 3, 7), 0.4)
+    assert d.shape == (7, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, rtol=1e-15)
+    np.testing.assert_allclose(d[:, 1], -np.sin(0.4))
