@@ -1,8 +1,7 @@
 """Profile of the OpenCL backend (PoCL on the CPU): whole calls and their parts, in steady state.
 
-Scene: a 128^3 room-like label volume (floor, back and side walls, furniture blocks, a floating sculpture; about
-25% occupied). Views: an oblique 512x512 camera outside the grid (front-left-above, looking at the frustum's
-centre), a 512x512 camera above the room looking down into it (long rays through empty space), 6
+Scene: the kernel benchmark's (``fruxel.data.rooms``: ``room_volume(128)``, about 25 % occupied). Views: its
+``oblique_camera`` at 512x512, a 512x512 camera above the room looking down into it (long rays through empty space), 6
 ``orbit_cameras`` at 512x512 for ``shell``, and the grid's own view for ``shell`` of ``(4, 7, 128, 128, 128)``
 float32 logits.
 
@@ -23,38 +22,12 @@ from collections.abc import Callable
 import numpy as np
 
 from fruxel.camera import Camera
+from fruxel.data import rooms
 from fruxel.grid import FruxelGrid
 from fruxel.kernels import orbit_cameras
 from fruxel.kernels.cl import first_hit, occupancy, shell
 from fruxel.kernels.cl.runtime import get_runtime, host_array
 from fruxel.kernels.inputs import inspect_volume
-
-
-def room(n: int = 128, seed: int = 0) -> tuple[FruxelGrid, np.ndarray]:
-    """A room-like ``(n, n, n)`` uint8 label volume in a 60 degree grid from 0.5 to 8 m."""
-    g = FruxelGrid(width=n, height=n, depth=n, z_near=0.5, z_far=8.0, hfov=60.0)
-    lab = np.zeros(g.shape, np.uint8)
-    t = max(2, n // 16)
-    lab[:, n - t:, :] = 2
-    lab[n - t:, :, :] = 1
-    lab[:, :, :t] = 1
-    lab[:, :, n - t:] = 1
-    rng = np.random.default_rng(seed)
-    for _ in range(10):
-        k0 = rng.integers(n // 8, n - n // 4)
-        j0 = rng.integers(n // 2, n - t - 4)
-        i0 = rng.integers(t, n - n // 4)
-        dk, dj, di = rng.integers(n // 16, n // 5, 3)
-        lab[k0:k0 + dk, j0:j0 + dj, i0:i0 + di] = 4
-    lab[n // 3:n // 3 + n // 6, n // 4:n // 4 + n // 6, n // 2:n // 2 + n // 8] = 6
-    return g, lab
-
-
-def oblique(g: FruxelGrid, size: int = 512) -> Camera:
-    """Front-left-above, outside the grid, looking at the frustum's centre."""
-    c = g.centre()
-    span = float(np.max(g.bounds()[1] - g.bounds()[0]))
-    return Camera.look_at(c + np.array([-0.9, -0.7, -1.1]) * span * 0.6, c, width=size, height=size)
 
 
 def above(g: FruxelGrid, size: int = 512) -> Camera:
@@ -86,10 +59,10 @@ def main() -> None:
     ap.add_argument("--skip-scores", action="store_true", help="skip the (4, 7, 128^3) logits shell")
     args = ap.parse_args()
 
-    g, lab = room()
+    lab, g = rooms.room_volume(128)
     rt = get_runtime(None)
     print(f"device: {rt.device.name.strip()}  occupancy {np.mean(lab > 0):.3f}")
-    cam_ob, cam_up = oblique(g), above(g)
+    cam_ob, cam_up = rooms.oblique_camera(g, 512), above(g)
     orbit = orbit_cameras(g, 6)
     spec = inspect_volume(lab, g)
 

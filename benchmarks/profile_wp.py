@@ -3,8 +3,8 @@
     python benchmarks/profile_wp.py --device cpu
     python benchmarks/profile_wp.py --device cuda:0 --repeat 200
 
-Scene: a 128^3 grid (z 0.5..8 m, 60 degree hfov) holding a room at about 25 % occupancy: floor and back / side wall
-slabs plus furniture blocks on the floor; viewed from oblique poses outside the grid (``orbit_cameras``).
+Scene: the kernel benchmark's (``fruxel.data.rooms``: ``room_volume(128)``, about 25 % occupied, and its
+``oblique_camera``; ``orbit_cameras`` for ``shell``).
 Cases (targets for an H100 in brackets):
 
 * ``first_hit``  128^3 labels, 512^2 oblique view                       [<= 0.1 ms]
@@ -34,28 +34,11 @@ from typing import Any
 import numpy as np
 
 from fruxel.camera import Camera
-from fruxel.grid import FruxelGrid
+from fruxel.data import rooms
 from fruxel.kernels import orbit_cameras
 from fruxel.kernels.inputs import inspect_volume
 from fruxel.kernels.wp import first_hit, shell, traverse
 from fruxel.kernels.wp.runtime import resolve_device
-
-
-def room_labels(grid: FruxelGrid, seed: int = 0) -> np.ndarray:
-    """A room-like ``(D, H, W)`` uint8 label volume at about 25 % occupancy (wall 1, floor 2, furniture 4)."""
-    d, h, w = grid.shape
-    lab = np.zeros(grid.shape, np.uint8)
-    lab[:, h - h // 8 :, :] = 2  # floor slab: the bottom rows (y points down)
-    lab[d - d // 20 :, :, :] = 1  # back wall
-    lab[:, :, : w // 25] = 1  # side walls
-    lab[:, :, w - w // 25 :] = 1
-    rng = np.random.default_rng(seed)
-    top = h - h // 8
-    for _ in range(14):
-        bd, bh, bw = rng.integers(d // 16, d // 5), rng.integers(h // 16, h // 4), rng.integers(w // 16, w // 5)
-        k0, i0 = rng.integers(0, d - bd), rng.integers(0, w - bw)
-        lab[k0 : k0 + bd, top - bh : top, i0 : i0 + bw] = 4
-    return lab
 
 
 def timed(fn: Callable[[], Any], device: str, repeat: int) -> float:
@@ -160,11 +143,10 @@ def main() -> None:
     cuda = device.startswith("cuda")
     repeat = args.repeat or (100 if cuda else 5)
 
-    grid = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=8.0, hfov=60.0)
-    lab = room_labels(grid)
+    lab, grid = rooms.room_volume(128)
     print(f"device {device}, occupancy {np.mean(lab != 0):.3f}, repeat {repeat}")
     cams = orbit_cameras(grid, 6, width=512, height=512)
-    oblique = cams[1]
+    oblique = rooms.oblique_camera(grid, 512)
     vol = _on_device(lab, device)
 
     def report(name: str, fn: Callable[[], Any], target: str = "", n: int = repeat) -> None:
@@ -200,9 +182,9 @@ def main() -> None:
     report("shell own view 128^3 labels", lambda: shell(vol, grid, own, device=device))
 
     if cuda or args.large:
-        big = FruxelGrid(width=256, height=256, depth=256, z_near=0.5, z_far=8.0, hfov=60.0)
-        vbig = _on_device(room_labels(big), device)
-        cam_big = orbit_cameras(big, 6, width=1024, height=1024)[1]
+        lab_big, big = rooms.room_volume(256)
+        vbig = _on_device(lab_big, device)
+        cam_big = rooms.oblique_camera(big, 1024)
         report("first_hit 256^3 labels, 1024^2 oblique", lambda: first_hit(vbig, big, cam_big, device=device),
                "[H100 <= 1 ms]")
 
