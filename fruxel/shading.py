@@ -12,6 +12,10 @@ import numpy as np
 
 DEFAULT_BACKGROUND = (255, 255, 255)
 """RGB of pixels whose ray missed."""
+DEFAULT_LIGHT = (-0.4, -0.7, -0.6)
+"""Direction towards the light (OpenCV axes: above-left-behind the viewer when given in the camera frame)."""
+DEFAULT_AMBIENT = 0.35
+"""Share of a colour lit regardless of orientation."""
 
 
 def shade_hits(
@@ -21,8 +25,8 @@ def shade_hits(
     palette: Any,
     camera_rotation: Any | None = None,
     *,
-    light: Any = (-0.4, -0.7, -0.6),
-    ambient: float = 0.35,
+    light: Any = DEFAULT_LIGHT,
+    ambient: float = DEFAULT_AMBIENT,
     fog: tuple[float, float] | None = None,
     background: tuple[int, int, int] = DEFAULT_BACKGROUND,
 ) -> np.ndarray:

@@ -20,14 +20,7 @@ import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
-
-DEFAULT_LIGHT = (-0.4, -0.7, -0.6)
-"""Direction towards the head light in the camera frame (OpenCV: above-left-behind the viewer); the default of
-:func:`fruxel.shading.shade_hits`."""
-DEFAULT_AMBIENT = 0.35
-"""Share of a colour lit regardless of orientation; the default of :func:`fruxel.shading.shade_hits`."""
-DEFAULT_BACKGROUND = (255, 255, 255)
-"""RGB of pixels whose ray misses."""
+from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_BACKGROUND, DEFAULT_LIGHT
 
 # With fog on, the farthest hit keeps 1 - 1 / FOG_SPAN of its colour: strong enough to read depth, never
 # fading a surface away.
@@ -122,9 +115,10 @@ def first_hits(
     return hits
 
 
-def fog_range(depth: np.ndarray, hit: np.ndarray) -> tuple[float, float] | None:
-    """``(near, far)`` of :attr:`RaycastStyle.fog` for hit depths ``(h, w)`` and mask ``(h, w)``, None if none hit."""
-    if not np.any(hit):
+def fog_range(depth: Any, hit: Any) -> tuple[float, float] | None:
+    """``(near, far)`` of :attr:`RaycastStyle.fog` for hit depths ``(h, w)`` and mask ``(h, w)`` (numpy, or torch
+    on any device), None if none hit."""
+    if not bool(hit.any()):
         return None
     d = depth[hit]
     near, last = float(d.min()), float(d.max())
@@ -159,13 +153,12 @@ def _shade_torch(label: Any, normal: Any, depth: Any, palette: np.ndarray, light
     inten = a + (1.0 - a) * (normal.to(torch.float32) @ ldir).clamp(0.0, 1.0)
     colour = pal[label.long()] * inten[..., None]
     bg = torch.as_tensor(style.background, dtype=torch.float32, device=dev)
-    if style.fog and bool(hit.any()):
+    if style.fog:
         d = depth.to(torch.float32)
-        dh = d[hit]
-        near, last = float(dh.min()), float(dh.max())
-        far = near + FOG_SPAN * max(last - near, 1e-6)
-        f = ((d - near) / (far - near)).clamp(0.0, 1.0)[..., None]
-        colour = colour * (1.0 - f) + bg * f
+        fr = fog_range(d, hit)
+        if fr is not None:
+            f = ((d - fr[0]) / (fr[1] - fr[0])).clamp(0.0, 1.0)[..., None]
+            colour = colour * (1.0 - f) + bg * f
     colour = torch.where(hit[..., None], colour, bg)
     return colour.round().clamp(0, 255).to(torch.uint8).cpu().numpy()
 

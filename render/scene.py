@@ -32,8 +32,9 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 from fruxel.mesh import TriMesh
+from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_LIGHT
 
-from .raycast import DEFAULT_AMBIENT, DEFAULT_LIGHT, lambert
+from .raycast import lambert
 
 if TYPE_CHECKING:
     import pyrender
