@@ -21,7 +21,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from fruxel.io import atomic_path, atomic_write
+from fruxel.io import atomic_path, atomic_write, replace_markdown_section
 
 ROOT = Path(__file__).resolve().parents[1]
 """The source checkout."""
@@ -232,20 +232,6 @@ def write_text(path: Path, text: str) -> None:
 
 # ---------------------------------------------------------------------------------------------- BENCHMARKS.md
 def replace_section(path: Path, heading: str, text: str) -> None:
-    """Replace the ``heading`` section of a Markdown file with ``text``, or append it; the other sections stay.
-
-    A section runs from its heading line to the next ``## `` heading (its own ``### `` subsections included) or
-    the end of the file. The file is rewritten atomically (:func:`fruxel.io.atomic_write`): other benchmarks
-    write their own sections of the same file, and readers never see half of it.
-
-    Args:
-        path: the Markdown file; a missing one is created with a ``# Benchmarks`` title.
-        heading: the section's heading line, e.g. ``"## Kernels"``.
-        text: the whole new section, heading line included; one blank line is kept before the next section.
-    """
-    old = path.read_text(encoding="utf-8") if path.exists() else _NEW_FILE
-    pattern = re.compile(rf"^{re.escape(heading)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
-    block = text.rstrip("\n") + "\n\n"
-    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
-    with atomic_write(path, "w") as f:
-        f.write(new.rstrip("\n") + "\n")
+    """Replace the ``heading`` section of BENCHMARKS.md-like ``path`` with ``text``, or append it
+    (:func:`fruxel.io.replace_markdown_section`; a missing file gets this folder's title)."""
+    replace_markdown_section(path, heading, text, new_file=_NEW_FILE)

@@ -47,7 +47,7 @@ from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.data import rooms
 from fruxel.grid import FruxelGrid
-from fruxel.io import atomic_path, atomic_write
+from fruxel.io import atomic_path, atomic_write, replace_markdown_section
 
 SECTION = "## Visualisation (Table 1)"
 """Heading of this benchmark's section in BENCHMARKS.md."""
@@ -576,17 +576,7 @@ def record(result: Table1Result | dict[str, Table1Result], results_dir: Path, ma
 
 def update_markdown(path: Path, section: str) -> None:
     """Replace (or append) the Table 1 section of a markdown file, leaving every other section as it is."""
-    text = path.read_text(encoding="utf-8") if path.is_file() else "# Benchmarks\n"
-    lines = text.splitlines(keepends=True)
-    start = next((i for i, line in enumerate(lines) if line.rstrip() == SECTION), None)
-    if start is None:
-        new = text.rstrip("\n") + "\n\n" + section
-    else:
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
-        rest = "".join(lines[end:])
-        new = "".join(lines[:start]) + section + ("\n" + rest if rest else "")
-    with atomic_write(path, "w") as f:
-        f.write(new)
+    replace_markdown_section(path, SECTION, section)
 
 
 # ---------------------------------------------------------------------------------------------------- entry
