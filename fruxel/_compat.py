@@ -1,4 +1,4 @@
-"""Small compatibility shims for third-party packages, applied before they are imported.
+"""Small compatibility shims for third-party packages: pyrender, applied before it is imported, and Pillow's fonts.
 
 pyrender 0.1.45 (the last release) refers to ``np.infty``, which NumPy 2 removed, and picks its OpenGL platform
 from ``PYOPENGL_PLATFORM`` at import time. fruxel does not import pyrender here (the core stays free of it);
@@ -8,6 +8,7 @@ from ``PYOPENGL_PLATFORM`` at import time. fruxel does not import pyrender here 
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -27,3 +28,13 @@ def prepare_pyrender(headless: bool | None = None) -> None:
         headless = not os.environ.get("DISPLAY")
     if headless:
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+
+def default_font(size: int) -> Any:
+    """Pillow's default font at ``size`` pixels; Pillow before 10.1 has only its fixed bitmap font."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:
+        return ImageFont.load_default()

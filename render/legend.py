@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from fruxel._compat import default_font
 from fruxel.classes import ClassTable
 
 SWATCH = 12
@@ -28,16 +29,6 @@ def present_labels(*label_arrays: Any) -> list[int]:
         if arr.size:
             seen.update(int(v) for v in np.unique(arr) if v != 0)
     return sorted(seen)
-
-
-def _font(size: int) -> Any:
-    from PIL import ImageFont
-
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:
-        # Pillow before 10.1 has only the fixed bitmap font.
-        return ImageFont.load_default()
 
 
 def _scale(image_height: int) -> float:
@@ -64,7 +55,7 @@ def draw_legend(image: Any, classes: ClassTable, labels: Iterable[int]) -> np.nd
         return np.asarray(img).copy()
     s = _scale(img.height)
     sw, pad = max(6, round(SWATCH * s)), max(2, round(PAD * s))
-    font = _font(max(8, round(11 * s)))
+    font = default_font(max(8, round(11 * s)))
     draw = ImageDraw.Draw(img, "RGBA")
     names = [classes.names[c] for c in labels]
     text_w = max(draw.textbbox((0, 0), n, font=font)[2] for n in names)
@@ -88,7 +79,7 @@ def draw_caption(image: Any, text: str) -> np.ndarray:
     img = Image.fromarray(np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3]))
     s = _scale(img.height)
     pad = max(2, round(PAD * s))
-    font = _font(max(8, round(11 * s)))
+    font = default_font(max(8, round(11 * s)))
     draw = ImageDraw.Draw(img, "RGBA")
     box = draw.textbbox((2 * pad, 2 * pad), text, font=font)
     draw.rectangle([box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad], fill=(255, 255, 255, 200))

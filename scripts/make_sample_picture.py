@@ -47,21 +47,13 @@ def render_picture(
 
     from fruxel.camera import Camera
     from fruxel.mesh import mesh_labels, to_trimesh
+    from fruxel.render.scene import frustum_lines
 
     mesh = mesh_labels(model.labels, model.grid, model.classes.palette(), mode="culled")
     scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 1.0], ambient_light=[0.35, 0.35, 0.35])
     scene.add(pyrender.Mesh.from_trimesh(to_trimesh(mesh), smooth=False))
 
-    # The frustum's 12 edges give the grid's extent; corners in cell_corners order.
-    g = model.grid
-    c = np.arange(8)
-    corners = g.corner_points((c >> 2) * g.depth, ((c >> 1) & 1) * g.height, (c & 1) * g.width).astype(np.float32)
-    edges = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
-    lines = pyrender.Primitive(
-        positions=corners[edges.reshape(-1)], mode=pyrender.constants.GLTF.LINES,
-        color_0=np.tile([0.25, 0.25, 0.25, 1.0], (24, 1)).astype(np.float32),
-    )
-    scene.add(pyrender.Mesh([lines]))
+    scene.add(frustum_lines(model.grid))  # the frustum's 12 edges give the grid's extent
 
     cam = Camera.look_at(eye=eye, target=target, width=size[0], height=size[1], hfov=50.0)
     yfov = 2.0 * np.arctan(size[1] / (2.0 * cam.fy))

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fruxel._compat import default_font
 from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose
 
 from .config import SimConfig
@@ -309,15 +310,6 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
     return Camera.look_at((0.5 * d, -0.35 * d, 0.0), (0.0, 0.0, d), width=size, height=height, hfov=grid.hfov)
 
 
-def _font(size: int) -> Any:
-    from PIL import ImageFont
-
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:
-        return ImageFont.load_default()
-
-
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
                   titles: Sequence[str]) -> np.ndarray:
     """Compose preview panels into one image: a title row, one row per sample, a class legend.
@@ -344,7 +336,7 @@ def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], p
             w = max(1, round(pil.width * panel_h / pil.height))
             out.append((title, np.asarray(pil.resize((w, panel_h), Image.NEAREST))))
         scaled.append(out)
-    font = _font(13)
+    font = default_font(13)
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
     legend_w = pad + sum(30 + int(measure.textlength(n, font=font)) for n in names[1:])
     titles_w = pad + max(int(measure.textlength(t, font=font)) for t in titles) + pad
