@@ -441,30 +441,38 @@ def _listing(missing: list[str], extra: list[str]) -> str:
 
 
 def _read_meta(zf: zipfile.ZipFile) -> tuple[FruxelGrid, ClassTable]:
-    with open_npy_member(zf, "meta.npy") as m:
+    return _check_meta(read_json_member(zf, "meta", MAX_META_CHARS))
+
+
+def read_json_member(zf: zipfile.ZipFile, name: str, max_chars: int) -> Any:
+    """The JSON value stored in member ``name.npy`` as a 0-d string (unicode, or UTF-8 bytes), read without
+    pickle and with a size limit checked before anything is read.
+
+    Raises:
+        ArchiveError: a member that is not a 0-d string, longer than ``max_chars``, not UTF-8 or not JSON.
+    """
+    with open_npy_member(zf, f"{name}.npy") as m:
         dtype, shape = m.dtype, m.shape
         if dtype.kind not in "US" or dtype.fields is not None:
-            raise ArchiveError(f"member 'meta' has dtype {dtype}, expected a unicode string")
+            raise ArchiveError(f"member {name!r} has dtype {dtype}, expected a unicode string")
         if shape != ():
-            raise ArchiveError(f"member 'meta' has shape {shape}, expected a 0-d string")
+            raise ArchiveError(f"member {name!r} has shape {shape}, expected a 0-d string")
         chars = dtype.itemsize // 4 if dtype.kind == "U" else dtype.itemsize
-        if chars > MAX_META_CHARS:
-            raise ArchiveError(f"member 'meta' is too large: {chars} characters, limit {MAX_META_CHARS}")
+        if chars > max_chars:
+            raise ArchiveError(f"member {name!r} is too large: {chars} characters, limit {max_chars}")
         raw = m.read()
     value = np.frombuffer(raw, dtype=dtype, count=1)[0] if dtype.itemsize else dtype.type()
     if dtype.kind == "S":
         try:
             text = bytes(value).decode("utf-8")
         except UnicodeDecodeError:
-            raise ArchiveError("member 'meta' is not valid UTF-8") from None
+            raise ArchiveError(f"member {name!r} is not valid UTF-8") from None
     else:
         text = str(value)
     try:
-        meta = json.loads(text)
+        return json.loads(text)
     except (ValueError, RecursionError) as e:
-        problem = f"meta is not valid JSON ({e})"
-    else:
-        return _check_meta(meta)
+        problem = f"{name} is not valid JSON ({e})"
     raise ArchiveError(problem)
 
 

@@ -65,7 +65,7 @@ from fruxel.io import (
     atomic_write,
     describe_read_error,
     open_archive,
-    open_npy_member,
+    read_json_member,
     read_npy_member,
 )
 
@@ -393,6 +393,19 @@ def _reading(path: str) -> Iterator[None]:
     raise DatasetError(path, f"corrupt or foreign shard: {problem}") from None
 
 
+def check_shard_sha256(path: str, sha256: str, advice: str) -> None:
+    """Compare the shard at ``path`` with the manifest's SHA-256.
+
+    Raises:
+        DatasetError: the digests differ (``advice`` says what to do), or the file cannot be read.
+    """
+    with _reading(path):
+        actual = file_sha256(path)
+    if actual != sha256:
+        raise DatasetError(path, "corrupt or foreign shard: its SHA-256 differs from the manifest's (the file was "
+                                 f"damaged, truncated or replaced); {advice}")
+
+
 class ShardReader:
     """Strict reader of one shard file; samples are read one at a time.
 
@@ -426,12 +439,7 @@ class ShardReader:
             raise DatasetError(self.path, "missing shard (no such file)" if not os.path.exists(self.path)
                                else "not a regular file")
         if sha256 is not None:
-            with _reading(self.path):
-                actual = file_sha256(self.path)
-            if actual != sha256:
-                raise DatasetError(self.path, "corrupt or foreign shard: its SHA-256 differs from the manifest's "
-                                              "(the file was damaged, truncated or replaced); delete it and run "
-                                              "fruxel-sim generate again to remake it")
+            check_shard_sha256(self.path, sha256, "delete it and run fruxel-sim generate again to remake it")
         try:
             with _reading(self.path):
                 self._open(seed)
@@ -468,18 +476,7 @@ class ShardReader:
 
     def _read_meta(self) -> dict[str, Any]:
         assert self._zip is not None
-        with open_npy_member(self._zip, "meta.npy") as m:
-            dtype = m.dtype
-            if dtype.kind != "U" or m.shape != ():
-                raise ArchiveError(f"member 'meta' must be a 0-d unicode string, got {dtype} {m.shape}")
-            if dtype.itemsize // 4 > MAX_META_CHARS:
-                raise ArchiveError(f"member 'meta' is too large: {dtype.itemsize // 4} characters")
-            raw = m.read()
-        text = str(np.frombuffer(raw, dtype=dtype, count=1)[0]) if dtype.itemsize else ""
-        try:
-            meta = json.loads(text)
-        except ValueError as e:
-            raise ArchiveError(f"meta is not valid JSON ({e})") from None
+        meta = read_json_member(self._zip, "meta", MAX_META_CHARS)
         if not isinstance(meta, dict):
             raise ArchiveError("meta must be a JSON object")
         return meta
@@ -685,11 +682,7 @@ def _check_existing(out: str, manifest: Manifest) -> list[ShardSpec]:
         sha = manifest.hashes[spec.file]
         if os.path.lexists(path):
             if sha is not None:
-                with _reading(path):
-                    actual = file_sha256(path)
-                if actual != sha:
-                    raise DatasetError(path, "corrupt or foreign shard: its SHA-256 differs from the manifest's (the "
-                                             "file was damaged, truncated or replaced); delete it to have it remade")
+                check_shard_sha256(path, sha, "delete it to have it remade")
                 continue
             with ShardReader(path, spec, manifest.config, manifest.seed) as reader:
                 reader.samples()
