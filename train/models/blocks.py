@@ -1,0 +1,249 @@
+"""Building blocks of SSZ: 2D inverted residual blocks (MobileNetV2), their volumetric counterparts, and the
+2D-to-3D lift that puts image features into the depth slices of a fruxel volume.
+
+Tensors are NCHW (2D) and NCDHW (3D, SPEC section 2); a 3D block keeps its input's memory format, so a
+channels-last-3D input stays channels-last-3D.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+LEAK = 0.1
+"""Negative slope of the decoder's LeakyReLUs (SPEC section 8)."""
+
+
+def act2d() -> nn.Module:
+    """The 2D encoder's activation (ReLU6, as in MobileNetV2: bounded, so bf16 activations never overflow)."""
+    return nn.ReLU6(inplace=True)
+
+
+def act3d() -> nn.Module:
+    """The 3D decoder's activation (LeakyReLU, SPEC section 8)."""
+    return nn.LeakyReLU(LEAK, inplace=True)
+
+
+class InvertedResidual2d(nn.Module):
+    """MobileNetV2 inverted residual block: expand 1x1, depthwise 3x3, project 1x1 (linear), residual.
+
+    Args:
+        channels: input and output channels.
+        expand: expansion factor of the hidden width.
+    """
+
+    def __init__(self, channels: int, expand: int) -> None:
+        super().__init__()
+        hidden = channels * expand
+        self.body = nn.Sequential(
+            nn.Conv2d(channels, hidden, 1, bias=False), nn.BatchNorm2d(hidden), act2d(),
+            nn.Conv2d(hidden, hidden, 3, padding=1, groups=hidden, bias=False), nn.BatchNorm2d(hidden), act2d(),
+            nn.Conv2d(hidden, channels, 1, bias=False), nn.BatchNorm2d(channels),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, channels, h, w)`` -> same shape."""
+        return x + self.body(x)
+
+
+class Down2d(nn.Module):
+    """Halves the resolution with a depthwise 3x3 stride-2 convolution, then changes the width with a pointwise
+    one (SPEC section 8: "downscaled by depthwise and pointwise convolutions").
+
+    Args:
+        cin, cout: input and output channels.
+    """
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv2d(cin, cin, 3, stride=2, padding=1, groups=cin, bias=False), nn.BatchNorm2d(cin), act2d(),
+            nn.Conv2d(cin, cout, 1, bias=False), nn.BatchNorm2d(cout), act2d(),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, cin, h, w)`` -> ``(B, cout, ceil(h / 2), ceil(w / 2))``."""
+        return self.body(x)
+
+
+class InvertedResidual3d(nn.Module):
+    """Volumetric inverted residual block: expand 1x1x1, depthwise 3x3x3, project 1x1x1, residual.
+
+    No batch normalisation: on the H100 its bfloat16 statistics and backward kernels over 64^3 volumes cost more
+    than every convolution of the decoder together (benchmarks/bench_ssz.py). The projection starts at zero, so
+    each block starts as the identity and the stack trains stably without it.
+
+    Args:
+        channels: input and output channels.
+        expand: expansion factor of the hidden width.
+        group_width: channels per group of the 3x3x3 convolution: 1 is depthwise; larger groups run on cuDNN's
+            grouped kernels instead of PyTorch's own depthwise 3D kernel (see :func:`spatial_conv3d`).
+        spatial: False leaves the 3x3x3 convolution out (a per-cell block, for the finest level, where the
+            neighbourhood comes from the up-convolution below it).
+    """
+
+    def __init__(self, channels: int, expand: int, group_width: int = 1, spatial: bool = True) -> None:
+        super().__init__()
+        hidden = channels * expand
+        project = nn.Conv3d(hidden, channels, 1)
+        nn.init.zeros_(project.weight)
+        nn.init.zeros_(project.bias)
+        layers: list[nn.Module] = [nn.Conv3d(channels, hidden, 1), act3d()]
+        if spatial:
+            layers += [spatial_conv3d(hidden, group_width), act3d()]
+        self.body = nn.Sequential(*layers, project)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, channels, D, H, W)`` -> same shape."""
+        return x + self.body(x)
+
+
+def spatial_conv3d(channels: int, group_width: int = 1) -> nn.Conv3d:
+    """The 3x3x3 convolution of the decoder's blocks, ``channels`` in and out, in groups of ``group_width``
+    channels (1 = depthwise)."""
+    gw = max(1, min(group_width, channels))
+    while channels % gw:
+        gw -= 1
+    return nn.Conv3d(channels, channels, 3, padding=1, groups=channels // gw)
+
+
+def channels_last(model: nn.Module) -> nn.Module:
+    """Store every 5-D weight channels-last-3D and every 4-D weight channels-last (in place); returns ``model``.
+
+    ``Module.to(memory_format=...)`` refuses a model that mixes 2D and 3D convolutions, as SSZ does.
+    """
+    for p in model.parameters():
+        if p.ndim == 5:
+            p.data = p.data.contiguous(memory_format=torch.channels_last_3d)
+        elif p.ndim == 4:
+            p.data = p.data.contiguous(memory_format=torch.channels_last)
+    return model
+
+
+UPSAMPLE_MODES = ("parity", "resize", "transpose")
+"""How :class:`Up3d` doubles the resolution (see its docstring)."""
+
+
+class Up3d(nn.Module):
+    """Doubles the resolution of a volume: a depthwise-separable 3D up-convolution, LeakyReLU, pointwise 3D
+    convolution (SPEC section 8's decoder block).
+
+    Three forms of the up-convolution, measured in ``benchmarks/bench_ssz.py`` (PyTorch's grouped
+    ``ConvTranspose3d`` and depthwise ``Conv3d`` have no fast CUDA kernels: pytorch issues 37406 and 47341):
+
+    * ``"transpose"``: ``ConvTranspose3d(c, c, 4, stride=2, padding=1, groups=c / group_width)``, the literal
+      form, run at the output resolution;
+    * ``"resize"``: nearest-neighbour x2, then a 3x3x3 convolution at the output resolution (one kernel shared by
+      the eight output parities of the transposed form);
+    * ``"parity"`` (default): the 3x3x3 convolution at the *input* resolution, then a depthwise transposed
+      convolution of kernel 2 and stride 2, which gives each of the eight output parities its own weight per
+      channel. The neighbourhood is gathered where there are eight times fewer cells, and the kernel-2 transposed
+      convolution, written as nearest x2 times a periodic weight, is one elementwise product. On the H100 this
+      keeps the finest level free of 3x3x3 work.
+
+    Args:
+        cin, cout: input and output channels.
+        mode: one of :data:`UPSAMPLE_MODES`.
+        group_width: channels per group of the 3x3x3 convolution (1 = depthwise).
+    """
+
+    def __init__(self, cin: int, cout: int, mode: str = "parity", group_width: int = 1) -> None:
+        super().__init__()
+        if mode not in UPSAMPLE_MODES:
+            raise ValueError(f"upsample mode must be one of {UPSAMPLE_MODES}, got {mode!r}")
+        self.mode = mode
+        if mode == "transpose":
+            gw = max(1, min(group_width, cin))
+            while cin % gw:
+                gw -= 1
+            self.up = nn.ConvTranspose3d(cin, cin, 4, stride=2, padding=1, groups=cin // gw)
+        else:
+            self.up = spatial_conv3d(cin, group_width)
+        if mode == "parity":
+            # Depthwise ConvTranspose3d(kernel 2, stride 2) weights, one per channel and output parity.
+            self.parity = nn.Parameter(torch.ones(1, cin, 1, 2, 1, 2, 1, 2))
+        self.post = nn.Sequential(act3d(), nn.Conv3d(cin, cout, 1), act3d())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, cin, D, H, W)`` -> ``(B, cout, 2D, 2H, 2W)``."""
+        if self.mode == "resize":
+            x = self.up(nn.functional.interpolate(x, scale_factor=2.0, mode="nearest"))
+        elif self.mode == "parity":
+            y = self.up(x)
+            b, c, d, h, w = y.shape
+            up = (y[:, :, :, None, :, None, :, None] * self.parity.to(y.dtype)).reshape(b, c, 2 * d, 2 * h, 2 * w)
+            if y.is_contiguous(memory_format=torch.channels_last_3d) and not y.is_contiguous():
+                up = up.contiguous(memory_format=torch.channels_last_3d)
+            x = up
+        else:
+            x = self.up(x)
+        return self.post(x)
+
+
+def coordinates(shape: tuple[int, int, int], device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """Normalised cell coordinates of a grid level, ``(1, 3, D, H, W)``: channel 0 the slice ``(k + 1/2) / D``,
+    1 the row ``(j + 1/2) / H``, 2 the column ``(i + 1/2) / W``, each shifted to [-1/2, 1/2].
+
+    Convolutions are translation invariant; the camera-aligned grid is not (the floor is at the bottom of the
+    image, depth grows with k), so the decoder sees where each cell is.
+    """
+    axes = [(torch.arange(n, device=device, dtype=torch.float32) + 0.5) / n - 0.5 for n in shape]
+    k, j, i = torch.meshgrid(*axes, indexing="ij")
+    return torch.stack([k, j, i]).unsqueeze(0).to(dtype)
+
+
+class Lift(nn.Module):
+    """2D-to-3D skip of one decoder level: merges the decoder's volume with the image features of the same
+    resolution copied into every depth slice (the Z-GAN skip), and, with a depth distribution, with where along
+    each column the visible surface lies.
+
+    ``merge([x3d, copy(f2d), depth_features, coordinates])`` is one pointwise convolution over the concatenation;
+    it is computed as the sum of a 3D pointwise convolution of ``x3d`` and of the small per-cell features, plus a
+    2D pointwise convolution of ``f2d`` broadcast along depth. That is the same function without materialising
+    the copy (which would be ``D`` times the image features).
+
+    Depth features per cell (when ``depth_channels`` is 2): the probability that the column's first surface is in
+    this slice (the column's distribution, pooled to the level's resolution and scaled so that a column sums to
+    its hit probability) and the cumulative probability up to and including it (0 in front of the surface,
+    1 behind). Cells in front of what the camera sees are empty; the cumulative channel says which those are.
+
+    Args:
+        c3d: channels of the decoder's volume (0 at the bottom level, where there is none yet).
+        c2d: channels of the image features.
+        cout: output channels.
+        depth_channels: 0 (plain Z-GAN copy) or 2.
+    """
+
+    def __init__(self, c3d: int, c2d: int, cout: int, depth_channels: int) -> None:
+        super().__init__()
+        self.depth_channels = depth_channels
+        self.from_2d = nn.Conv2d(c2d, cout, 1, bias=False)
+        self.from_3d = nn.Conv3d(c3d, cout, 1, bias=False) if c3d else None
+        self.from_coords = nn.Conv3d(3, cout, 1, bias=True)
+        self.from_depth = nn.Conv3d(depth_channels, cout, 1, bias=False) if depth_channels else None
+        self.post = act3d()
+
+    def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor | None,
+                shape: tuple[int, int, int]) -> torch.Tensor:
+        """Merge one level.
+
+        Args:
+            x3d: ``(B, c3d, D, H, W)`` decoder volume, or None at the bottom level.
+            f2d: ``(B, c2d, H, W)`` image features of this resolution.
+            depth: ``(B, depth_channels, D, H, W)`` depth features, or None when ``depth_channels`` is 0.
+            shape: ``(D, H, W)`` of this level.
+
+        Returns:
+            ``(B, cout, D, H, W)``, in ``x3d``'s memory format.
+        """
+        ref = x3d if x3d is not None else f2d
+        # The coordinate term is the same for every sample: computed once, broadcast over the batch.
+        y = self.from_coords(coordinates(shape, ref.device, ref.dtype)) + self.from_2d(f2d).unsqueeze(2)
+        if self.from_3d is not None:
+            # The dense volume first, so that the sum keeps its (channels-last) layout.
+            y = self.from_3d(x3d) + y
+        elif y.shape[0] != f2d.shape[0]:
+            y = y.expand(f2d.shape[0], -1, -1, -1, -1)
+        if self.from_depth is not None and depth is not None:
+            y = y + self.from_depth(depth.to(y.dtype))
+        return self.post(y)

@@ -1,0 +1,212 @@
+"""The SSZ generator: one RGB image of the grid's own camera -> logits of a fruxel model (SPEC section 8).
+
+Architecture (``L`` = ``config.levels``; level ``s`` has the grid's resolution divided by ``2^s``)::
+
+    image (B, 3, h, w), w = W * 2^k
+      | normalise; stem: 3x3 stride-2 conv, then k-1 depthwise/pointwise halvings        (2D, to H x W)
+      | encoder level s = 0 .. L-1: [halving], inverted residual blocks -> e_s          (B, E_s, H_s, W_s)
+      | global context: mean over the image, pointwise, added to e_{L-1}
+      | top-down path: t_{L-1} = e_{L-1}; t_s = block(up(t_{s+1}) + lateral(e_s))      (B, T_s, H_s, W_s)
+      | heads on t_0: column depth distribution (D + 1 bins, the last = no surface) and surface class (C)
+      v
+    3D decoder, bottom up:
+      x_{L-1} = Lift(learned depth lift of t_{L-1}, t_{L-1}, depth features)             (B, V_{L-1}, D_s, H_s, W_s)
+      x_s     = blocks(Lift(Up3d(x_{s+1}), t_s, depth features))                         (B, V_s, D_s, H_s, W_s)
+      logits  = pointwise(x_0)                                                           (B, C, D, H, W)
+
+The 2D-to-3D skips copy the image features of each resolution into every depth slice (Z-GAN's skip). A copy
+says nothing about *where along the column* something is, and a wall one or two cells thick must land in exactly
+the right slice; so the image side also predicts each column's first-surface depth as a distribution over the D
+slices (supervised with the ground truth's first occupied cell, as in categorical depth networks), and each
+level's skip carries that distribution and its running sum (0 in front of the surface, 1 behind) pooled to the
+level's resolution. ``lift="copy"`` turns this off (the plain Z-GAN skip) for comparison.
+
+Shapes: ``D, H, W`` must be divisible by ``2^(L-1)``; the image must be ``(H * 2^k, W * 2^k)`` with ``k >= 0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.utils.checkpoint import checkpoint
+
+from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Up3d, act2d
+
+IMAGE_MEAN = (0.485, 0.456, 0.406)
+"""Per-channel mean subtracted inside the model (inputs are RGB in [0, 1], SPEC section 8)."""
+IMAGE_STD = (0.229, 0.224, 0.225)
+"""Per-channel standard deviation divided inside the model."""
+
+
+@dataclass
+class SSZOutput:
+    """What :meth:`SSZGenerator.forward` returns."""
+
+    logits: torch.Tensor
+    """``(B, C, D, H, W)`` class logits of every cell, channel 0 = empty, in the autocast dtype."""
+    depth_logits: torch.Tensor | None
+    """``(B, D + 1, H, W)`` float32 logits of each column's first-surface slice (bin D = no surface); None with
+    ``lift="copy"``."""
+    surface_logits: torch.Tensor
+    """``(B, C, H, W)`` float32 logits of each column's first-surface class (0 = no surface)."""
+
+
+class SSZGenerator(nn.Module):
+    """Image -> fruxel logits (see the module docstring).
+
+    Args:
+        classes: C, number of classes including empty.
+        grid_shape: ``(D, H, W)`` of the output.
+        image_scale: k: the image is ``2^k`` times the grid's width and height.
+        levels: L, resolution levels of the encoder and decoder (the coarsest is the grid over ``2^(L-1)``).
+        stem: channels of the stem.
+        encoder: E_s, channels of encoder level s (length L).
+        encoder_blocks: inverted residual blocks per encoder level (length L).
+        topdown: T_s, channels of the top-down path at level s (length L).
+        decoder: V_s, channels of decoder level s (length L).
+        decoder_blocks: volumetric inverted residual blocks per decoder level (length L).
+        expand: expansion factor of every inverted residual block.
+        lift: ``"depth"`` (skips with the column depth distribution) or ``"copy"`` (the plain Z-GAN skip).
+        upsample: :class:`~.blocks.Up3d` mode.
+        group_width: channels per group of the decoder's 3x3x3 convolutions (1 = depthwise).
+        full_res_spatial: give the finest level's blocks a 3x3x3 convolution too (by default they are per-cell:
+            the neighbourhood comes from the up-convolution into that level).
+        checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
+            activations (less memory, about a third more decoder time).
+    """
+
+    def __init__(self, *, classes: int, grid_shape: tuple[int, int, int], image_scale: int, levels: int,
+                 stem: int, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...], topdown: tuple[int, ...],
+                 decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, lift: str = "depth",
+                 upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
+                 checkpointing: bool = False) -> None:
+        super().__init__()
+        for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
+                          ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
+            if len(seq) != levels:
+                raise ValueError(f"{name} needs one entry per level ({levels}), got {len(seq)}")
+        if lift not in ("depth", "copy"):
+            raise ValueError(f"lift must be 'depth' or 'copy', got {lift!r}")
+        d, h, w = grid_shape
+        f = 2 ** (levels - 1)
+        if d % f or h % f or w % f:
+            raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by 2^(levels-1) = {f} in every axis")
+        self.classes = classes
+        self.grid_shape = (d, h, w)
+        self.image_scale = image_scale
+        self.levels = levels
+        self.lift = lift
+        self.checkpointing = checkpointing
+        self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1), persistent=False)
+
+        # Stem: image resolution down to the grid's (k halvings); with k = 0 a stride-1 convolution.
+        self.stem = nn.Sequential(nn.Conv2d(3, stem, 3, stride=2 if image_scale else 1, padding=1, bias=False),
+                                  nn.BatchNorm2d(stem), act2d())
+        self.stem_down = nn.Sequential(*[Down2d(stem, stem) for _ in range(max(image_scale - 1, 0))])
+
+        enc = []
+        cin = stem
+        for s in range(levels):
+            layers: list[nn.Module] = [Down2d(cin, encoder[s])] if s else [
+                nn.Conv2d(cin, encoder[s], 1, bias=False), nn.BatchNorm2d(encoder[s]), act2d()]
+            layers += [InvertedResidual2d(encoder[s], expand) for _ in range(encoder_blocks[s])]
+            enc.append(nn.Sequential(*layers))
+            cin = encoder[s]
+        self.encoder = nn.ModuleList(enc)
+        self.context = nn.Sequential(nn.Conv2d(encoder[-1], encoder[-1], 1), act2d())
+
+        self.lateral = nn.ModuleList(nn.Conv2d(encoder[s], topdown[s], 1, bias=False) for s in range(levels))
+        self.topdown_up = nn.ModuleList(nn.Conv2d(topdown[s + 1], topdown[s], 1, bias=False)
+                                        for s in range(levels - 1))
+        self.topdown = nn.ModuleList(
+            nn.Sequential(nn.BatchNorm2d(topdown[s]), act2d(), InvertedResidual2d(topdown[s], expand))
+            for s in range(levels))
+        self.depth_head = nn.Conv2d(topdown[0], d + 1, 1) if lift == "depth" else None
+        self.surface_head = nn.Conv2d(topdown[0], classes, 1)
+
+        depth_channels = 2 if lift == "depth" else 0
+        db = d // f
+        self.bottom_lift = nn.Conv2d(topdown[-1], decoder[-1] * db, 1)
+        self.lifts = nn.ModuleList(
+            Lift(decoder[s], topdown[s], decoder[s], depth_channels) for s in range(levels))
+        self.ups = nn.ModuleList(Up3d(decoder[s + 1], decoder[s], upsample, group_width) for s in range(levels - 1))
+        self.blocks = nn.ModuleList(
+            nn.Sequential(*[InvertedResidual3d(decoder[s], expand, group_width, spatial=s > 0 or full_res_spatial)
+                            for _ in range(decoder_blocks[s])])
+            for s in range(levels))
+        self.head = nn.Conv3d(decoder[0], classes, 1)
+
+    # ------------------------------------------------------------------ parts
+    def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
+        """Top-down image features ``t_s``, ``(B, T_s, H / 2^s, W / 2^s)`` for s = 0 .. L-1."""
+        d, h, w = self.grid_shape
+        k = self.image_scale
+        if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
+            raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
+        x = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
+        x = self.stem_down(self.stem(x))
+        feats = []
+        for s, stage in enumerate(self.encoder):
+            x = stage(x)
+            if s == self.levels - 1:
+                x = x + self.context(x.mean(dim=(2, 3), keepdim=True))
+            feats.append(x)
+        t = self.lateral[-1](feats[-1])
+        out = [self.topdown[-1](t)]
+        for s in range(self.levels - 2, -1, -1):
+            up = F.interpolate(self.topdown_up[s](out[0]), scale_factor=2.0, mode="nearest")
+            out.insert(0, self.topdown[s](up + self.lateral[s](feats[s])))
+        return out
+
+    @staticmethod
+    def depth_features(depth_logits: torch.Tensor, levels: int) -> list[torch.Tensor]:
+        """Per level, ``(B, 2, D_s, H_s, W_s)`` float32: the first-surface probability of each cell and its
+        running sum along depth (see :class:`~.blocks.Lift`).
+
+        Args:
+            depth_logits: ``(B, D + 1, H, W)``; the last bin (no surface) is dropped after the softmax.
+            levels: number of levels.
+        """
+        p = torch.softmax(depth_logits.float(), dim=1)[:, :-1].unsqueeze(1)  # (B, 1, D, H, W)
+        out = []
+        for s in range(levels):
+            ps = F.avg_pool3d(p, 2**s) * (2**s) if s else p
+            out.append(torch.cat([ps, torch.cumsum(ps, dim=2).clamp_(max=1.0)], dim=1))
+        return out
+
+    def _run(self, module: nn.Module, *args: torch.Tensor) -> torch.Tensor:
+        if self.checkpointing and self.training and torch.is_grad_enabled():
+            return checkpoint(module, *args, use_reentrant=False)
+        return module(*args)
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, image: torch.Tensor) -> SSZOutput:
+        """Predict a batch.
+
+        Args:
+            image: ``(B, 3, H * 2^k, W * 2^k)`` float RGB in [0, 1] (the grid's own camera, scaled).
+
+        Returns:
+            :class:`SSZOutput`.
+        """
+        t = self.encode(image)
+        d, h, w = self.grid_shape
+        depth_logits = self.depth_head(t[0]).float() if self.depth_head is not None else None
+        surface_logits = self.surface_head(t[0]).float()
+        depth = self.depth_features(depth_logits, self.levels) if depth_logits is not None else [None] * self.levels
+        shapes = [(d >> s, h >> s, w >> s) for s in range(self.levels)]
+        b = image.shape[0]
+        bottom = self.bottom_lift(t[-1])
+        ds, hs, ws = shapes[-1]
+        x = bottom.reshape(b, -1, ds, hs, ws)
+        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1])
+        x = self._run(self.blocks[-1], x)
+        for s in range(self.levels - 2, -1, -1):
+            x = self.ups[s](x)
+            x = self.lifts[s](x, t[s], depth[s], shapes[s])
+            x = self._run(self.blocks[s], x)
+        return SSZOutput(logits=self.head(x), depth_logits=depth_logits, surface_logits=surface_logits)
