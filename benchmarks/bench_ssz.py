@@ -1,0 +1,239 @@
+"""SSZ benchmark: the 3D up-convolution variants, training throughput with the simulator streaming in the same
+run, and image -> logits (-> shell -> ray-cast) latency at batch 1.
+
+Parts (``--parts``, default all):
+
+* ``layers``: one decoder up-block's depthwise up-convolution, forward + backward, at the ``ssz64`` preset's
+  level-0 shape (B x 16 x 32^3 -> 64^3): PyTorch's grouped ``ConvTranspose3d`` (4x4x4, stride 2) against
+  nearest x2 + depthwise ``Conv3d`` 3x3x3, each contiguous and channels-last-3D, eager and ``torch.compile``d;
+  on CUDA in bfloat16 (pytorch issues 37406 and 47341 report the grouped transposed and depthwise 3D kernels as
+  slow).
+* ``train``: ``Trainer`` of a preset for ``--steps`` steps with streamed samples (``--workers`` simulator
+  processes), profiled: samples/s over the steps after the first 20, peak memory and where a step's time goes
+  (data wait, forward, losses, backward, optimiser). Profiling synchronises at phase boundaries; a second,
+  unprofiled measure gives the plain throughput.
+* ``latency``: batch 1, image -> logits, and image -> logits -> own-view ``shell`` -> ``first_hit`` of a
+  512 x 512 view -> shaded image, per preset, eager and compiled (``torch.compile(mode="reduce-overhead")``,
+  CUDA graphs); median of ``--repeat`` calls, synchronised.
+
+Run ``python benchmarks/bench_ssz.py --device cuda --out $OUT/ssz-h100`` on the H100 (writes ``PREFIX.json``);
+``--render`` re-renders the "## SSZ" section of BENCHMARKS.md from every ``benchmarks/results/ssz*.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import common  # noqa: E402
+
+SECTION = "## SSZ"
+
+
+def _sync(device: Any) -> None:
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)  # the timed region ends when its kernels have run
+
+
+def _median_ms(fn: Any, device: Any, repeat: int, warm: int = 3) -> float:
+    for _ in range(warm):
+        fn()
+    _sync(device)
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append((time.perf_counter() - t) * 1000.0)
+    return statistics.median(times)
+
+
+def bench_layers(device: Any, repeat: int, batch: int) -> list[dict[str, Any]]:
+    """The up-convolution variants (see the module docstring)."""
+    import torch
+    from torch import nn
+
+    dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+    c, n = 16, 32
+    rows = []
+    for mode in ("transpose", "resize"):
+        for cl in (False, True):
+            for compiled in (False, True):
+                if compiled and device.type != "cuda":
+                    continue
+                if mode == "transpose":
+                    m = nn.ConvTranspose3d(c, c, 4, stride=2, padding=1, groups=c, bias=False)
+
+                    def f(x: Any, m: Any = m) -> Any:
+                        return m(x)
+                else:
+                    m = nn.Conv3d(c, c, 3, padding=1, groups=c, bias=False)
+
+                    def f(x: Any, m: Any = m) -> Any:
+                        return m(nn.functional.interpolate(x, scale_factor=2.0, mode="nearest"))
+                m = m.to(device=device, dtype=dtype)
+                fmt = torch.channels_last_3d if cl else torch.contiguous_format
+                m = m.to(memory_format=fmt)
+                x = torch.randn(batch, c, n, n, n, device=device, dtype=dtype).to(memory_format=fmt)
+                x.requires_grad_(True)
+                fn = torch.compile(f) if compiled else f
+
+                def step(fn: Any = fn, x: Any = x) -> None:
+                    fn(x).float().square().mean().backward()
+
+                try:
+                    ms = _median_ms(step, device, repeat)
+                except Exception as e:  # noqa: BLE001 - a variant that fails is reported, not fatal
+                    ms = float("nan")
+                    print(f"  {mode} cl={cl} compiled={compiled}: {type(e).__name__}: {e}", file=sys.stderr)
+                rows.append({"mode": mode, "channels_last": cl, "compiled": compiled, "ms": ms})
+                print(f"layers {mode:9s} channels_last={cl!s:5s} compiled={compiled!s:5s} {ms:8.3f} ms", flush=True)
+    return rows
+
+
+def bench_train(preset: str, device: Any, steps: int, workers: int, overrides: dict[str, Any]) -> dict[str, Any]:
+    """Profiled and plain training throughput of ``preset`` with streamed data."""
+    import torch
+
+    from fruxel.train.config import override
+    from fruxel.train.config import preset as get_preset
+    from fruxel.train.engine.trainer import Trainer
+
+    cfg = override(get_preset(preset), {"data": {"workers": workers, "frequency_samples": 64},
+                                        "run": {"steps": steps, "eval_every": 0, "checkpoint_every": 0,
+                                                "log_every": 10}}, "")
+    cfg = override(cfg, overrides, "").check()
+    out: dict[str, Any] = {"preset": preset, "batch": cfg.run.batch_size, "workers": workers, "steps": steps,
+                           "overrides": overrides, "compile": cfg.run.compile}
+    for profile in (True, False):
+        with tempfile.TemporaryDirectory() as d:
+            torch.cuda.reset_peak_memory_stats() if device.type == "cuda" else None
+            tr = Trainer(cfg, d, device=str(device), progress=False, profile=profile, warm=20, evaluation=False)
+            t = time.perf_counter()
+            res = tr.fit()
+            wall = time.perf_counter() - t
+        if profile:
+            n = res.timings.get("steps", 0.0)
+            out["phases_ms"] = {k: 1000.0 * v / n for k, v in res.timings.items() if k != "steps"} if n else {}
+            out["peak_memory_gib"] = res.peak_memory / 2**30
+            out["profiled_step_ms"] = sum(out["phases_ms"].values())
+        else:
+            out["wall_s"] = wall
+            out["samples_per_s"] = _steady_rate(tr)
+    phases = {k: round(v, 2) for k, v in out.get("phases_ms", {}).items()}
+    print(f"train {preset}: {out.get('samples_per_s', float('nan')):.0f} samples/s, peak "
+          f"{out.get('peak_memory_gib', 0):.1f} GiB, phases (ms) {phases}", flush=True)
+    return out
+
+
+def _steady_rate(trainer: Any) -> float:
+    """Median samples/s of the logged windows after the first two (which hold the start-up)."""
+    rates = trainer.rates[2:] or trainer.rates
+    return float(statistics.median(rates)) if rates else float("nan")
+
+
+def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict[str, Any]:
+    """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast."""
+    import numpy as np
+    import torch
+
+    from fruxel import kernels
+    from fruxel.camera import Camera, orbit_direction
+    from fruxel.render.raycast import shade
+    from fruxel.train.config import preset as get_preset
+    from fruxel.train.export import build_generator
+    from fruxel.train.models.blocks import channels_last
+
+    cfg = get_preset(preset)
+    m = cfg.model
+    gen = build_generator(m).to(device).eval()
+    if device.type == "cuda":
+        gen = channels_last(gen)
+    h, w = m.image_size
+    x = torch.rand(1, 3, h, w, device=device)
+    auto = device.type == "cuda"
+
+    def forward(img: Any) -> Any:
+        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=auto):
+            return gen(img).logits
+
+    fwd = torch.compile(forward, mode="reduce-overhead") if compiled else forward
+    grid = m.grid
+    centre = grid.centre()
+    eye = centre + 1.2 * float(np.linalg.norm(grid.bounds()[1] - grid.bounds()[0])) * orbit_direction(0.6, 0.4)
+    cam = Camera.look_at(eye, centre, width=512, height=512, hfov=60.0)
+    palette = np.asarray(m.classes.palette(), dtype=np.uint8)
+
+    def logits_only() -> Any:
+        return fwd(x)
+
+    def full() -> Any:
+        logits = fwd(x)
+        kept = kernels.shell(logits, grid, [grid.camera()])
+        hits = kernels.first_hit(kept, grid, cam)
+        one = type(hits)(label=hits.label[0], cell=hits.cell[0], depth=hits.depth[0], normal=hits.normal[0])
+        return shade(one, cam, palette)
+
+    row = {"preset": preset, "compiled": compiled,
+           "logits_ms": _median_ms(logits_only, device, repeat, warm=5),
+           "full_ms": _median_ms(full, device, repeat, warm=5)}
+    print(f"latency {preset} compiled={compiled}: image->logits {row['logits_ms']:.2f} ms, "
+          f"->shell->raycast 512^2 {row['full_ms']:.2f} ms", flush=True)
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--parts", nargs="+", default=["layers", "train", "latency"],
+                   choices=["layers", "train", "latency"])
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
+    p.add_argument("--presets", nargs="+", default=["ssz64", "paper"])
+    p.add_argument("--steps", type=int, default=120, help="training steps per preset")
+    p.add_argument("--workers", type=int, default=15, help="simulator processes per training run")
+    p.add_argument("--train-override", default="{}", help="JSON config overrides of the training runs")
+    p.add_argument("--repeat", type=int, default=30)
+    p.add_argument("--batch", type=int, default=32, help="batch of the layer benchmark")
+    p.add_argument("--out", default=None, help="PREFIX of PREFIX.json (default benchmarks/results/ssz-<device>)")
+    p.add_argument("--render", action="store_true", help="only re-render BENCHMARKS.md from the results")
+    args = p.parse_args(argv)
+    if args.render:
+        render()
+        return 0
+    import torch
+
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    result: dict[str, Any] = {"machine": common.machine_info() if hasattr(common, "machine_info") else {},
+                              "device": str(device), "gpu": common.gpu_name(), "cpu": common.cpu_description(),
+                              "torch": torch.__version__, "date": time.strftime("%Y-%m-%d")}
+    if "layers" in args.parts:
+        result["layers"] = bench_layers(device, args.repeat, args.batch)
+    if "train" in args.parts:
+        ov = json.loads(args.train_override)
+        result["train"] = [bench_train(pr, device, args.steps, args.workers, ov) for pr in args.presets]
+    if "latency" in args.parts:
+        result["latency"] = [bench_latency(pr, device, args.repeat, c) for pr in args.presets
+                             for c in ((False, True) if device.type == "cuda" else (False,))]
+    out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Path(f"{out}.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {out}.json")
+    return 0
+
+
+def render() -> None:
+    """Re-render the SSZ section of BENCHMARKS.md from the result files (to be written)."""
+    raise SystemExit("render: not yet")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""Building SSZ from its config, and the two files a trained model lives in (SPEC section 8).
+
+* A **shipped model**: one ``.safetensors`` file of the generator's weights (float16 or float32) whose metadata
+  holds ``{"format": "fruxel-ssz", "version": 1, "model": ModelConfig as JSON, "training": summary}``. It loads
+  without pickle and without optimiser state.
+* A **training checkpoint** (:mod:`fruxel.train.engine.checkpoint`): a dict read with
+  ``torch.load(weights_only=True)``, which holds the same generator weights and the whole experiment config.
+
+:func:`load_generator` reads either and returns the generator in eval mode with its :class:`ModelConfig`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import torch
+
+from fruxel.io import atomic_path
+
+from .config import ConfigError, ModelConfig, TrainConfig, override
+from .models.discriminator import PatchDiscriminator3d
+from .models.generator import SSZGenerator
+
+FORMAT = "fruxel-ssz"
+"""``format`` in a shipped model's metadata."""
+VERSION = 1
+"""Version of the shipped model's metadata layout."""
+MAX_TENSORS = 10_000
+"""Most tensors a shipped model may hold (a sanity bound against hostile files)."""
+
+
+class ModelFileError(ValueError):
+    """A model file that cannot be used; the message names the file and the problem."""
+
+    def __init__(self, path: str, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = path
+        """The file."""
+        self.problem = problem
+        """What is wrong, in words."""
+
+
+def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZGenerator:
+    """A freshly initialised generator of ``config``."""
+    g = config.grid
+    return SSZGenerator(classes=config.num_classes, grid_shape=(g.depth, g.height, g.width),
+                        image_scale=config.image_scale, levels=config.levels, stem=config.stem,
+                        encoder=config.encoder, encoder_blocks=config.encoder_blocks, topdown=config.topdown,
+                        decoder=config.decoder, decoder_blocks=config.decoder_blocks, expand=config.expand,
+                        lift=config.lift, upsample=config.upsample, group_width=config.group_width,
+                        full_res_spatial=config.full_res_spatial, checkpointing=checkpointing)
+
+
+def build_discriminator(config: ModelConfig) -> PatchDiscriminator3d:
+    """A freshly initialised discriminator of ``config``."""
+    return PatchDiscriminator3d(config.num_classes, config.discriminator)
+
+
+def save_shipped(path: str | os.PathLike[str], generator: torch.nn.Module, config: ModelConfig,
+                 training: dict[str, Any] | None = None, *, half: bool = True) -> None:
+    """Write the shipped form of a generator atomically.
+
+    Args:
+        path: the ``.safetensors`` file.
+        generator: the trained generator (its ``state_dict`` is saved; buffers such as batch-norm statistics
+            included).
+        config: its architecture.
+        training: a JSON-able summary of how it was trained (steps, samples seen, GPU time, metrics).
+        half: store floating tensors as float16 (halves the file; predictions are made in float32 or bf16).
+    """
+    from safetensors.torch import save_file
+
+    state = {}
+    for k, v in generator.state_dict().items():
+        v = v.detach().cpu()
+        if half and v.is_floating_point():
+            v = v.half()
+        state[k] = v.contiguous()
+    meta = {"format": FORMAT, "version": str(VERSION),
+            "model": json.dumps({k: v for k, v in TrainConfig(model=config).to_dict()["model"].items()}),
+            "training": json.dumps(training or {})}
+    with atomic_path(path) as tmp:
+        save_file(state, str(tmp), metadata=meta)
+
+
+def _model_config(path: str, d: Any) -> ModelConfig:
+    try:
+        config = override(ModelConfig(), d, "model")
+        config.check()
+        return config
+    except ConfigError as e:
+        raise ModelFileError(path, f"bad model config: {e}") from None
+
+
+def read_shipped(path: str) -> tuple[dict[str, torch.Tensor], ModelConfig, dict[str, Any]]:
+    """The weights, architecture and training summary of a shipped model file, checked.
+
+    Raises:
+        ModelFileError: not a safetensors file of this format, or a bad config.
+    """
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(path, framework="pt") as f:
+            meta = f.metadata() or {}
+            keys = list(f.keys())
+            if len(keys) > MAX_TENSORS:
+                raise ModelFileError(path, f"holds {len(keys)} tensors, more than {MAX_TENSORS}")
+            state = {k: f.get_tensor(k) for k in keys}
+    except (SafetensorError, OSError, ValueError) as e:
+        if isinstance(e, ModelFileError):
+            raise
+        raise ModelFileError(path, f"not a readable safetensors file ({e})") from None
+    if meta.get("format") != FORMAT:
+        raise ModelFileError(path, f"metadata format is {meta.get('format')!r}, not {FORMAT!r}")
+    if meta.get("version") != str(VERSION):
+        raise ModelFileError(path, f"metadata version {meta.get('version')!r} is not {VERSION}")
+    try:
+        model = json.loads(meta["model"])
+        training = json.loads(meta.get("training", "{}"))
+    except (KeyError, json.JSONDecodeError) as e:
+        raise ModelFileError(path, f"metadata 'model' is not JSON ({e})") from None
+    return state, _model_config(path, model), training
+
+
+def load_generator(path: str | os.PathLike[str], device: str | torch.device = "cpu"
+                   ) -> tuple[SSZGenerator, ModelConfig, dict[str, Any]]:
+    """A trained generator from a shipped ``.safetensors`` file or a training checkpoint, in eval mode, float32.
+
+    Returns:
+        ``(generator, model config, training summary)``.
+
+    Raises:
+        ModelFileError: a missing, unreadable or foreign file, or weights that do not fit the config.
+    """
+    path = os.fsdecode(path)
+    if not os.path.isfile(path):
+        raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head[:2] == b"PK" or head[:1] == b"\x80":
+        from .engine.checkpoint import read_checkpoint
+
+        ckpt = read_checkpoint(path)
+        config = ckpt.config.model
+        state = ckpt.state["generator"]
+        training = ckpt.state.get("summary", {})
+    else:
+        state, config, training = read_shipped(path)
+    gen = build_generator(config)
+    try:
+        gen.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()[0]
+        raise ModelFileError(path, f"weights do not fit the model config ({first})") from None
+    return gen.to(device).eval(), config, training
