@@ -47,7 +47,9 @@ from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.data import rooms
 from fruxel.grid import FruxelGrid
-from fruxel.io import atomic_path, atomic_write, replace_markdown_section
+from fruxel.io import atomic_path, atomic_write
+
+from .markdown import replace_markdown_section
 
 SECTION = "## Visualisation (Table 1)"
 """Heading of this benchmark's section in BENCHMARKS.md."""
