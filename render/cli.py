@@ -567,7 +567,8 @@ def open_viewer(inp: RenderInput, opts: RenderOptions, camera: Camera) -> None:
     if os.environ.get("PYOPENGL_PLATFORM") == "egl":
         # EGL is headless; the Viewer needs the window system's GL. Only this process is affected.
         del os.environ["PYOPENGL_PLATFORM"]
-    from .scene import MeshStyle, clip_range, import_pyrender, pyrender_mesh
+    from .compat import import_pyrender
+    from .scene import MeshStyle, clip_range, pyrender_mesh
 
     pyrender = import_pyrender(headless=False)
     mesh = build_mesh(inp, opts, camera)

@@ -12,8 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from fruxel._compat import default_font
 from fruxel.classes import ClassTable
+
+from .compat import default_font
 
 SWATCH = 12
 """Side of a colour swatch, pixels (before scaling with the image size)."""

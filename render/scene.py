@@ -17,7 +17,7 @@ Frames and conventions:
 ``"lit"`` and ``"pbr"`` need one colour or normal per face, so they give pyrender three vertices per triangle;
 ``"flat"`` uploads the indexed mesh.
 
-pyrender is imported inside the functions, after :func:`fruxel._compat.prepare_pyrender`, so importing this
+pyrender is imported inside the functions (:func:`fruxel.render.compat.import_pyrender`), so importing this
 module stays cheap.
 """
 
@@ -34,6 +34,7 @@ from fruxel.grid import FruxelGrid
 from fruxel.mesh import TriMesh
 from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_LIGHT
 
+from .compat import import_pyrender
 from .raycast import lambert
 
 if TYPE_CHECKING:
@@ -48,20 +49,6 @@ _CLIP_MARGIN = 0.05
 # Nearest clip plane as a share of the farthest, for a camera inside or beside the frustum: 24-bit depth
 # still separates faces a millimetre apart at 10 m.
 _MIN_NEAR_RATIO = 1e-4
-
-
-def import_pyrender(headless: bool = True) -> Any:
-    """``pyrender``, imported after the NumPy 2 / EGL shim (:func:`fruxel._compat.prepare_pyrender`).
-
-    Args:
-        headless: select EGL unless the user set ``PYOPENGL_PLATFORM``; False for the interactive Viewer.
-    """
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=headless)
-    import pyrender
-
-    return pyrender
 
 
 @dataclass(frozen=True)

@@ -39,15 +39,14 @@ def render_picture(
         eye: ``(3,)`` viewpoint, grid frame, metres.
         target: ``(3,)`` point looked at, grid frame, metres.
     """
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=True)
-    import pyrender
     from PIL import Image
 
     from fruxel.camera import Camera
     from fruxel.mesh import mesh_labels, to_trimesh
+    from fruxel.render.compat import import_pyrender
     from fruxel.render.scene import frustum_lines
+
+    pyrender = import_pyrender(headless=True)
 
     mesh = mesh_labels(model.labels, model.grid, model.classes.palette(), mode="culled")
     scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 1.0], ambient_light=[0.35, 0.35, 0.35])

@@ -295,7 +295,7 @@ def test_view_hands_a_lit_scene_to_the_viewer() -> None:
     """With a display, --view builds the shell mesh with normals and a camera and opens pyrender's Viewer (a stub
     here: no window can open in a test)."""
     code = (
-        "from fruxel._compat import prepare_pyrender\n"
+        "from fruxel.render.compat import prepare_pyrender\n"
         "prepare_pyrender(headless=True)\n"
         "import pyrender\n"
         "seen = {}\n"

@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fruxel._compat import default_font
 from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose
+from fruxel.render.compat import default_font, import_pyrender
 
 from .config import SimConfig
 
@@ -46,15 +46,6 @@ if TYPE_CHECKING:
 
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 """Rec. 601 weights: the grey value that saturation changes blend with."""
-
-
-def _pyrender() -> Any:
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=True)
-    import pyrender
-
-    return pyrender
 
 
 _ORDERED_SCENE: list[type] = []
@@ -69,7 +60,7 @@ def _ordered_scene_class() -> type:
     """
     if _ORDERED_SCENE:
         return _ORDERED_SCENE[0]
-    pr = _pyrender()
+    pr = import_pyrender()
 
     class OrderedScene(pr.Scene):
         def add_node(self, node: Any, parent_node: Any = None) -> None:
@@ -139,7 +130,7 @@ class SceneRenderer:
     def __init__(self, config: SimConfig) -> None:
         self.config = config
         """The generator settings."""
-        self._pyrender = _pyrender()
+        self._pyrender = import_pyrender()
         self._renderer: Any = None
         self._drawn: _Drawn | None = None
         self._scene: Scene | None = None

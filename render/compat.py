@@ -1,8 +1,8 @@
 """Small compatibility shims for third-party packages: pyrender, applied before it is imported, and Pillow's fonts.
 
 pyrender 0.1.45 (the last release) refers to ``np.infty``, which NumPy 2 removed, and picks its OpenGL platform
-from ``PYOPENGL_PLATFORM`` at import time. fruxel does not import pyrender here (the core stays free of it);
-``render/`` and ``train/`` call :func:`prepare_pyrender` right before ``import pyrender``.
+from ``PYOPENGL_PLATFORM`` at import time. Every import of pyrender in fruxel goes through :func:`import_pyrender`
+(the renderer, the simulator's camera images), so importing a fruxel module never loads pyrender by itself.
 """
 
 from __future__ import annotations
@@ -28,6 +28,18 @@ def prepare_pyrender(headless: bool | None = None) -> None:
         headless = not os.environ.get("DISPLAY")
     if headless:
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+
+def import_pyrender(headless: bool = True) -> Any:
+    """``pyrender``, imported after the NumPy 2 / EGL shim (:func:`prepare_pyrender`).
+
+    Args:
+        headless: select EGL unless the user set ``PYOPENGL_PLATFORM``; False for the interactive Viewer.
+    """
+    prepare_pyrender(headless=headless)
+    import pyrender
+
+    return pyrender
 
 
 def default_font(size: int) -> Any:
