@@ -3,6 +3,7 @@
 * :mod:`fruxel.render.scene` — pyrender scenes: the OpenCV-to-pyrender camera conversion, mesh upload,
   offscreen (EGL) renderers kept per image size.
 * :mod:`fruxel.render.raycast` — ``first_hit`` from the viewing camera, shaded per pixel (no mesh).
+* :mod:`fruxel.render.shading` — the one shading formula of ray casts and lit meshes.
 * :mod:`fruxel.render.legend` — class legends and captions on images.
 * :mod:`fruxel.render.cli` — the ``fruxel-render`` command.
 * :mod:`fruxel.render.table1` — the visualisation benchmark (Table 1 of the paper, per-frame model updates).
@@ -21,7 +22,7 @@ _LAZY = {
     "MeshStyle": ".scene",
     "MeshView": ".scene",
     "render_mesh": ".scene",
-    "RaycastStyle": ".raycast",
+    "RaycastStyle": ".shading",
     "raycast_image": ".raycast",
 }
 

@@ -9,8 +9,8 @@ Frames and conventions:
   at image row ``fy * y_c / z_c + cy`` (``(x_c, y_c, z_c)`` = ``p`` in the OpenCV camera frame), so a vertex
   lands exactly where :meth:`Camera.project` says, pixel ``(x, y)`` covering ``[x, x + 1) x [y, y + 1)``.
 * Shading: ``"flat"`` draws every face in its class colour; ``"lit"`` bakes the ray-cast shading
-  (:func:`fruxel.render.raycast.lambert` : ambient plus Lambert from a head light, the formula of
-  :func:`fruxel.shading.shade_hits`) into per-face colours and draws them unlit, so that mesh and ray-cast
+  (:func:`fruxel.render.shading.lambert`: ambient plus Lambert from a head light, the ray cast's formula)
+  into per-face colours and draws them unlit, so that mesh and ray-cast
   images of the same view look alike; ``"pbr"`` gives pyrender normals and linear colours for its own lights
   (the interactive Viewer, which has no unlit mode).
 
@@ -32,10 +32,9 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 from fruxel.mesh import TriMesh
-from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_LIGHT
 
 from .compat import import_pyrender
-from .raycast import lambert
+from .shading import DEFAULT_AMBIENT, DEFAULT_BACKGROUND, DEFAULT_LIGHT, lambert
 
 if TYPE_CHECKING:
     import pyrender
@@ -62,7 +61,7 @@ class MeshStyle:
     """Direction towards the light in the viewing camera's frame (OpenCV axes), for ``"lit"``."""
     ambient: float = DEFAULT_AMBIENT
     """Share of the colour lit regardless of orientation, in [0, 1], for ``"lit"``."""
-    background: tuple[int, int, int] = (255, 255, 255)
+    background: tuple[int, int, int] = DEFAULT_BACKGROUND
     """RGB of pixels that show no face."""
     frustum: bool = False
     """Also draw the grid frustum's 12 edges as grey lines."""

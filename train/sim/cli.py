@@ -128,12 +128,10 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    import numpy as np
     from PIL import Image
 
     from fruxel.io import atomic_write
-    from fruxel.kernels import first_hit
-    from fruxel.shading import shade_hits
+    from fruxel.render.raycast import RaycastStyle, raycast_image
 
     from .images import contact_sheet, second_camera
     from .shards import SampleMaker
@@ -147,9 +145,8 @@ def _preview(args: argparse.Namespace) -> int:
         for i in range(args.index, args.index + args.count):
             s = maker.make(args.split, i)
             cam = second_camera(s.view_depth, config, config.image_width)
-            hits = first_hit(s.labels, grid, cam, backend=args.raycast_backend)
-            shaded = shade_hits(np.asarray(hits.label), np.asarray(hits.normal), np.asarray(hits.depth), palette,
-                                cam.rotation, fog=(grid.z_near, 2.0 * grid.z_far))
+            shaded, _ = raycast_image(s.labels, grid, cam, palette, backend=args.raycast_backend,
+                                      style=RaycastStyle(fog=True))
             rows.append({
                 "camera image": s.image,
                 "ground truth, own view": classes.colour_of(s.view_label),
