@@ -13,6 +13,7 @@ from typing import Any
 
 from .camera import Camera, CameraError
 from .classes import DEFAULT_CLASSES, ClassTable, ClassTableError
+from .errors import FruxelError
 from .grid import FruxelGrid, GridError
 from .io import FruxelFileError, load, save
 from .mesh import TriMesh, export_mesh, mesh_labels
@@ -26,6 +27,7 @@ __all__ = [
     "CameraError",
     "ClassTable",
     "ClassTableError",
+    "FruxelError",
     "FruxelFileError",
     "FruxelGrid",
     "FruxelModel",

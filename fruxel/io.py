@@ -42,6 +42,7 @@ import numpy as np
 import numpy.lib.format as npy_format
 
 from .classes import ClassTable, ClassTableError
+from .errors import FruxelError
 from .grid import MAX_CELLS, FruxelGrid, GridError
 from .model import FruxelModel
 
@@ -58,7 +59,7 @@ _MEMBERS = ("labels.npy", "meta.npy")
 _META_KEYS = ("format", "version", "grid", "classes")
 
 
-class FruxelFileError(ValueError):
+class FruxelFileError(FruxelError, ValueError):
     """A file that is not a valid fruxel model file (or cannot be read). The message names the file and the
     problem; :attr:`path` and :attr:`problem` hold them separately."""
 

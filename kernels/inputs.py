@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from fruxel.camera import Camera
+from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid
 
 MAX_LABEL = 255
@@ -23,7 +24,7 @@ EMPTY_LOGIT = -1.0e4
 float16, and far enough below 0 that p(empty) rounds to exactly 1."""
 
 
-class VolumeError(ValueError):
+class VolumeError(FruxelError, ValueError):
     """Raised for a volume the kernels cannot take: wrong shape or dtype, NaN or infinite scores, labels out of
     range, or a threshold outside (0, 1]."""
 

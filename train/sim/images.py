@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose
+from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose, look_at_grid
 from fruxel.render.compat import default_font, import_pyrender
 
 from .config import SimConfig
@@ -298,7 +298,10 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
     grid = config.grid
     d = float(np.median(hit)) if hit.size else 0.5 * (grid.z_near + grid.z_far)
     height = max(1, round(size * grid.height / grid.width))
-    return Camera.look_at((0.5 * d, -0.35 * d, 0.0), (0.0, 0.0, d), width=size, height=height, hfov=grid.hfov)
+    # From the target (0, 0, d) to the eye (0.5 d, -0.35 d, 0).
+    offset = np.array([0.5, -0.35, -1.0])
+    return look_at_grid(grid, offset, distance=d * float(np.linalg.norm(offset)), target=(0.0, 0.0, d), width=size,
+                        height=height, hfov=grid.hfov)
 
 
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
