@@ -24,8 +24,8 @@ Determinism: the same scene, pose and generator give the same bytes on the same 
 (Mesa's llvmpipe is deterministic; the image bytes of one sample can differ between GL drivers, e.g. llvmpipe
 and NVIDIA, by rounding of the shading).
 
-One :class:`SceneRenderer` per process: it owns an OpenGL (EGL) context, which must not cross a ``fork``; the
-generator and the streaming data set start their workers with ``spawn``.
+One offscreen renderer per process (:func:`fruxel.render.scene.renderers`): its OpenGL (EGL) context must not
+cross a ``fork``; the generator and the streaming data set start their workers with ``spawn``.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ import numpy as np
 
 from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose, look_at_grid
 from fruxel.render.compat import default_font, import_pyrender
+from fruxel.render.scene import renderers
 
 from .config import SimConfig
 
@@ -124,14 +125,13 @@ class SceneRenderer:
             of view.
 
     Use :meth:`set_scene` once per room, then :meth:`render` per pose; :meth:`close` (or ``with``) frees the
-    OpenGL context.
+    room. Images are drawn by the process's one offscreen renderer (:func:`fruxel.render.scene.renderers`).
     """
 
     def __init__(self, config: SimConfig) -> None:
         self.config = config
         """The generator settings."""
         self._pyrender = import_pyrender()
-        self._renderer: Any = None
         self._drawn: _Drawn | None = None
         self._scene: Scene | None = None
 
@@ -191,9 +191,8 @@ class SceneRenderer:
         aug = self.config.image.augment
         post = self._prepare(d, rng if aug.enabled else None)
         d.scene.set_pose(d.camera, check_pose(pose) @ OPENCV_TO_OPENGL)
-        if self._renderer is None:
-            self._renderer = self._pyrender.OffscreenRenderer(self.config.image_width, self.config.image_height)
-        colour, _ = self._renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
+        renderer = renderers().get(self.config.image_width, self.config.image_height)
+        colour, _ = renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
         return _camera_response(colour, post, rng if aug.enabled else None)
 
     def _prepare(self, d: _Drawn, rng: np.random.Generator | None) -> dict[str, Any]:
@@ -236,10 +235,9 @@ class SceneRenderer:
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
-        """Free the OpenGL context and the room (idempotent)."""
-        if self._renderer is not None:
-            self._renderer.delete()
-            self._renderer = None
+        """Free the room (idempotent). The OpenGL context is the process's one offscreen renderer
+        (:func:`fruxel.render.scene.renderers`), shared with fruxel.render's images and closed at exit: pyrender
+        ends the process-wide EGL display when any renderer is deleted, which would break the others."""
         self._drawn = None
         self._scene = None
 
