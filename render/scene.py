@@ -74,19 +74,12 @@ class MeshStyle:
 
 
 # ---------------------------------------------------------------------------------------------------- camera
-def frustum_corners(grid: FruxelGrid) -> np.ndarray:
-    """The 8 corners of the grid frustum: ``(8, 3)`` float64, grid frame, in :meth:`FruxelGrid.cell_corners`
-    order (bit 0: far u side, bit 1: far v side, bit 2: far slice)."""
-    c = np.arange(8)
-    return grid.corner_points((c >> 2) * grid.depth, ((c >> 1) & 1) * grid.height, (c & 1) * grid.width)
-
-
 def clip_range(camera: Camera, grid: FruxelGrid) -> tuple[float, float]:
     """Near and far clip distances (metres, along the viewing axis) that keep the whole grid in view.
 
     The frustum is convex, so its corners bound the depth of every face in it.
     """
-    depth = camera.project(frustum_corners(grid))[:, 2]
+    depth = camera.project(grid.frustum_corners())[:, 2]
     far = float(depth.max())
     if far <= 0.0:
         # The grid is behind the camera: nothing can be seen, any valid range will do.
@@ -180,7 +173,7 @@ def frustum_lines(grid: FruxelGrid) -> pyrender.Mesh:
     """The grid frustum's 12 edges as a grey line mesh (grid frame)."""
     pyrender = import_pyrender()
     edges = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
-    positions = frustum_corners(grid).astype(np.float32)[edges.reshape(-1)]
+    positions = grid.frustum_corners().astype(np.float32)[edges.reshape(-1)]
     prim = pyrender.Primitive(
         positions=positions, color_0=np.tile(np.float32([0.35, 0.35, 0.35, 1.0]), (len(positions), 1)),
         mode=pyrender.constants.GLTF.LINES,

@@ -1,6 +1,6 @@
 """Draw the bundled sample room's picture (``fruxel/data/sample_room.png``, shown in the README).
 
-Run ``python scripts/make_sample_picture.py [--out PATH]`` after ``python -m fruxel.data.make_sample``. It lives
+Run ``python scripts/make_sample_picture.py [--out PATH]`` after ``python scripts/make_sample.py``. It lives
 outside the package because it needs pyrender, which the numpy-only core (``fruxel/``) never imports: the culled
 trapezoid mesh of the model, the frustum's edges, two directional lights, rendered offscreen from an oblique pose.
 """

@@ -448,7 +448,7 @@ def test_sample_room_is_regenerated_exactly_and_greedy_is_10x_smaller():
     from fruxel.io import load
 
     model = load(SAMPLE_ROOM)
-    assert model == sample_model(), "sample_room.npz is stale: run python -m fruxel.data.make_sample"
+    assert model == sample_model(), "sample_room.npz is stale: run python scripts/make_sample.py"
     assert set(np.unique(model.labels).tolist()) == set(range(len(model.classes.names)))
     palette = model.classes.palette()
     culled = mesh_labels(model.labels, model.grid, palette, "culled")

@@ -9,7 +9,7 @@ import pytest
 import fruxel
 from fruxel.data import SAMPLE_ROOM
 from fruxel.kernels import Hits
-from fruxel.render.cli import default_camera
+from fruxel.render.frames import default_camera
 from fruxel.render.raycast import first_hits, raycast_image
 from fruxel.render.shading import RaycastStyle, fog_range, lambert, shade, to_numpy
 

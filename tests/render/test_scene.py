@@ -10,7 +10,7 @@ import fruxel
 from fruxel import Camera, kernels
 from fruxel.data import SAMPLE_ROOM
 from fruxel.mesh import mesh_labels
-from fruxel.render.cli import default_camera
+from fruxel.render.frames import default_camera
 from fruxel.render.raycast import RaycastStyle, first_hits, shade
 from fruxel.render.scene import (
     MeshStyle,

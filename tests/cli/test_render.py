@@ -1,6 +1,6 @@
 """Tests of the ``fruxel-render`` command: every mode on the bundled model, logits input, and bad input.
 
-Most runs call :func:`fruxel.render.cli.main` in this process (the renderer and the kernels stay warm, which
+Most runs call :func:`fruxel.cli.render.main` in this process (the renderer and the kernels stay warm, which
 keeps the suite fast); the tests about imports, exit status and stderr run the command as a subprocess.
 """
 
@@ -19,8 +19,9 @@ from PIL import Image
 
 import fruxel
 from fruxel import kernels
+from fruxel.cli.render import main
 from fruxel.data import SAMPLE_ROOM
-from fruxel.render.cli import default_camera, main
+from fruxel.render.frames import default_camera
 
 SIZE = "96x72"
 BACKEND = "warp" if any(b.startswith("warp") for b in kernels.available_backends()) else "opencl"
@@ -50,7 +51,7 @@ def foreground_share(image: np.ndarray) -> float:
 
 
 def subprocess_cli(*argv: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    code = "import sys; from fruxel.render.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from fruxel.cli.render import main; sys.exit(main(sys.argv[1:]))"
     return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, env=env, timeout=120)
 
 
@@ -63,7 +64,7 @@ def error_lines(stderr: str) -> list[str]:
 def test_help_imports_no_heavy_module_and_is_quick() -> None:
     code = (
         "import sys\n"
-        "from fruxel.render.cli import main\n"
+        "from fruxel.cli.render import main\n"
         "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
         f"print('HEAVY=' + ','.join(m for m in {HEAVY!r} if m in sys.modules))\n"
     )
@@ -220,8 +221,8 @@ def test_npy_logits_with_sidecar_match_the_labels(tmp_path: Path) -> None:
 def test_npy_logits_mesh_with_grid_option(tmp_path: Path) -> None:
     np.save(tmp_path / "bare.npy", _logits(MODEL.labels, len(MODEL.classes)))
     g = MODEL.grid
-    spec = f"{g.width},{g.height},{g.depth},{g.z_near},{g.z_far},{g.hfov}"
-    assert run_cli(tmp_path / "bare.npy", "--grid", spec, "--backend", BACKEND, "--shading", "flat", "--no-legend",
+    spec = ["--grid", f"{g.width}x{g.height}x{g.depth}", "--z-near", g.z_near, "--z-far", g.z_far, "--hfov", g.hfov]
+    assert run_cli(tmp_path / "bare.npy", *spec, "--backend", BACKEND, "--shading", "flat", "--no-legend",
                    "--size", SIZE, "--out", tmp_path) == 0
     assert {WALL, FLOOR, FURNITURE} <= colours_present(read_png(tmp_path / "bare_mesh.png"))
 
@@ -269,7 +270,7 @@ def test_corrupt_npy_and_missing_grid(tmp_path: Path, capsys: pytest.CaptureFixt
 
 def test_logits_of_the_wrong_shape(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     np.save(tmp_path / "x.npy", np.zeros((7, 4, 4, 4), np.float32))
-    rc = run_cli(tmp_path / "x.npy", "--grid", "8,8,8,0.5,5,60", "--out", tmp_path)
+    rc = run_cli(tmp_path / "x.npy", "--grid", "8", "--z-far", "5", "--out", tmp_path)
     _one_error_line(rc, capsys.readouterr().err, "(4, 4, 4)")
 
 
@@ -305,7 +306,7 @@ def test_view_hands_a_lit_scene_to_the_viewer() -> None:
         "        seen.update(n=len(prims), normals=all(p.normals is not None for p in prims),\n"
         "                    camera=scene.main_camera_node is not None, size=kw['viewport_size'])\n"
         "pyrender.Viewer = Stub\n"
-        "from fruxel.render.cli import main\n"
+        "from fruxel.cli.render import main\n"
         f"rc = main(['--view', '--size', '96x72', '--backend', {BACKEND!r}])\n"
         "print('RESULT', rc, seen)\n"
     )
@@ -326,17 +327,19 @@ def test_unwritable_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
 def test_view_shell_frames_shade_each_new_mesh_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """With a shell per view and lit shading, each orbit frame builds one pyrender mesh (its own, shaded for its
     camera; the previous one is not re-shaded on the way), and the frames equal those of fresh renderers."""
-    from fruxel.render import cli, scene
+    from fruxel.cli.render import load_input
+    from fruxel.render import frames as fr
+    from fruxel.render import scene
 
-    inp = cli.load_input(None)
-    opts = cli.RenderOptions(mode="mesh", shell="view", shading="lit", legend=False)
-    cams = cli.orbit(inp.grid, default_camera(inp.grid, 160, 120), 3)
+    inp = load_input(None)
+    opts = fr.RenderOptions(mode="mesh", shell="view", shading="lit", legend=False)
+    cams = fr.orbit(inp.grid, default_camera(inp.grid, 160, 120), 3)
     calls = []
     real = scene.pyrender_mesh
     monkeypatch.setattr(scene, "pyrender_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
-    frames = cli.FrameRenderer(inp, opts)
+    frames = fr.FrameRenderer(inp, opts)
     images = [frames.mesh_image(c)[0] for c in cams]
     assert len(calls) == len(cams)
     for cam, img in zip(cams, images, strict=True):
-        np.testing.assert_array_equal(img, cli.FrameRenderer(inp, opts).mesh_image(cam)[0])
+        np.testing.assert_array_equal(img, fr.FrameRenderer(inp, opts).mesh_image(cam)[0])
     assert not np.array_equal(images[0], images[1])

@@ -13,19 +13,19 @@ import pytest
 from PIL import Image
 
 from fruxel.classes import DEFAULT_CLASSES
-from fruxel.train.sim.cli import main
+from fruxel.cli.sim import main
 
 TINY = ["--image", "32", "--grid", "16", "--samples-per-scene", "2"]
 
 
 def test_help_is_instant_and_lists_the_commands() -> None:
     t = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "fruxel.train.sim.cli", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "fruxel.cli.sim", "--help"], capture_output=True, text=True,
                          check=True)
     assert "generate" in out.stdout and "preview" in out.stdout
     # No torch, pyrender or warp behind --help (a loaded 2-core machine still starts Python in ~1 s).
     assert time.perf_counter() - t < 10
-    probe = ("import sys, fruxel.train.sim.cli; "
+    probe = ("import sys, fruxel.cli.sim; "
              "print(sorted(m for m in ('torch', 'pyrender', 'warp') if m in sys.modules))")
     mods = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert mods.stdout.strip() == "[]"

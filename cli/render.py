@@ -1,0 +1,372 @@
+"""``fruxel-render``: show a fruxel model as a trapezoid mesh (pyrender) or a ray-cast image, or run Table 1.
+
+Usage::
+
+    fruxel-render [MODEL] [--backend {warp,opencl}] [--device cpu|cuda[:N]] [--mode {mesh,raycast,both}]
+                  [--shell {none,own,poses,view}] [--mesh {full,culled,greedy}] [--size WxH] [--camera JSON]
+                  [--grid N|WxHxD [--z-near Z] [--z-far Z] [--hfov DEG]] [--out DIR] [--orbit N [--video {gif,mp4}]]
+                  [--export FILE.glb|FILE.ply] [--view] [--benchmark]
+
+MODEL (default: the bundled sample room, ``fruxel.data.SAMPLE_ROOM``) is one of
+
+* a fruxel model file ``.npz`` (:func:`fruxel.load`);
+* a logits tensor ``(C, D, H, W)`` or ``(1, C, D, H, W)`` (NCDHW, channel 0 = empty) saved as ``.npy``
+  (read with ``allow_pickle=False``) or ``.pt`` (``torch.load(weights_only=True)``). A bare tensor needs its
+  grid, from (first found) ``--grid WxHxD`` (with ``--z-near``, ``--z-far`` and ``--hfov``, whose defaults are
+  the simulator's grid), a ``.pt`` dict ``{"logits": tensor, "grid": {...}}``, or a JSON sidecar beside the
+  file (``X.npy`` + ``X.json``) holding a grid dict (:meth:`fruxel.FruxelGrid.to_dict`) or ``{"grid": {...},
+  "classes": {...}}``. Classes come from the ``.pt`` dict's or the sidecar's ``"classes"``
+  (:meth:`fruxel.ClassTable.to_dict`), else the default classes (cut or extended to C).
+
+What is drawn is described in :mod:`fruxel.render.frames`: shell sources (``--shell``), meshing (``--mesh``),
+the default oblique view and orbits (``--orbit N``: one turn, into a GIF, or an MP4 with ``imageio-ffmpeg``).
+The viewing camera is ``--camera`` (a :meth:`fruxel.Camera.to_json` text, or a file holding one; its own image
+size wins over ``--size``), else the default view.
+
+Outputs go to ``--out`` (default ``out/``): ``NAME_mesh.png``, ``NAME_raycast.png``, ``NAME_both.png`` (mesh
+and ray cast side by side) or ``NAME_MODE_orbit.gif|mp4``, written atomically; NAME is the model file's stem.
+Every path written is printed. Errors are one line ``fruxel-render: error: ...`` on stderr with exit status 2
+(:func:`fruxel.cli.common.run`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from fruxel.errors import FruxelError
+
+from .common import (
+    OneLineParser,
+    UsageError,
+    add_grid_options,
+    config_option,
+    config_values,
+    describe_os_error,
+    device_name,
+    grid_from_args,
+    grid_options_given,
+    image_size,
+    positive_int,
+    run,
+    unit_fraction,
+)
+
+if TYPE_CHECKING:
+    from fruxel import Camera, ClassTable, FruxelGrid
+    from fruxel.render.frames import RenderInput
+    from fruxel.render.table1 import Table1Config
+
+PROG = "fruxel-render"
+BACKENDS = ("warp", "opencl")
+VIDEO_FORMATS = ("gif", "mp4")
+
+
+class InputError(FruxelError, ValueError):
+    """A MODEL or ``--camera`` file that cannot be used, or an option value that does not fit it."""
+
+
+# ---------------------------------------------------------------------------------------------------- parsing
+def _default_grid() -> FruxelGrid:
+    from fruxel.train.sim.config import DEFAULT_GRID
+
+    return DEFAULT_GRID
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (no heavy imports: ``--help`` must be instant)."""
+    from fruxel.render.frames import DEFAULT_SIZE, MESHINGS, MODES, SHELLS, RenderOptions
+    from fruxel.render.table1 import Table1Config
+
+    p = OneLineParser(
+        prog=PROG,
+        description="Render a fruxel model: a trapezoid mesh of what the camera sees (pyrender), a ray-cast image "
+        "(first_hit), or both; or measure Table 1 (--benchmark).",
+        epilog="MODEL may be a .npz fruxel model or a logits tensor (C,D,H,W) in .npy/.pt; a bare tensor takes its "
+        "grid from --grid, a .pt dict {'logits', 'grid'} or a JSON sidecar X.json beside X.npy. Default view: "
+        "oblique, 30 deg right and 35 deg above the grid camera's side, fitted to the frustum.",
+    )
+    p.add_argument("model", nargs="?", metavar="MODEL", help="model .npz or logits .npy/.pt (default: the sample room)")
+    config_option(p, RenderOptions, "backend", choices=BACKENDS)
+    config_option(p, RenderOptions, "device", type=device_name, metavar="cpu|cuda[:N]")
+    config_option(p, RenderOptions, "mode", choices=MODES)
+    config_option(p, RenderOptions, "shell", choices=SHELLS)
+    config_option(p, RenderOptions, "poses", type=positive_int, metavar="M")
+    config_option(p, RenderOptions, "meshing", "--mesh", choices=MESHINGS)
+    config_option(p, RenderOptions, "shading", choices=("lit", "flat"))
+    config_option(p, RenderOptions, "fog")
+    config_option(p, RenderOptions, "legend")
+    config_option(p, RenderOptions, "frustum")
+    config_option(p, RenderOptions, "threshold", type=unit_fraction, metavar="T")
+    p.add_argument("--size", type=image_size, default=None, metavar="WxH",
+                   help=f"image size in pixels (default: {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}, or --camera's)")
+    p.add_argument("--camera", default=None, metavar="JSON", help="viewing camera: Camera JSON text or a file")
+    add_grid_options(p, _default_grid(), size_default=False,
+                     what="of a bare logits tensor; with --benchmark, N for an N^3 room")
+    p.add_argument("--out", type=Path, default=Path("out"), metavar="DIR", help="output folder (default out/)")
+    p.add_argument("--orbit", type=positive_int, default=None, metavar="N", help="render an N-frame orbit")
+    p.add_argument("--video", choices=VIDEO_FORMATS, default="gif", help="orbit format (mp4 needs imageio-ffmpeg)")
+    p.add_argument("--fps", type=positive_int, default=12, help="orbit frames per second (default 12)")
+    p.add_argument("--export", type=Path, default=None, metavar="FILE", help="also write the mesh to .glb or .ply")
+    p.add_argument("--view", action="store_true", help="open pyrender's interactive Viewer (needs a display)")
+    b = p.add_argument_group("Table 1 (--benchmark)")
+    b.add_argument("--benchmark", action="store_true", help="measure Table 1 (per-frame model updates)")
+    config_option(b, Table1Config, "frames", type=positive_int)
+    b.add_argument("--backends", default=None, metavar="LIST",
+                   help="ray-cast rows, comma-separated, e.g. warp,opencl or warp-cuda (default: "
+                   f"{','.join(Table1Config.raycast_backends)})")
+    return p
+
+
+# ---------------------------------------------------------------------------------------------------- input
+def _classes_for(n_channels: int, given: Any) -> ClassTable:
+    from fruxel import DEFAULT_CLASSES, ClassTable
+
+    if given is not None:
+        table = ClassTable.from_dict(given)
+        if len(table) != n_channels:
+            raise InputError(f"the class table has {len(table)} classes but the logits have {n_channels} channels")
+        return table
+    if n_channels <= len(DEFAULT_CLASSES):
+        return ClassTable(DEFAULT_CLASSES.names[:n_channels], DEFAULT_CLASSES.colours[:n_channels])
+    extra = [f"class {c}" for c in range(len(DEFAULT_CLASSES), n_channels)]
+    return DEFAULT_CLASSES.extended(*extra)
+
+
+def _read_sidecar(path: Path) -> tuple[Any, Any]:
+    side = path.with_suffix(".json")
+    if not side.is_file():
+        return None, None
+    try:
+        meta = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read the grid sidecar {str(side)!r}: {e}") from None
+    if isinstance(meta, dict) and "grid" in meta:
+        return meta["grid"], meta.get("classes")
+    return meta, None
+
+
+def _load_tensor(path: Path) -> tuple[Any, Any, Any]:
+    """The logits of a ``.npy`` / ``.pt`` file and the grid / classes dicts a ``.pt`` dict carries."""
+    if path.suffix.lower() == ".npy":
+        import numpy as np
+
+        try:
+            return np.load(path, allow_pickle=False), None, None
+        except (OSError, ValueError, EOFError) as e:
+            raise InputError(f"cannot read logits {str(path)!r}: {e}") from None
+    try:
+        import torch
+    except ImportError:
+        raise InputError(f"reading {str(path)!r} needs torch: pip install 'fruxel[train]'") from None
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - torch raises many types for a damaged or unsafe file
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise InputError(f"cannot read logits {str(path)!r}: {msg}") from None
+    if isinstance(obj, dict):
+        if "logits" not in obj:
+            raise InputError(f"{str(path)!r} holds a dict without 'logits' (keys: {sorted(map(str, obj))})")
+        return obj["logits"], obj.get("grid"), obj.get("classes")
+    return obj, None, None
+
+
+def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput:
+    """Read MODEL (see the module docstring).
+
+    Args:
+        model: the file name, None for the sample room.
+        grid: the grid of a bare logits tensor (``--grid``), None to take it from the file or its sidecar.
+
+    Raises:
+        FruxelFileError: a missing or invalid ``.npz`` model.
+        InputError: a missing, unreadable or misshapen tensor file, or no grid for it.
+        GridError, ClassTableError: an invalid grid or class table.
+    """
+    import numpy as np
+
+    import fruxel
+    from fruxel.render.frames import RenderInput
+
+    if model is None:
+        from fruxel.data import SAMPLE_ROOM
+
+        m = fruxel.load(SAMPLE_ROOM)
+        return RenderInput(np.ascontiguousarray(m.labels), m.grid, m.classes, SAMPLE_ROOM.stem)
+    path = Path(model)
+    suffix = path.suffix.lower()
+    if suffix not in (".npz", ".npy", ".pt", ".pth"):
+        raise InputError(f"unknown model file type {str(path)!r}: expected .npz (model) or .npy / .pt (logits)")
+    if suffix == ".npz":
+        m = fruxel.load(path)
+        return RenderInput(np.ascontiguousarray(m.labels), m.grid, m.classes, path.stem)
+    if not path.is_file():
+        raise InputError(f"no such file: {str(path)!r}")
+    tensor, grid_dict, classes_dict = _load_tensor(path)
+    side_grid, side_classes = _read_sidecar(path)
+    if grid is None:
+        if grid_dict is None and side_grid is None:
+            raise InputError(f"{str(path)!r} is a bare tensor: give its grid with --grid WxHxD (and --z-near, "
+                             f"--z-far, --hfov) or a sidecar {str(path.with_suffix('.json'))!r}")
+        grid = fruxel.FruxelGrid.from_dict(grid_dict if grid_dict is not None else side_grid)
+    shape = tuple(int(s) for s in tensor.shape)
+    if len(shape) == 4:
+        tensor = tensor[None]
+    elif not (len(shape) == 5 and shape[0] == 1):
+        raise InputError(f"logits in {str(path)!r} must have shape (C, D, H, W) or (1, C, D, H, W), got {shape}")
+    kind = str(tensor.dtype)
+    if "float" not in kind:
+        raise InputError(f"logits in {str(path)!r} must be floating point, got dtype {kind}")
+    if tuple(tensor.shape[2:]) != grid.shape:
+        raise InputError(f"logits in {str(path)!r} have (D, H, W) = {tuple(tensor.shape[2:])} but the grid has "
+                         f"{grid.shape}")
+    classes = _classes_for(int(tensor.shape[1]), classes_dict if classes_dict is not None else side_classes)
+    return RenderInput(tensor, grid, classes, path.stem)
+
+
+def viewing_camera(text: str | None, grid: FruxelGrid, size: tuple[int, int] | None) -> Camera:
+    """The camera of ``--camera`` (JSON text or a file) or :func:`fruxel.render.frames.default_camera` at
+    ``size``."""
+    from fruxel import Camera
+    from fruxel.render.frames import DEFAULT_SIZE, default_camera
+
+    if text is None:
+        w, h = size or DEFAULT_SIZE
+        return default_camera(grid, w, h)
+    if os.path.isfile(text):
+        try:
+            text = Path(text).read_text(encoding="utf-8")
+        except OSError as e:
+            raise InputError(f"cannot read camera file: {e}") from None
+    return Camera.from_json(text)
+
+
+# ---------------------------------------------------------------------------------------------------- render
+def _render_options(args: argparse.Namespace) -> Any:
+    from fruxel.render.frames import RenderOptions
+
+    return RenderOptions(**config_values(args, RenderOptions))
+
+
+def _input_grid(args: argparse.Namespace) -> FruxelGrid | None:
+    return grid_from_args(args, _default_grid(), size_default=False)
+
+
+def run_render(args: argparse.Namespace) -> list[Path]:
+    """Render as asked; returns the files written (none for ``--view``)."""
+    from fruxel.render.frames import FrameRenderer, open_viewer, orbit
+    from fruxel.render.images import write_image, write_video
+
+    if args.export is not None and args.export.suffix.lower() not in (".glb", ".ply"):
+        raise UsageError(f"--export writes .glb or .ply, got {str(args.export)!r}")
+    inp = load_input(args.model, _input_grid(args))
+    camera = viewing_camera(args.camera, inp.grid, args.size)
+    opts = _render_options(args)
+    if args.view:
+        open_viewer(inp, opts, camera)
+        return []
+    written: list[Path] = []
+    frames = FrameRenderer(inp, opts)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        if args.orbit is not None:
+            from tqdm import tqdm
+
+            cams = orbit(inp.grid, camera, args.orbit)
+            # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
+            images = [frames.image(c) for c in tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None)]
+            written.append(write_video(args.out / f"{inp.name}_{args.mode}_orbit.{args.video}", images, args.fps))
+        else:
+            written.append(write_image(args.out / f"{inp.name}_{args.mode}.png", frames.image(camera)))
+        if args.export is not None:
+            from fruxel.mesh import export_mesh
+
+            written.append(export_mesh(frames.mesh_for(camera), args.export))
+    except OSError as e:
+        raise InputError(f"cannot write output: {describe_os_error(e)}") from None
+    return written
+
+
+# ---------------------------------------------------------------------------------------------------- Table 1
+def config_from_args(args: argparse.Namespace) -> Table1Config:
+    """A :class:`fruxel.render.table1.Table1Config` from ``fruxel-render --benchmark``'s or
+    ``benchmarks/table1.py``'s options (``--size``, ``--frames``, ``--grid N``, ``--backend``, ``--device``,
+    ``--backends``)."""
+    from fruxel.render.table1 import Table1Config
+
+    kw: dict[str, Any] = {}
+    if getattr(args, "size", None) is not None:
+        kw["size"] = tuple(args.size)
+    if getattr(args, "frames", None) is not None:
+        kw["frames"] = int(args.frames)
+    extra = [g for g in grid_options_given(args) if g != "--grid"]
+    if extra:
+        raise UsageError(f"{', '.join(extra)} do not apply to --benchmark: its room's grid is fixed, --grid N sets "
+                         "its size")
+    grid = getattr(args, "grid", None)
+    if grid is not None:
+        if len(set(grid)) != 1:
+            raise UsageError(f"--benchmark measures an N^3 room: --grid N, got {'x'.join(map(str, grid))}")
+        kw["n"] = int(grid[0])
+    for name in ("backend", "device"):
+        if getattr(args, name, None) is not None:
+            kw[name] = getattr(args, name)
+    if getattr(args, "backends", None):
+        from fruxel.kernels.registry import split_name
+
+        names = tuple(b.strip() for b in args.backends.split(",") if b.strip())
+        # A misspelt name fails here, before minutes of measuring; an installed-but-unusable one still becomes an
+        # "unavailable" row (as OpenCL does on a GPU machine without it).
+        for b in names:
+            split_name(b)
+        kw["raycast_backends"] = names
+    return Table1Config(**kw)
+
+
+def _benchmark(args: argparse.Namespace) -> list[Path]:
+    """``fruxel-render --benchmark``: run Table 1, print it, record the results in ``--out``."""
+    from fruxel import labels_from_scores
+    from fruxel.io import atomic_write
+    from fruxel.render.shading import to_numpy
+    from fruxel.render.table1 import format_table, machine_tag, markdown_section, record, run, verdicts
+
+    cfg = config_from_args(args)
+    model = None
+    if args.model is not None:
+        # Scores are turned into labels once, before timing.
+        inp = load_input(args.model)
+        labels = labels_from_scores(to_numpy(inp.volume)[0], axis=0) if inp.is_scores else inp.volume
+        model = (labels, inp.grid, inp.classes)
+    result = run(cfg, model)
+    print()
+    print(format_table(result))
+    for v in verdicts(result):
+        print(f"  {v}")
+    out = Path(args.out)
+    written = record(result, out, None)
+    md = out / "table1.md"
+    with atomic_write(md, "w") as f:
+        f.write(markdown_section({machine_tag(result.machine): result}, "table1.png"))
+    written.append(md)
+    return written
+
+
+# ---------------------------------------------------------------------------------------------------- entry
+def _main(args: argparse.Namespace) -> int:
+    written = _benchmark(args) if args.benchmark else run_render(args)
+    for path in written:
+        print(path)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``fruxel-render``; returns the exit status (0, 2 for bad input, 130 when interrupted)."""
+    return run(_main, build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
