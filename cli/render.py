@@ -10,7 +10,9 @@ Usage::
 MODEL (default: the bundled sample room, ``fruxel.data.SAMPLE_ROOM``) is one of
 
 * a fruxel model file ``.npz`` (:func:`fruxel.load`);
-* a logits tensor ``(C, D, H, W)`` or ``(1, C, D, H, W)`` (NCDHW, channel 0 = empty) saved as ``.npy``
+* a logits file ``.npz`` (:func:`fruxel.save_logits`, :func:`fruxel.load_logits`): logits ``(C, D, H, W)`` with
+  their grid and classes, the format predictions are written in;
+* a bare logits tensor ``(C, D, H, W)`` or ``(1, C, D, H, W)`` (NCDHW, channel 0 = empty) saved as ``.npy``
   (read with ``allow_pickle=False``) or ``.pt`` (``torch.load(weights_only=True)``). A bare tensor needs its
   grid, from (first found) ``--grid WxHxD`` (with ``--z-near``, ``--z-far`` and ``--hfov``, whose defaults are
   the simulator's grid), a ``.pt`` dict ``{"logits": tensor, "grid": {...}}``, or a JSON sidecar beside the
@@ -86,11 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Render a fruxel model: a trapezoid mesh of what the camera sees (pyrender), a ray-cast image "
         "(first_hit), or both; or measure Table 1 (--benchmark).",
-        epilog="MODEL may be a .npz fruxel model or a logits tensor (C,D,H,W) in .npy/.pt; a bare tensor takes its "
-        "grid from --grid, a .pt dict {'logits', 'grid'} or a JSON sidecar X.json beside X.npy. Default view: "
+        epilog="MODEL may be a .npz fruxel model or logits file (fruxel.save_logits), or a bare logits tensor "
+        "(C,D,H,W) in .npy/.pt, which takes its grid from --grid, a .pt dict {'logits', 'grid'} or a JSON sidecar "
+        "X.json beside X.npy. Default view: "
         "oblique, 30 deg right and 35 deg above the grid camera's side, fitted to the frustum.",
     )
-    p.add_argument("model", nargs="?", metavar="MODEL", help="model .npz or logits .npy/.pt (default: the sample room)")
+    p.add_argument("model", nargs="?", metavar="MODEL",
+                   help="model or logits .npz, or a logits tensor .npy/.pt (default: the sample room)")
     config_option(p, RenderOptions, "backend", choices=BACKENDS)
     config_option(p, RenderOptions, "device", type=device_name, metavar="cpu|cuda[:N]")
     config_option(p, RenderOptions, "mode", choices=MODES)
@@ -190,6 +194,7 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
     import numpy as np
 
     import fruxel
+    from fruxel.io import file_kind, load_logits
     from fruxel.render.frames import RenderInput
 
     if model is None:
@@ -202,6 +207,11 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
     if suffix not in (".npz", ".npy", ".pt", ".pth"):
         raise InputError(f"unknown model file type {str(path)!r}: expected .npz (model) or .npy / .pt (logits)")
     if suffix == ".npz":
+        if grid is not None:
+            raise UsageError(f"--grid describes a bare logits tensor (.npy / .pt); {str(path)!r} carries its grid")
+        if file_kind(path) == "logits":
+            lf = load_logits(path)
+            return RenderInput(lf.logits[None], lf.grid, lf.classes, path.stem)
         m = fruxel.load(path)
         return RenderInput(np.ascontiguousarray(m.labels), m.grid, m.classes, path.stem)
     if not path.is_file():

@@ -1,22 +1,32 @@
-"""Model files (SPEC section 5): an ``.npz`` archive read and written without pickle; and the package's atomic
-writes and strict npy-member reading, which the simulator's shards, mesh export and the renderer share.
+"""Model files (SPEC section 5) and logits files (SPEC section 8): ``.npz`` archives read and written without
+pickle; and the package's atomic writes and strict npy-member reading, which the simulator's shards, mesh export
+and the renderer share.
 
-Layout, format version 1:
+Model file layout, format version 1:
 
 - ``labels``: ``(D, H, W)`` uint8 npy member, the model's labels indexed ``[k, j, i]``.
 - ``meta``: 0-d numpy unicode (``<U``) npy member holding one JSON object,
   ``{"format": "fruxel", "version": 1, "grid": FruxelGrid.to_dict(), "classes": ClassTable.to_dict()}``.
   A bytes (``|S``) member holding UTF-8 JSON is read too.
 
-Members are deflate-compressed (label volumes are mostly zeros). :func:`save` writes atomically
+Logits file layout (a network's output for one image, for ``fruxel-render``, predictions and tests), format
+version 1:
+
+- ``logits``: ``(C, D, H, W)`` float16 or float32 npy member (NCDHW without the batch axis; channel 0 = empty),
+  C-ordered; read in either byte order and returned in the machine's.
+- ``meta``: as above, with ``"format": "fruxel-logits"``; ``classes`` has C entries.
+
+Model members are deflate-compressed (label volumes are mostly zeros); logits are stored uncompressed (float
+scores hardly compress, and large ones load faster so). :func:`save` and :func:`save_logits` write atomically
 (:func:`atomic_write`): a temporary file in the target's directory, fsync, then ``os.replace``, so a crash leaves
 the old file or the new one, never a half-written file under the target's name.
 
-:func:`load` never unpickles and never trusts a size before checking it: it opens the archive with
-:mod:`zipfile`, checks the member names, parses each member's npy header (:func:`open_npy_member`) and refuses
-wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-checks the label
-shape with the grid in ``meta``, then reads exactly the bytes the header announces. Every problem raises one
-:class:`FruxelFileError` naming the file and the problem, with no chained traceback.
+:func:`load` and :func:`load_logits` never unpickle and never trust a size before checking it: they open the
+archive with :mod:`zipfile`, check the member names, parse each member's npy header (:func:`open_npy_member`)
+and refuse wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-check the
+array's shape with the grid and classes in ``meta``, then read exactly the bytes the header announces (and
+refuse NaN or infinite logits). Every problem raises one :class:`FruxelFileError` naming the file and the
+problem, with no chained traceback.
 
 Shared helpers (numpy and the standard library only):
 
@@ -35,6 +45,7 @@ import os
 import secrets
 import zipfile
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -44,7 +55,7 @@ import numpy.lib.format as npy_format
 from .classes import ClassTable, ClassTableError
 from .errors import FruxelError
 from .grid import MAX_CELLS, FruxelGrid, GridError
-from .model import FruxelModel
+from .model import FruxelModel, ModelError, labels_from_scores
 
 FORMAT_NAME = "fruxel"
 """Value of ``meta["format"]``."""
@@ -52,19 +63,29 @@ FORMAT_NAME = "fruxel"
 FORMAT_VERSION = 1
 """The file format version this module writes and reads."""
 
+LOGITS_FORMAT_NAME = "fruxel-logits"
+"""Value of ``meta["format"]`` in a logits file."""
+
+LOGITS_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
+"""The dtypes of a logits file's ``logits`` (in the machine's byte order; the other order is read too)."""
+
+MAX_LOGITS_BYTES = 1 << 36
+"""Largest ``logits`` member accepted, in bytes (64 GiB): a header claiming more is refused before reading."""
+
 MAX_META_CHARS = 1 << 20
 """Longest ``meta`` JSON accepted, in characters: far above any real grid plus 256 class names."""
 
 _MEMBERS = ("labels.npy", "meta.npy")
+_LOGITS_MEMBERS = ("logits.npy", "meta.npy")
 _META_KEYS = ("format", "version", "grid", "classes")
 
 
 class FruxelFileError(FruxelError, ValueError):
-    """A file that is not a valid fruxel model file (or cannot be read). The message names the file and the
-    problem; :attr:`path` and :attr:`problem` hold them separately."""
+    """A file that is not a valid fruxel model file or logits file (or cannot be read). The message names the
+    file and the problem; :attr:`path` and :attr:`problem` hold them separately."""
 
-    def __init__(self, path: str, problem: str) -> None:
-        super().__init__(f"cannot load fruxel model {path!r}: {problem}")
+    def __init__(self, path: str, problem: str, kind: str = "fruxel model") -> None:
+        super().__init__(f"cannot load {kind} {path!r}: {problem}")
         self.path = path
         """The file name as given to :func:`load`."""
         self.problem = problem
@@ -453,15 +474,15 @@ def read_json_member(zf: zipfile.ZipFile, name: str, max_chars: int) -> Any:
     raise ArchiveError(problem)
 
 
-def _check_meta(meta: Any) -> tuple[FruxelGrid, ClassTable]:
+def _check_meta(meta: Any, format_name: str = FORMAT_NAME) -> tuple[FruxelGrid, ClassTable]:
     if not isinstance(meta, dict):
         raise ArchiveError(f"meta must be a JSON object, got {type(meta).__name__}")
     missing = [k for k in _META_KEYS if k not in meta]
     extra = sorted(str(k) for k in set(meta) - set(_META_KEYS))
     if missing or extra:
         raise ArchiveError(f"wrong meta keys{_listing(missing, extra)}")
-    if meta["format"] != FORMAT_NAME:
-        raise ArchiveError(f"meta format is {meta['format']!r}, expected {FORMAT_NAME!r}")
+    if meta["format"] != format_name:
+        raise ArchiveError(f"meta format is {meta['format']!r}, expected {format_name!r}")
     version = meta["version"]
     if isinstance(version, bool) or not isinstance(version, int):
         raise ArchiveError(f"meta version must be an integer, got {version!r}")
@@ -501,7 +522,7 @@ def _read_labels(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> 
     return labels
 
 
-def _load(path: str) -> FruxelModel:
+def _open_file(path: str) -> IO[bytes]:
     try:
         f = open(path, "rb")
     except FileNotFoundError:
@@ -510,17 +531,44 @@ def _load(path: str) -> FruxelModel:
         raise ArchiveError("it is a directory, not a file") from None
     except OSError as e:
         raise ArchiveError(f"cannot open it ({e.strerror or e})") from None
-    with f:
-        if os.path.isdir(path):
-            raise ArchiveError("it is a directory, not a file")
-        with open_archive(f) as zf:
-            names = zf.namelist()
-            if sorted(names) != sorted(_MEMBERS):
-                missing = [m[:-4] for m in _MEMBERS if m not in names]
-                extra = sorted({n for n in names if n not in _MEMBERS} | {n for n in names if names.count(n) > 1})
-                raise ArchiveError(f"wrong keys{_listing(missing, extra)}; expected exactly 'labels' and 'meta'")
-            grid, classes = _read_meta(zf)
-            labels = _read_labels(zf, grid, classes)
+    if os.path.isdir(path):
+        f.close()
+        raise ArchiveError("it is a directory, not a file")
+    return f
+
+
+def _check_members(zf: zipfile.ZipFile, expected: tuple[str, ...]) -> None:
+    names = zf.namelist()
+    if sorted(names) == sorted(expected):
+        return
+    # The other kind of fruxel file gets a pointer to its reader rather than a list of keys.
+    if sorted(names) == sorted(_LOGITS_MEMBERS):
+        raise ArchiveError("it is a logits file, not a model (fruxel.load_logits reads it)")
+    if sorted(names) == sorted(_MEMBERS):
+        raise ArchiveError("it is a fruxel model file (labels), not logits (fruxel.load reads it)")
+    missing = [m[:-4] for m in expected if m not in names]
+    extra = sorted({n for n in names if n not in expected} | {n for n in names if names.count(n) > 1})
+    wanted = " and ".join(repr(m[:-4]) for m in expected)
+    raise ArchiveError(f"wrong keys{_listing(missing, extra)}; expected exactly {wanted}")
+
+
+def file_kind(path: str | os.PathLike[str]) -> str | None:
+    """What a file is, from its archive's member names alone: ``"model"`` (:func:`load`), ``"logits"``
+    (:func:`load_logits`), or None for anything else (including a missing or unreadable file, which the
+    loaders then report properly). Reads only the zip directory."""
+    try:
+        with open(path, "rb") as f, open_archive(f) as zf:
+            names = sorted(zf.namelist())
+    except Exception:  # noqa: BLE001 - any file that cannot be opened as an archive is neither kind
+        return None
+    return {tuple(sorted(_MEMBERS)): "model", tuple(sorted(_LOGITS_MEMBERS)): "logits"}.get(tuple(names))
+
+
+def _load(path: str) -> FruxelModel:
+    with _open_file(path) as f, open_archive(f) as zf:
+        _check_members(zf, _MEMBERS)
+        grid, classes = _read_meta(zf)
+        labels = _read_labels(zf, grid, classes)
     return FruxelModel(labels, grid, classes)
 
 
@@ -547,3 +595,127 @@ def load(path: str | os.PathLike[str]) -> FruxelModel:
         # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
         problem = describe_read_error(e)
     raise FruxelFileError(name, problem)
+
+
+# ---------------------------------------------------------------------------------------------------- logits
+@dataclass(frozen=True, eq=False)
+class LogitsFile:
+    """The contents of a logits file (:func:`load_logits`): a network's scores for one image, with their grid and
+    classes."""
+
+    logits: np.ndarray
+    """``(C, D, H, W)`` float16 or float32, C-contiguous, writable, machine byte order, all finite; channel 0 =
+    empty."""
+    grid: FruxelGrid
+    """The grid of the logits' ``(D, H, W)``."""
+    classes: ClassTable
+    """The C classes of the channels."""
+
+    def labels(self, threshold: float | None = None) -> np.ndarray:
+        """Labels ``(D, H, W)`` uint8 by the occupancy rule of :func:`fruxel.labels_from_scores`."""
+        return labels_from_scores(self.logits, threshold=threshold, axis=0)
+
+    def to_model(self, threshold: float | None = None) -> FruxelModel:
+        """The :class:`FruxelModel` of :meth:`labels`."""
+        return FruxelModel(self.labels(threshold), self.grid, self.classes)
+
+
+def _as_numpy(x: Any) -> np.ndarray:
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        # A torch tensor (on any device), read without importing torch here.
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _check_logits(logits: Any, grid: Any, classes: Any) -> np.ndarray:
+    if not isinstance(grid, FruxelGrid):
+        raise ModelError(f"save_logits() needs a FruxelGrid, got {type(grid).__name__}")
+    if not isinstance(classes, ClassTable):
+        raise ModelError(f"save_logits() needs a ClassTable, got {type(classes).__name__}")
+    try:
+        arr = _as_numpy(logits)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ModelError(f"logits must be a numpy array, got {type(logits).__name__} ({e})") from None
+    if arr.dtype.newbyteorder("=") not in LOGITS_DTYPES:
+        raise ModelError(f"logits must be float16 or float32, got dtype {arr.dtype} (convert with .astype)")
+    want = (len(classes), *grid.shape)
+    if arr.shape != want:
+        raise ModelError(f"logits must have shape (C, D, H, W) = {want} for {len(classes)} classes and the grid's "
+                         f"(D, H, W), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ModelError("logits contain NaN or infinite values")
+    return np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("="))
+
+
+def save_logits(path: str | os.PathLike[str], logits: Any, grid: FruxelGrid, classes: ClassTable) -> None:
+    """Write a logits file (format in the module docstring) atomically.
+
+    Args:
+        path: target file name, used as given (``.npz`` by convention).
+        logits: ``(C, D, H, W)`` float16 or float32 scores, channel 0 = empty; a numpy array (or a torch tensor,
+            copied to the host). Stored in that dtype.
+        grid: the grid of ``(D, H, W)``.
+        classes: the C classes of the channels.
+
+    Raises:
+        ModelError: not a grid or class table, another dtype, a shape other than ``(len(classes), *grid.shape)``,
+            or NaN or infinite values.
+        OSError: the file cannot be written.
+    """
+    arr = _check_logits(logits, grid, classes)
+    meta = json.dumps({"format": LOGITS_FORMAT_NAME, "version": FORMAT_VERSION, "grid": grid.to_dict(),
+                       "classes": classes.to_dict()}, ensure_ascii=False)
+    with atomic_write(path) as f:
+        np.savez(f, logits=arr, meta=np.array(meta, dtype=np.str_))
+
+
+def _read_logits(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> np.ndarray:
+    with open_npy_member(zf, "logits.npy") as m:
+        shape, dtype = m.shape, m.dtype
+        if dtype.newbyteorder("=") not in LOGITS_DTYPES:
+            raise ArchiveError(f"member 'logits' has dtype {dtype}, expected float16 or float32")
+        if len(shape) != 4:
+            raise ArchiveError(f"member 'logits' has {len(shape)} dimensions (shape {shape}), expected 4 "
+                               f"(C, D, H, W)")
+        if m.nbytes > MAX_LOGITS_BYTES:
+            raise ArchiveError(f"member 'logits' header claims {m.nbytes} bytes (shape {shape}), more than the limit "
+                               f"{MAX_LOGITS_BYTES}")
+        want = (len(classes), *grid.shape)
+        if shape != want:
+            raise ArchiveError(f"member 'logits' has shape {shape} but meta's {len(classes)} classes and grid "
+                               f"(D, H, W) = {grid.shape} need {want}")
+        logits = m.read_array()
+    if not np.all(np.isfinite(logits)):
+        raise ArchiveError("the logits contain NaN or infinite values")
+    # A writable, C-ordered copy in the machine's byte order (torch.from_numpy and the kernels take it as it is).
+    return np.require(logits, dtype=dtype.newbyteorder("="), requirements=["C", "W"])
+
+
+def _load_logits(path: str) -> LogitsFile:
+    with _open_file(path) as f, open_archive(f) as zf:
+        _check_members(zf, _LOGITS_MEMBERS)
+        grid, classes = _check_meta(read_json_member(zf, "meta", MAX_META_CHARS), LOGITS_FORMAT_NAME)
+        logits = _read_logits(zf, grid, classes)
+    return LogitsFile(logits, grid, classes)
+
+
+def load_logits(path: str | os.PathLike[str]) -> LogitsFile:
+    """Read a logits file written by :func:`save_logits`, without pickle, as strictly as :func:`load`.
+
+    Args:
+        path: the file name.
+
+    Returns:
+        The logits ``(C, D, H, W)``, their grid and classes.
+
+    Raises:
+        FruxelFileError: the file is missing, unreadable, or not a valid logits file (a model file, wrong members,
+            an object array, another dtype, ndim or shape, a header claiming an absurd size, bad meta, NaN or
+            infinite values). One error naming the file and the problem.
+    """
+    name = os.fsdecode(path)
+    try:
+        return _load_logits(name)
+    except Exception as e:
+        problem = describe_read_error(e)
+    raise FruxelFileError(name, problem, kind="logits file")

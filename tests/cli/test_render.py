@@ -218,6 +218,20 @@ def test_npy_logits_with_sidecar_match_the_labels(tmp_path: Path) -> None:
     assert np.array_equal(read_png(tmp_path / "pred_raycast.png"), read_png(tmp_path / "sample_room_raycast.png"))
 
 
+def test_logits_file_renders_like_its_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A logits file (fruxel.save_logits, float16 here) carries its grid and classes; its ray cast is the labels'."""
+    fruxel.save_logits(tmp_path / "pred.npz", _logits(MODEL.labels, len(MODEL.classes)).astype(np.float16),
+                       MODEL.grid, MODEL.classes)
+    for name in ("pred.npz", None):
+        args = ["--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--size", SIZE,
+                "--out", tmp_path]
+        assert run_cli(*([tmp_path / name] if name else []), *args) == 0
+    assert np.array_equal(read_png(tmp_path / "pred_raycast.png"), read_png(tmp_path / "sample_room_raycast.png"))
+    capsys.readouterr()
+    _one_error_line(run_cli(tmp_path / "pred.npz", "--grid", "8", "--out", tmp_path), capsys.readouterr().err,
+                    "--grid", "pred.npz")
+
+
 def test_npy_logits_mesh_with_grid_option(tmp_path: Path) -> None:
     np.save(tmp_path / "bare.npy", _logits(MODEL.labels, len(MODEL.classes)))
     g = MODEL.grid
