@@ -44,10 +44,10 @@ import json
 import os
 import secrets
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
 import numpy.lib.format as npy_format
@@ -74,6 +74,8 @@ MAX_LOGITS_BYTES = 1 << 36
 
 MAX_META_CHARS = 1 << 20
 """Longest ``meta`` JSON accepted, in characters: far above any real grid plus 256 class names."""
+
+T = TypeVar("T")
 
 _MEMBERS = ("labels.npy", "meta.npy")
 _LOGITS_MEMBERS = ("logits.npy", "meta.npy")
@@ -438,10 +440,6 @@ def _listing(missing: list[str], extra: list[str]) -> str:
     return ": " + ", ".join(parts)
 
 
-def _read_meta(zf: zipfile.ZipFile) -> tuple[FruxelGrid, ClassTable]:
-    return _check_meta(read_json_member(zf, "meta", MAX_META_CHARS))
-
-
 def read_json_member(zf: zipfile.ZipFile, name: str, max_chars: int) -> Any:
     """The JSON value stored in member ``name.npy`` as a 0-d string (unicode, or UTF-8 bytes), read without
     pickle and with a size limit checked before anything is read.
@@ -564,12 +562,20 @@ def file_kind(path: str | os.PathLike[str]) -> str | None:
     return {tuple(sorted(_MEMBERS)): "model", tuple(sorted(_LOGITS_MEMBERS)): "logits"}.get(tuple(names))
 
 
-def _load(path: str) -> FruxelModel:
-    with _open_file(path) as f, open_archive(f) as zf:
-        _check_members(zf, _MEMBERS)
-        grid, classes = _read_meta(zf)
-        labels = _read_labels(zf, grid, classes)
-    return FruxelModel(labels, grid, classes)
+def _read_strictly(path: str | os.PathLike[str], kind: str, members: tuple[str, ...], format_name: str,
+                   read: Callable[[zipfile.ZipFile, FruxelGrid, ClassTable], T]) -> T:
+    """Open a fruxel archive, check its members and meta, and return ``read(zf, grid, classes)``; any problem
+    becomes one :class:`FruxelFileError` naming the file, with no chained exception."""
+    name = os.fsdecode(path)
+    try:
+        with _open_file(name) as f, open_archive(f) as zf:
+            _check_members(zf, members)
+            grid, classes = _check_meta(read_json_member(zf, "meta", MAX_META_CHARS), format_name)
+            return read(zf, grid, classes)
+    except Exception as e:
+        # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
+        problem = describe_read_error(e)
+    raise FruxelFileError(name, problem, kind)
 
 
 def load(path: str | os.PathLike[str]) -> FruxelModel:
@@ -588,13 +594,8 @@ def load(path: str | os.PathLike[str]) -> FruxelModel:
             version, an invalid grid or class table, or labels outside the class table. One error, whose
             message names the file and the problem, with no chained exception.
     """
-    name = os.fsdecode(path)
-    try:
-        return _load(name)
-    except Exception as e:
-        # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
-        problem = describe_read_error(e)
-    raise FruxelFileError(name, problem)
+    return _read_strictly(path, "fruxel model", _MEMBERS, FORMAT_NAME,
+                          lambda zf, grid, classes: FruxelModel(_read_labels(zf, grid, classes), grid, classes))
 
 
 # ---------------------------------------------------------------------------------------------------- logits
@@ -691,14 +692,6 @@ def _read_logits(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> 
     return np.require(logits, dtype=dtype.newbyteorder("="), requirements=["C", "W"])
 
 
-def _load_logits(path: str) -> LogitsFile:
-    with _open_file(path) as f, open_archive(f) as zf:
-        _check_members(zf, _LOGITS_MEMBERS)
-        grid, classes = _check_meta(read_json_member(zf, "meta", MAX_META_CHARS), LOGITS_FORMAT_NAME)
-        logits = _read_logits(zf, grid, classes)
-    return LogitsFile(logits, grid, classes)
-
-
 def load_logits(path: str | os.PathLike[str]) -> LogitsFile:
     """Read a logits file written by :func:`save_logits`, without pickle, as strictly as :func:`load`.
 
@@ -713,9 +706,5 @@ def load_logits(path: str | os.PathLike[str]) -> LogitsFile:
             an object array, another dtype, ndim or shape, a header claiming an absurd size, bad meta, NaN or
             infinite values). One error naming the file and the problem.
     """
-    name = os.fsdecode(path)
-    try:
-        return _load_logits(name)
-    except Exception as e:
-        problem = describe_read_error(e)
-    raise FruxelFileError(name, problem, kind="logits file")
+    return _read_strictly(path, "logits file", _LOGITS_MEMBERS, LOGITS_FORMAT_NAME,
+                          lambda zf, grid, classes: LogitsFile(_read_logits(zf, grid, classes), grid, classes))
