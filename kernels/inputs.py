@@ -7,6 +7,7 @@ is never imported here, tensors are recognised by duck typing.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -152,12 +153,18 @@ def check_cameras(cameras: Any) -> list[Camera]:
     Raises:
         VolumeError: an empty sequence or something that is not a :class:`fruxel.Camera`.
     """
-    cams = [cameras] if isinstance(cameras, Camera) else list(cameras)
+    if isinstance(cameras, Camera):
+        return [cameras]
+    # A mapping, a string or any other non-sequence is not a set of cameras (iterating a dict would report its
+    # keys' type instead of the dict's).
+    if isinstance(cameras, (str, bytes, Mapping)) or not isinstance(cameras, Iterable):
+        raise VolumeError(f"expected a fruxel.Camera or a sequence of them, got {type(cameras).__name__}")
+    cams = list(cameras)
     if not cams:
         raise VolumeError("at least one camera is needed")
-    for c in cams:
+    for n, c in enumerate(cams):
         if not isinstance(c, Camera):
-            raise VolumeError(f"expected fruxel.Camera, got {type(c).__name__}")
+            raise VolumeError(f"expected a fruxel.Camera or a sequence of them, got {type(c).__name__} at index {n}")
     return cams
 
 
