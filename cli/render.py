@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -53,6 +53,7 @@ from .common import (
     grid_from_args,
     grid_options_given,
     image_size,
+    one_line,
     positive_int,
     run,
     unit_fraction,
@@ -127,13 +128,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # ---------------------------------------------------------------------------------------------------- input
-def _classes_for(n_channels: int, given: Any) -> ClassTable:
+LOGITS_DTYPES = ("float16", "float32", "float64")
+"""dtypes of a bare logits tensor (numpy or torch), as the kernels take them."""
+MAX_CAMERA_BYTES = 1 << 20
+"""Largest ``--camera`` file read: a camera's JSON is a few hundred bytes."""
+
+
+def _named(source: str, what: str | None, make: Any, value: Any) -> Any:
+    """``make(value)``, with any fruxel error re-raised as one line naming ``source`` (and ``what``)."""
+    try:
+        return make(value)
+    except FruxelError as e:
+        raise InputError(f"{source}: {what + ': ' if what else ''}{e}") from None
+
+
+def _classes_for(n_channels: int, given: Any, source: str) -> ClassTable:
     from fruxel import DEFAULT_CLASSES, ClassTable
 
     if given is not None:
-        table = ClassTable.from_dict(given)
+        table = _named(source, "classes", ClassTable.from_dict, given)
         if len(table) != n_channels:
-            raise InputError(f"the class table has {len(table)} classes but the logits have {n_channels} channels")
+            raise InputError(f"{source}: the class table has {len(table)} classes but the logits have {n_channels} "
+                             "channels")
         return table
     if n_channels <= len(DEFAULT_CLASSES):
         return ClassTable(DEFAULT_CLASSES.names[:n_channels], DEFAULT_CLASSES.colours[:n_channels])
@@ -141,17 +157,31 @@ def _classes_for(n_channels: int, given: Any) -> ClassTable:
     return DEFAULT_CLASSES.extended(*extra)
 
 
-def _read_sidecar(path: Path) -> tuple[Any, Any]:
+def _read_sidecar(path: Path) -> tuple[Any, Any, str]:
+    """The grid and classes dicts of ``X.json`` beside ``X.npy`` (None where missing) and the sidecar's name."""
     side = path.with_suffix(".json")
     if not side.is_file():
-        return None, None
+        return None, None, str(side)
     try:
         meta = json.loads(side.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
-        raise InputError(f"cannot read the grid sidecar {str(side)!r}: {e}") from None
+        raise InputError(f"{side}: cannot read the grid sidecar: {one_line(e)}") from None
     if isinstance(meta, dict) and "grid" in meta:
-        return meta["grid"], meta.get("classes")
-    return meta, None
+        return meta["grid"], meta.get("classes"), str(side)
+    return meta, None, str(side)
+
+
+def _torch_problem(e: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in fruxel's words."""
+    import pickle
+
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
+    if isinstance(e, pickle.UnpicklingError) or "weights only load failed" in text.lower():
+        # torch's own message goes on to suggest weights_only=False, which would run the file's code.
+        return ("refused: it holds Python objects that only unpickling could load, and fruxel never unpickles a "
+                "file; save a tensor, or a dict of tensors and plain values")
+    first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
+    return f"cannot read it ({first})"
 
 
 def _load_tensor(path: Path) -> tuple[Any, Any, Any]:
@@ -162,21 +192,28 @@ def _load_tensor(path: Path) -> tuple[Any, Any, Any]:
         try:
             return np.load(path, allow_pickle=False), None, None
         except (OSError, ValueError, EOFError) as e:
-            raise InputError(f"cannot read logits {str(path)!r}: {e}") from None
+            raise InputError(f"{path}: cannot read logits: {one_line(e)}") from None
     try:
         import torch
     except ImportError:
-        raise InputError(f"reading {str(path)!r} needs torch: pip install 'fruxel[train]'") from None
+        raise InputError(f"{path}: reading .pt files needs torch: pip install 'fruxel[train]'") from None
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch raises many types for a damaged or unsafe file
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise InputError(f"cannot read logits {str(path)!r}: {msg}") from None
+        problem = _torch_problem(e)
+        raise InputError(f"{path}: {problem}") from None
+    grid = classes = None
     if isinstance(obj, dict):
         if "logits" not in obj:
-            raise InputError(f"{str(path)!r} holds a dict without 'logits' (keys: {sorted(map(str, obj))})")
-        return obj["logits"], obj.get("grid"), obj.get("classes")
-    return obj, None, None
+            raise InputError(f"{path}: holds a dict without 'logits' (keys: {sorted(map(str, obj))})")
+        obj, grid, classes = obj["logits"], obj.get("grid"), obj.get("classes")
+        what = "its 'logits' entry is"
+    else:
+        what = "holds"
+    if not isinstance(obj, torch.Tensor):
+        raise InputError(f"{path}: {what} a {type(obj).__name__}, expected a logits tensor (C, D, H, W), alone or "
+                         "as a dict {'logits': tensor, 'grid': {...}, 'classes': {...}}")
+    return obj, grid, classes
 
 
 def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput:
@@ -187,15 +224,17 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
         grid: the grid of a bare logits tensor (``--grid``), None to take it from the file or its sidecar.
 
     Raises:
-        FruxelFileError: a missing or invalid ``.npz`` model.
-        InputError: a missing, unreadable or misshapen tensor file, or no grid for it.
-        GridError, ClassTableError: an invalid grid or class table.
+        FruxelFileError: a missing or invalid ``.npz`` model or logits file.
+        InputError: a missing, unreadable or misshapen tensor file, no grid for it, or an invalid grid or class
+            table in it; the message names the file.
+        UsageError: ``grid`` for a file that carries its own.
     """
     import numpy as np
 
     import fruxel
     from fruxel.io import file_kind, load_logits
     from fruxel.render.frames import RenderInput
+    from fruxel.render.shading import to_numpy
 
     if model is None:
         from fruxel.data import SAMPLE_ROOM
@@ -205,54 +244,93 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
     path = Path(model)
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".npy", ".pt", ".pth"):
-        raise InputError(f"unknown model file type {str(path)!r}: expected .npz (model) or .npy / .pt (logits)")
+        raise InputError(f"{path}: unknown model file type: expected .npz (model or logits file) or .npy / .pt "
+                         "(logits tensor)")
     if suffix == ".npz":
         if grid is not None:
-            raise UsageError(f"--grid describes a bare logits tensor (.npy / .pt); {str(path)!r} carries its grid")
+            raise UsageError(f"--grid describes a bare logits tensor (.npy / .pt); {path} carries its grid")
         if file_kind(path) == "logits":
             lf = load_logits(path)
             return RenderInput(lf.logits[None], lf.grid, lf.classes, path.stem)
         m = fruxel.load(path)
         return RenderInput(np.ascontiguousarray(m.labels), m.grid, m.classes, path.stem)
     if not path.is_file():
-        raise InputError(f"no such file: {str(path)!r}")
+        raise InputError(f"{path}: {'is a folder, not a file' if path.is_dir() else 'no such file'}")
     tensor, grid_dict, classes_dict = _load_tensor(path)
-    side_grid, side_classes = _read_sidecar(path)
+    side_grid, side_classes, side = _read_sidecar(path)
     if grid is None:
-        if grid_dict is None and side_grid is None:
-            raise InputError(f"{str(path)!r} is a bare tensor: give its grid with --grid WxHxD (and --z-near, "
-                             f"--z-far, --hfov) or a sidecar {str(path.with_suffix('.json'))!r}")
-        grid = fruxel.FruxelGrid.from_dict(grid_dict if grid_dict is not None else side_grid)
+        if grid_dict is not None:
+            grid = _named(str(path), "grid", fruxel.FruxelGrid.from_dict, grid_dict)
+        elif side_grid is not None:
+            grid = _named(side, "grid", fruxel.FruxelGrid.from_dict, side_grid)
+        else:
+            raise InputError(f"{path}: a bare tensor needs its grid: give --grid WxHxD (with --z-near, --z-far, "
+                             f"--hfov) or a sidecar {side}")
     shape = tuple(int(s) for s in tensor.shape)
     if len(shape) == 4:
         tensor = tensor[None]
     elif not (len(shape) == 5 and shape[0] == 1):
-        raise InputError(f"logits in {str(path)!r} must have shape (C, D, H, W) or (1, C, D, H, W), got {shape}")
-    kind = str(tensor.dtype)
-    if "float" not in kind:
-        raise InputError(f"logits in {str(path)!r} must be floating point, got dtype {kind}")
+        raise InputError(f"{path}: logits must have shape (C, D, H, W) or (1, C, D, H, W), got {shape}")
+    kind = str(tensor.dtype).removeprefix("torch.")
+    if kind not in LOGITS_DTYPES:
+        raise InputError(f"{path}: logits must be float16, float32 or float64, got dtype {kind}")
     if tuple(tensor.shape[2:]) != grid.shape:
-        raise InputError(f"logits in {str(path)!r} have (D, H, W) = {tuple(tensor.shape[2:])} but the grid has "
-                         f"{grid.shape}")
-    classes = _classes_for(int(tensor.shape[1]), classes_dict if classes_dict is not None else side_classes)
+        raise InputError(f"{path}: logits have (D, H, W) = {tuple(tensor.shape[2:])} but the grid has {grid.shape}")
+    if not np.all(np.isfinite(to_numpy(tensor))):
+        raise InputError(f"{path}: the logits contain NaN or infinite values")
+    if classes_dict is not None:
+        classes = _classes_for(int(tensor.shape[1]), classes_dict, str(path))
+    else:
+        classes = _classes_for(int(tensor.shape[1]), side_classes, side)
     return RenderInput(tensor, grid, classes, path.stem)
 
 
+def _read_camera_file(text: str) -> str:
+    path = Path(text)
+    source = f"--camera {text}"
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CAMERA_BYTES + 1)
+    except FileNotFoundError:
+        raise InputError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{source}: is a folder, not a camera file") from None
+    except OSError as e:
+        raise InputError(f"{source}: cannot read it ({e.strerror or e})") from None
+    if len(raw) > MAX_CAMERA_BYTES:
+        raise InputError(f"{source}: not a camera file (larger than {MAX_CAMERA_BYTES} bytes)")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{source}: not a camera file (binary data, not JSON text)") from None
+
+
 def viewing_camera(text: str | None, grid: FruxelGrid, size: tuple[int, int] | None) -> Camera:
-    """The camera of ``--camera`` (JSON text or a file) or :func:`fruxel.render.frames.default_camera` at
-    ``size``."""
+    """The camera of ``--camera`` or :func:`fruxel.render.frames.default_camera` at ``size``.
+
+    ``text`` is a :meth:`fruxel.Camera.to_json` text when it starts with ``{``, else the name of a file holding
+    one (so that a missing file says so rather than "malformed JSON").
+
+    Raises:
+        InputError: an unreadable file or an invalid camera, naming ``--camera`` and the file.
+        UsageError: ``size`` given and other than the camera's own image size.
+    """
     from fruxel import Camera
     from fruxel.render.frames import DEFAULT_SIZE, default_camera
 
     if text is None:
         w, h = size or DEFAULT_SIZE
         return default_camera(grid, w, h)
-    if os.path.isfile(text):
-        try:
-            text = Path(text).read_text(encoding="utf-8")
-        except OSError as e:
-            raise InputError(f"cannot read camera file: {e}") from None
-    return Camera.from_json(text)
+    if text.lstrip().startswith("{"):
+        source = "--camera (JSON text)"
+    else:
+        source = f"--camera {text}"
+        text = _read_camera_file(text)
+    cam = _named(source, None, Camera.from_json, text)
+    if size is not None and tuple(size) != (cam.width, cam.height):
+        raise UsageError(f"--size {size[0]}x{size[1]} and {source}: the camera sets the image size "
+                         f"({cam.width}x{cam.height}); leave out --size")
+    return cam
 
 
 # ---------------------------------------------------------------------------------------------------- render

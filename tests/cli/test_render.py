@@ -23,6 +23,7 @@ from fruxel.cli.render import main
 from fruxel.data import SAMPLE_ROOM
 from fruxel.render.frames import default_camera
 
+ROOT = Path(__file__).resolve().parents[2]
 SIZE = "96x72"
 BACKEND = "warp" if any(b.startswith("warp") for b in kernels.available_backends()) else "opencl"
 MODEL = fruxel.load(SAMPLE_ROOM)
@@ -297,7 +298,91 @@ def test_unknown_backend_and_bad_options() -> None:
 
 def test_bad_camera_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = run_cli("--camera", '{"fx": 1}', "--out", tmp_path)
-    _one_error_line(rc, capsys.readouterr().err, "camera")
+    _one_error_line(rc, capsys.readouterr().err, "--camera (JSON text)", "camera keys")
+
+
+def _camera_cases(tmp: Path) -> dict[str, tuple[str, tuple[str, ...]]]:
+    """``--camera`` values that are not usable cameras, and the words their one error line must hold."""
+    (tmp / "loop_a").symlink_to(tmp / "loop_b")
+    (tmp / "loop_b").symlink_to(tmp / "loop_a")
+    (tmp / "folder.json").mkdir()
+    bent = MODEL.grid.camera().to_dict()
+    bent["pose"][0][0] = 2.0
+    (tmp / "bent.json").write_text(json.dumps(bent))
+    (tmp / "list.json").write_text("[1, 2]")
+    return {
+        "binary file": (str(ROOT / "docs" / "demo.png"), ("--camera", "demo.png", "not a camera file")),
+        "missing file": (str(tmp / "nope.json"), ("--camera", "nope.json", "no such file")),
+        "folder": (str(tmp / "folder.json"), ("folder.json", "folder")),
+        "link loop": (str(tmp / "loop_a"), ("loop_a", "symbolic links")),
+        "pose not rigid": (str(tmp / "bent.json"), ("--camera", "bent.json", "rigid")),
+        "not an object": (str(tmp / "list.json"), ("list.json", "JSON object")),
+    }
+
+
+@pytest.mark.parametrize("case", ["binary file", "missing file", "folder", "link loop", "pose not rigid",
+                                  "not an object"])
+def test_camera_files_that_are_not_cameras(tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str) -> None:
+    """Every --camera problem is one line naming --camera and the file, with the right diagnosis (a missing
+    file is missing, not malformed JSON)."""
+    value, words = _camera_cases(tmp_path)[case]
+    rc = run_cli("--backend", BACKEND, "--camera", value, "--out", tmp_path / "out")
+    _one_error_line(rc, capsys.readouterr().err, *words)
+    assert not (tmp_path / "out").exists()
+
+
+def test_camera_and_a_different_size_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cam = tmp_path / "cam.json"
+    cam.write_text(MODEL.grid.camera().to_json())
+    _one_error_line(run_cli("--camera", cam, "--size", "10x10", "--out", tmp_path), capsys.readouterr().err,
+                    "--size", "--camera")
+
+
+def _torch_files(tmp: Path) -> dict[str, tuple[str, tuple[str, ...]]]:
+    torch = pytest.importorskip("torch")
+    lg = torch.from_numpy(_logits(MODEL.labels, len(MODEL.classes)))
+    torch.save([1, 2, 3], tmp / "list.pt")
+    torch.save({"logits": [1, 2, 3]}, tmp / "dict_list.pt")
+    torch.save({"logits": lg, "grid": {"width": -1}}, tmp / "bad_grid.pt")
+    torch.save({"logits": lg, "grid": MODEL.grid.to_dict(), "classes": {"names": ["a"]}}, tmp / "bad_classes.pt")
+    torch.save({"logits": lg.to(torch.bfloat16), "grid": MODEL.grid.to_dict()}, tmp / "bf16.pt")
+    nan = lg.clone()
+    nan[0, 0, 0, 0] = float("nan")
+    torch.save({"logits": nan, "grid": MODEL.grid.to_dict()}, tmp / "nan.pt")
+    # An object only unpickling could rebuild: weights_only refuses it, and so must we, in our own words.
+    torch.save({"logits": lg, "grid": MODEL.grid.to_dict(), "extra": Path("x")}, tmp / "pickled.pt")
+    return {
+        "list": ("list.pt", ("list.pt", "holds a list", "logits tensor")),
+        "dict with a list": ("dict_list.pt", ("dict_list.pt", "'logits' entry is a list")),
+        "bad grid": ("bad_grid.pt", ("bad_grid.pt", "grid")),
+        "bad classes": ("bad_classes.pt", ("bad_classes.pt", "classes")),
+        "bfloat16": ("bf16.pt", ("bf16.pt", "bfloat16")),
+        "NaN": ("nan.pt", ("nan.pt", "NaN")),
+        "pickled object": ("pickled.pt", ("pickled.pt", "never unpickles")),
+    }
+
+
+@pytest.mark.parametrize("case", ["list", "dict with a list", "bad grid", "bad classes", "bfloat16", "NaN",
+                                  "pickled object"])
+def test_pt_files_that_are_not_logits(tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str) -> None:
+    name, words = _torch_files(tmp_path)[case]
+    rc = run_cli(tmp_path / name, "--grid", "64x48x64", "--z-far", "6", "--out", tmp_path) if case in (
+        "list", "dict with a list") else run_cli(tmp_path / name, "--out", tmp_path)
+    err = capsys.readouterr().err
+    _one_error_line(rc, err, *words)
+    # torch's advice to load with weights_only=False (which would run the file's code) is not repeated.
+    assert "weights_only" not in err and "\x1b" not in err
+
+
+def test_nan_npy_logits_name_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    lg = _logits(MODEL.labels, len(MODEL.classes))
+    lg[3, 1, 2, 3] = np.inf
+    np.save(tmp_path / "inf.npy", lg)
+    (tmp_path / "inf.json").write_text(json.dumps(MODEL.grid.to_dict()))
+    _one_error_line(run_cli(tmp_path / "inf.npy", "--out", tmp_path), capsys.readouterr().err, "inf.npy", "NaN")
+    np.save(tmp_path / "ok.npy", _logits(MODEL.labels, len(MODEL.classes)))
+    (tmp_path / "ok.json").write_text(json.dumps({"grid": MODEL.grid.to_dict(), "classes": {"x": 1}}))
+    _one_error_line(run_cli(tmp_path / "ok.npy", "--out", tmp_path), capsys.readouterr().err, "ok.json", "classes")
 
 
 def test_view_without_display() -> None:
