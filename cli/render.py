@@ -116,7 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--orbit", type=positive_int, default=None, metavar="N", help="render an N-frame orbit")
     p.add_argument("--video", choices=VIDEO_FORMATS, default="gif", help="orbit format (mp4 needs imageio-ffmpeg)")
     p.add_argument("--fps", type=positive_int, default=12, help="orbit frames per second (default 12)")
-    p.add_argument("--export", type=Path, default=None, metavar="FILE", help="also write the mesh to .glb or .ply")
+    p.add_argument("--export", type=Path, default=None, metavar="FILE",
+                   help="also write the mesh to FILE.glb (glTF's frame, +Y up, as glTF viewers expect) or FILE.ply "
+                   "(the grid frame: OpenCV axes, y down; with face labels)")
     p.add_argument("--view", action="store_true", help="open pyrender's interactive Viewer (needs a display)")
     b = p.add_argument_group("Table 1 (--benchmark)")
     b.add_argument("--benchmark", action="store_true", help="measure Table 1 (per-frame model updates)")
