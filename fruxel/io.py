@@ -31,7 +31,9 @@ problem, with no chained traceback.
 Shared helpers (numpy and the standard library only):
 
 - :func:`atomic_write` (a file object) and :func:`atomic_path` (a temporary file name, for writers that need one
-  with the right suffix: PIL, imageio, matplotlib) replace a file atomically and durably.
+  with the right suffix: PIL, imageio, matplotlib) replace a file atomically and durably; :func:`atomic_files`
+  replaces several files together, all or none; :func:`remove_stale_temporaries` removes what killed writers
+  of a file left behind.
 - :func:`open_archive`, :func:`open_npy_member`, :func:`read_npy_member` and :func:`describe_read_error` read
   npz archives strictly; they raise the neutral :class:`ArchiveError`, which each reader turns into its own
   error naming the file (:class:`FruxelFileError` here, ``DatasetError`` in :mod:`fruxel.train.sim.shards`).
@@ -42,7 +44,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import secrets
+import stat
+import time
 import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -51,6 +56,11 @@ from typing import IO, Any, TypeVar
 
 import numpy as np
 import numpy.lib.format as npy_format
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock, see remove_stale_temporaries
+    fcntl = None  # type: ignore[assignment]
 
 from .classes import ClassTable, ClassTableError
 from .errors import FruxelError
@@ -101,19 +111,100 @@ class ArchiveError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------------- atomic writes
-def _create_temporary(target: str, suffix: str) -> tuple[str, int]:
-    """Create a new, empty, hidden file beside ``target``; returns its name and an open write descriptor."""
+STALE_AGE = 5.0
+"""Seconds a temporary file must have existed before :func:`remove_stale_temporaries` may take it for a dead
+writer's (a live writer holds a lock on it from a moment after creating it)."""
+
+
+def _temporary_name(target: str, suffix: str) -> str:
+    # Beside the target (os.replace must not cross file systems), short enough for any name limit.
     directory = os.path.dirname(os.path.abspath(target))
+    return os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp{suffix}")
+
+
+def _hold(fd: int) -> int:
+    """A duplicate of ``fd`` holding an exclusive ``flock`` on the file: the mark of a live writer, which the
+    kernel drops when the process dies. Close the duplicate to release it. Without ``fcntl`` (Windows) the
+    duplicate marks nothing."""
+    lock = os.dup(fd)
+    if fcntl is not None:
+        with contextlib.suppress(OSError):
+            fcntl.flock(lock, fcntl.LOCK_EX)
+    return lock
+
+
+def _create_temporary(target: str, suffix: str) -> tuple[str, int, int]:
+    """Create a new, empty, hidden file beside ``target``; returns its name, an open write descriptor and the
+    descriptor of the writer's lock on it (:func:`_hold`)."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     while True:
-        # Beside the target (os.replace must not cross file systems), short enough for any name limit.
-        tmp = os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp{suffix}")
+        tmp = _temporary_name(target, suffix)
         try:
             # Mode 0o666 lets the umask decide the permissions, as for any newly created file (mkstemp's 0o600
             # would leave written models, meshes and images private).
-            return tmp, os.open(tmp, flags, 0o666)
+            fd = os.open(tmp, flags, 0o666)
         except FileExistsError:
             continue
+        return tmp, fd, _hold(fd)
+
+
+def _discard(tmp: str, lock: int) -> None:
+    with contextlib.suppress(OSError):
+        os.remove(tmp)
+    os.close(lock)
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str], min_age: float = STALE_AGE) -> list[str]:
+    """Remove the temporary files that killed writers of ``path`` left beside it.
+
+    :func:`atomic_write`, :func:`atomic_path` and :func:`atomic_files` remove their temporary file on any error,
+    but a process killed with ``SIGKILL`` (or a power cut) cannot. Such a file is recognised by its name
+    (``.NAME.XXXXXXXXXXXX.tmp`` or ``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` for ``path`` = ``NAME``), and told from a
+    live writer's by the lock every writer holds on its temporary file until it is done (``flock``, released by
+    the kernel when a process dies). Files younger than ``min_age`` seconds are left alone (a writer takes its
+    lock a moment after creating the file). Where ``flock`` is missing, only files older than a day go.
+
+    Args:
+        path: the output whose stale temporaries to remove; its folder may be missing.
+        min_age: seconds since the last change below which a file is kept.
+
+    Returns:
+        The names removed.
+    """
+    target = os.fsdecode(path)
+    directory = os.path.dirname(os.path.abspath(target))
+    base = os.path.basename(target)
+    pattern = re.compile(rf"\.{re.escape(base[:120])}\.[0-9a-f]{{12}}\.tmp(?:{re.escape(Path(base).suffix)})?")
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        if not pattern.fullmatch(name):
+            continue
+        tmp = os.path.join(directory, name)
+        try:
+            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError:
+            continue
+        try:
+            st = os.fstat(fd)
+            age = time.time() - st.st_mtime
+            if not stat.S_ISREG(st.st_mode) or age < (min_age if fcntl is not None else 86400.0):
+                continue
+            if fcntl is not None:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    continue  # a live writer holds it
+            os.remove(tmp)
+            removed.append(tmp)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _fsync_directory(directory: str) -> None:
@@ -125,6 +216,14 @@ def _fsync_directory(directory: str) -> None:
     try:
         with contextlib.suppress(OSError):
             os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: str) -> None:
+    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+    try:
+        os.fsync(fd)
     finally:
         os.close(fd)
 
@@ -143,7 +242,7 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
     fsynced, so a reader or a crash sees the old file or the complete new one, never part of one. When the block
     (or the sync or the rename) raises, including ``KeyboardInterrupt``, the temporary file is removed, the old
     file is left as it was and the exception propagates. Only a killed process can leave the temporary file;
-    a program that cleans up after one can recognise it by its name.
+    :func:`remove_stale_temporaries` cleans up after one.
 
     Args:
         path: the file to write; its folder must exist.
@@ -160,7 +259,7 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_write() writes in mode 'wb' or 'w', not {mode!r}")
     target = os.fsdecode(path)
-    tmp, fd = _create_temporary(target, "")
+    tmp, fd, lock = _create_temporary(target, "")
     try:
         with os.fdopen(fd, mode, encoding=None if "b" in mode else encoding) as f:
             yield f
@@ -168,8 +267,59 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
             os.fsync(f.fileno())
         _commit(tmp, target)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
+        _discard(tmp, lock)
+        raise
+    os.close(lock)
+
+
+class AtomicFiles:
+    """The temporary files of one :func:`atomic_files` block, committed together when it ends."""
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[str, str, int]] = []
+
+    def path(self, path: str | os.PathLike[str]) -> Path:
+        """A new, empty temporary file for the target ``path`` (``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` beside it, with
+        its suffix, for writers that pick the format by the name); write it (overwriting it) and close it.
+
+        Raises:
+            OSError: it cannot be created (a missing folder, no permission).
+        """
+        target = os.fsdecode(path)
+        tmp, fd, lock = _create_temporary(target, Path(target).suffix)
+        os.close(fd)
+        self._pending.append((tmp, target, lock))
+        return Path(tmp)
+
+
+@contextlib.contextmanager
+def atomic_files() -> Iterator[AtomicFiles]:
+    """Replace several files together: all of them, or (when anything fails before the renames) none.
+
+    Each :meth:`AtomicFiles.path` gives a temporary file for one target. When the block ends normally every
+    temporary file is fsynced, then each is renamed onto its target and the folders are fsynced; when the block,
+    a sync or a rename raises (``KeyboardInterrupt`` too), the temporary files not yet renamed are removed and
+    the exception propagates. Until the renames nothing under a target's name has changed, so a failed block
+    leaves every old file as it was; only a rename failing half way (which a full disk or a permission error
+    cannot cause: the data are already written) could leave some targets new and some old.
+
+    Yields:
+        The set of pending files.
+    """
+    files = AtomicFiles()
+    pending = files._pending
+    try:
+        yield files
+        for tmp, _, _ in pending:
+            _fsync_file(tmp)
+        while pending:
+            tmp, target, lock = pending[0]
+            _commit(tmp, target)
+            pending.pop(0)
+            os.close(lock)
+    except BaseException:
+        for tmp, _, lock in pending:
+            _discard(tmp, lock)
         raise
 
 
@@ -182,7 +332,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     ``.room.png.0123456789ab.tmp.png``), created empty before the block runs. When the block ends normally the
     file is fsynced, renamed onto ``path`` and the folder fsynced; when anything raises, including
     ``KeyboardInterrupt``, the temporary file is removed and the old file stays as it was (as for
-    :func:`atomic_write`).
+    :func:`atomic_write`). One file of :func:`atomic_files`.
 
     Args:
         path: the file to write; its folder must exist.
@@ -193,21 +343,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     Raises:
         OSError: the file cannot be written or replaced.
     """
-    target = os.fsdecode(path)
-    tmp, fd = _create_temporary(target, Path(target).suffix)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        fd = os.open(tmp, os.O_RDWR | getattr(os, "O_BINARY", 0))
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        _commit(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
+    with atomic_files() as files:
+        yield files.path(path)
 
 
 # ---------------------------------------------------------------------------------------------------- strict reading
