@@ -30,6 +30,9 @@ Argument vocabulary shared by the commands: :func:`positive_int`, :func:`non_neg
 :func:`unit_fraction`, :func:`device_name`, :func:`image_size` (``WxH``), and the grid options of
 :func:`add_grid_options`: ``--grid N|WxHxD`` (cells) with ``--z-near``, ``--z-far`` and ``--hfov``.
 
+Outputs: :func:`write_outputs` writes a command's files together (all or none), making their folders and removing
+what killed earlier runs left behind.
+
 Defaults are written once, in the config dataclasses: :func:`config_option` adds an option whose default,
 type and help text come from a dataclass field (its docstring), and :func:`config_values` collects the parsed
 values of one dataclass's fields for its constructor.
@@ -49,6 +52,7 @@ import re
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from fruxel.errors import FruxelError
@@ -341,3 +345,81 @@ def grid_from_args(args: argparse.Namespace, default: FruxelGrid, *, size_defaul
     z = {n: getattr(args, n) if getattr(args, n) is not None else getattr(default, n)
          for n in ("z_near", "z_far", "hfov")}
     return FruxelGrid(width=w, height=h, depth=d, **z)
+
+
+# ---------------------------------------------------------------------------------------------------- outputs
+class OutputError(FruxelError, OSError):
+    """An output file that could not be written; the message names the file (never a temporary name)."""
+
+
+def _make_folder(folder: Path, target: Path, made: list[Path]) -> None:
+    """Make ``folder`` and its missing parents, recording the topmost one made in ``made``."""
+    missing = [f for f in (folder, *folder.parents) if not f.exists()]
+    if not missing:
+        if not folder.is_dir():
+            raise OutputError(f"cannot write {target}: {folder} is not a folder")
+        return
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot write {target}: cannot make the folder {folder} ({e.strerror or e})") from None
+    made.append(missing[-1])
+
+
+def _remove_made_folders(made: list[Path], targets: Sequence[Path]) -> None:
+    """Remove the folders :func:`_make_folder` made, as far as they are empty again."""
+    for target in targets:
+        for folder in (target.parent, *target.parent.parents):
+            if not any(folder == m or m in folder.parents for m in made):
+                break
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def write_outputs(outputs: Sequence[tuple[str | Path, Callable[[Path], None]]]) -> list[Path]:
+    """Write a command's output files together: all of them or, when anything fails, none.
+
+    For every ``(target, write)``: the target's folder is made where missing, temporary files that killed
+    earlier runs left beside the target are removed (:func:`fruxel.io.remove_stale_temporaries`), and
+    ``write(tmp)`` writes the file to a temporary name beside it with the target's suffix. Once every file is
+    written, they replace their targets (:func:`fruxel.io.atomic_files`). When any step fails, no target
+    changes, the temporary files are removed, and so are the folders this call made (where empty again).
+
+    Args:
+        outputs: the targets and their writers; a writer writes its file to the path it is given (the format
+            follows the target's suffix, which the temporary name ends with too).
+
+    Returns:
+        The targets, in order.
+
+    Raises:
+        OutputError: a target that cannot be written (no permission, a file where a folder should be, a full
+            disk); the message names the target.
+    """
+    from fruxel.io import atomic_files, remove_stale_temporaries
+
+    targets = [Path(t) for t, _ in outputs]
+    made: list[Path] = []
+    try:
+        for target in targets:
+            _make_folder(target.parent, target, made)
+            remove_stale_temporaries(target)
+        try:
+            with atomic_files() as files:
+                for target, (_, write) in zip(targets, outputs, strict=True):
+                    try:
+                        write(files.path(target))
+                    except OSError as e:
+                        raise OutputError(f"cannot write {target}: {e.strerror or one_line(e)}") from None
+        except OutputError:
+            raise
+        except OSError as e:
+            # A sync or rename at the end: os.replace names the target second.
+            name = e.filename2 if e.filename2 is not None else ", ".join(map(str, targets))
+            raise OutputError(f"cannot write {name}: {e.strerror or one_line(e)}") from None
+    except BaseException:
+        _remove_made_folders(made, targets)
+        raise
+    return targets

@@ -48,7 +48,6 @@ from .common import (
     add_grid_options,
     config_option,
     config_values,
-    describe_os_error,
     device_name,
     grid_from_args,
     grid_options_given,
@@ -57,6 +56,7 @@ from .common import (
     positive_int,
     run,
     unit_fraction,
+    write_outputs,
 )
 
 if TYPE_CHECKING:
@@ -67,6 +67,7 @@ if TYPE_CHECKING:
 PROG = "fruxel-render"
 BACKENDS = ("warp", "opencl")
 VIDEO_FORMATS = ("gif", "mp4")
+VIDEO_FORMATS_DEFAULT = "gif"
 
 
 class InputError(FruxelError, ValueError):
@@ -99,7 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RenderOptions, "backend", choices=BACKENDS)
     config_option(p, RenderOptions, "device", type=device_name, metavar="cpu|cuda[:N]")
     config_option(p, RenderOptions, "mode", choices=MODES)
-    config_option(p, RenderOptions, "shell", choices=SHELLS)
+    config_option(p, RenderOptions, "shell", choices=SHELLS,
+                  help="cells to show: none (all), own (what the grid camera sees), poses (M cameras around the "
+                  "grid), view (what the viewer sees); default: own for the mesh, none for the ray cast")
     config_option(p, RenderOptions, "poses", type=positive_int, metavar="M")
     config_option(p, RenderOptions, "meshing", "--mesh", choices=MESHINGS)
     config_option(p, RenderOptions, "shading", choices=("lit", "flat"))
@@ -112,9 +115,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default=None, metavar="JSON", help="viewing camera: Camera JSON text or a file")
     add_grid_options(p, _default_grid(), size_default=False,
                      what="of a bare logits tensor; with --benchmark, N for an N^3 room")
-    p.add_argument("--out", type=Path, default=Path("out"), metavar="DIR", help="output folder (default out/)")
-    p.add_argument("--orbit", type=positive_int, default=None, metavar="N", help="render an N-frame orbit")
-    p.add_argument("--video", choices=VIDEO_FORMATS, default="gif", help="orbit format (mp4 needs imageio-ffmpeg)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR|FILE",
+                   help=f"output folder (default {DEFAULT_OUT}/), or the file itself when it ends in an image or "
+                   "video suffix (.png, .jpg, ...; .gif, .mp4 with --orbit)")
+    p.add_argument("--orbit", type=positive_int, default=None, metavar="N",
+                   help="render an N-frame orbit around the model into a video")
+    p.add_argument("--video", choices=VIDEO_FORMATS, default=None,
+                   help=f"orbit format when --out is a folder (default {VIDEO_FORMATS_DEFAULT}; mp4 needs "
+                   "imageio-ffmpeg)")
     p.add_argument("--fps", type=positive_int, default=12, help="orbit frames per second (default 12)")
     p.add_argument("--export", type=Path, default=None, metavar="FILE",
                    help="also write the mesh to FILE.glb (glTF's frame, +Y up, as glTF viewers expect) or FILE.ply "
@@ -346,39 +354,81 @@ def _input_grid(args: argparse.Namespace) -> FruxelGrid | None:
     return grid_from_args(args, _default_grid(), size_default=False)
 
 
+DEFAULT_OUT = Path("out")
+"""Output folder when ``--out`` is not given."""
+
+
+def output_path(args: argparse.Namespace, name: str) -> Path:
+    """The image or video file to write (checked before anything is rendered).
+
+    ``--out`` ending in an image suffix (``.png``, ``.jpg``, ...: :data:`fruxel.render.images.IMAGE_FORMATS`) or a
+    video suffix (``.gif``, ``.mp4``) is that file; anything else is a folder, which gets ``NAME_MODE.png`` or,
+    with ``--orbit``, ``NAME_MODE_orbit.gif|mp4`` (``--video``).
+
+    Raises:
+        UsageError: an image for ``--orbit``, a video without it, or ``--video`` against ``--out``'s suffix.
+        RenderError: MP4 without ``imageio-ffmpeg``.
+    """
+    from fruxel.render.images import IMAGE_FORMATS, VIDEO_FORMATS, check_video_writer
+
+    out = args.out if args.out is not None else DEFAULT_OUT
+    suffix = out.suffix.lower()
+    if args.orbit is None:
+        if args.video is not None:
+            raise UsageError("--video is the format of an --orbit video")
+        if suffix in VIDEO_FORMATS:
+            raise UsageError(f"--out {out} is a video: add --orbit N, or name an image (.png) or a folder")
+        return out if suffix in IMAGE_FORMATS else out / f"{name}_{args.mode}.png"
+    if suffix in IMAGE_FORMATS:
+        raise UsageError(f"--orbit writes a video: --out {out} must end in .gif or .mp4, or be a folder")
+    if suffix in VIDEO_FORMATS:
+        if args.video is not None and f".{args.video}" != suffix:
+            raise UsageError(f"--video {args.video} and --out {out} ask for different formats; give one of them")
+        target = out
+    else:
+        target = out / f"{name}_{args.mode}_orbit.{args.video or VIDEO_FORMATS_DEFAULT}"
+    check_video_writer(target)
+    return target
+
+
 def run_render(args: argparse.Namespace) -> list[Path]:
-    """Render as asked; returns the files written (none for ``--view``)."""
+    """Render as asked and write the outputs, all of them or none (:func:`fruxel.cli.common.write_outputs`);
+    returns the files written (none for ``--view``)."""
     from fruxel.render.frames import FrameRenderer, open_viewer, orbit
-    from fruxel.render.images import write_image, write_video
+    from fruxel.render.images import image_format, save_image, save_video
 
     if args.export is not None and args.export.suffix.lower() not in (".glb", ".ply"):
         raise UsageError(f"--export writes .glb or .ply, got {str(args.export)!r}")
+    if args.view:
+        given = [flag for flag, v in (("--out", args.out), ("--orbit", args.orbit), ("--export", args.export),
+                                      ("--video", args.video)) if v is not None]
+        if given:
+            raise UsageError(f"--view shows the model in a window and writes no file: leave out {', '.join(given)}")
     inp = load_input(args.model, _input_grid(args))
     camera = viewing_camera(args.camera, inp.grid, args.size)
     opts = _render_options(args)
     if args.view:
         open_viewer(inp, opts, camera)
         return []
-    written: list[Path] = []
+    target = output_path(args, inp.name)
     frames = FrameRenderer(inp, opts)
-    try:
-        args.out.mkdir(parents=True, exist_ok=True)
-        if args.orbit is not None:
-            from tqdm import tqdm
+    outputs: list[tuple[Path, Any]] = []
+    if args.orbit is not None:
+        from tqdm import tqdm
 
-            cams = orbit(inp.grid, camera, args.orbit)
-            # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
-            images = [frames.image(c) for c in tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None)]
-            written.append(write_video(args.out / f"{inp.name}_{args.mode}_orbit.{args.video}", images, args.fps))
-        else:
-            written.append(write_image(args.out / f"{inp.name}_{args.mode}.png", frames.image(camera)))
-        if args.export is not None:
-            from fruxel.mesh import export_mesh
+        cams = orbit(inp.grid, camera, args.orbit, points=frames.model_points())
+        # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
+        images = [frames.image(c) for c in tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None)]
+        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix)))
+    else:
+        image, fmt = frames.image(camera), image_format(target)
+        outputs.append((target, lambda tmp: save_image(tmp, image, fmt)))
+    if args.export is not None:
+        from fruxel.mesh import encode_mesh
 
-            written.append(export_mesh(frames.mesh_for(camera), args.export))
-    except OSError as e:
-        raise InputError(f"cannot write output: {describe_os_error(e)}") from None
-    return written
+        data = encode_mesh(frames.mesh_for(camera), args.export.suffix)
+        outputs.append((args.export, lambda tmp: tmp.write_bytes(data)))
+    return write_outputs(outputs)
 
 
 # ---------------------------------------------------------------------------------------------------- Table 1
@@ -436,7 +486,12 @@ def _benchmark(args: argparse.Namespace) -> list[Path]:
     print(format_table(result))
     for v in verdicts(result):
         print(f"  {v}")
-    out = Path(args.out)
+    from fruxel.render.images import IMAGE_FORMATS, VIDEO_FORMATS
+
+    out = args.out if args.out is not None else DEFAULT_OUT
+    if out.suffix.lower() in (*IMAGE_FORMATS, *VIDEO_FORMATS):
+        raise UsageError(f"--benchmark writes several files (table1.json, table1.png, table1.md): --out {out} must "
+                         "be a folder")
     written = record(result, out, None)
     md = out / "table1.md"
     with atomic_write(md, "w") as f:

@@ -10,13 +10,15 @@ output uses it the same way::
 Shell sources (:attr:`RenderOptions.shell`): ``none`` keeps every occupied cell (the paper's baseline); ``own``
 what the grid's own camera sees (the first occupied cell of each column); ``poses`` what ``poses`` cameras
 around the grid see (:func:`fruxel.kernels.orbit_cameras`, as in the paper); ``view`` what the viewing camera
-itself sees. ``shell`` and ``first_hit`` run on the volume as it is (labels, or logits as the live pipeline
-has them); only the cells the shell keeps are turned into labels for the mesh.
+itself sees. By default the mesh shows the ``own`` shell and the ray cast the whole model; a shell chosen
+explicitly applies to both (the ray cast then casts into the shell). ``shell`` and ``first_hit`` run on the
+volume as it is (labels, or logits as the live pipeline has them); only the cells the shell keeps are turned
+into labels for the mesh.
 
 Views (:func:`fruxel.camera.look_at_grid` frames them all): the default still view stands 30 degrees right of
 and 35 degrees above the grid camera's side with a 50 degree field of view, at the distance where the whole
 frustum just fits the image, aimed so that the frustum's image is centred; :func:`orbit` turns one circle at
-that elevation.
+that elevation around the model's occupied cells, at the distance where they fit every frame.
 """
 
 from __future__ import annotations
@@ -84,21 +86,28 @@ def default_camera(grid: FruxelGrid, width: int, height: int) -> Camera:
     return look_at_grid(grid, d, width=width, height=height, hfov=DEFAULT_HFOV, margin=FIT_MARGIN, centre=True)
 
 
-def orbit(grid: FruxelGrid, base: Camera, n: int) -> list[Camera]:
-    """``n`` cameras one turn around the frustum's centre, starting at the default azimuth, all at one distance.
+def orbit(grid: FruxelGrid, base: Camera, n: int, points: Any = None) -> list[Camera]:
+    """``n`` cameras one turn around the model, starting at the default azimuth and elevation, at one distance.
 
     Args:
         grid: the model's grid.
         base: the viewing camera; its image size and horizontal field of view are kept.
         n: number of frames.
+        points: ``(N, 3)`` points the frames must show, grid frame (:meth:`FrameRenderer.model_points`: the
+            corners of the occupied cells, so that the model fills the frames); None for the whole frustum. The
+            orbit turns around the centre of their bounding box.
     """
     hfov = math.degrees(2.0 * math.atan(base.width / (2.0 * base.fx)))
+    pts = grid.frustum_corners() if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
     dirs = [orbit_direction(math.radians(DEFAULT_AZIMUTH + 360.0 * f / n), math.radians(DEFAULT_ELEVATION))
             for f in range(n)]
-    fits = [look_at_grid(grid, d, width=base.width, height=base.height, hfov=hfov, margin=FIT_MARGIN) for d in dirs]
+    fits = [look_at_grid(grid, d, target=centre, points=pts, width=base.width, height=base.height, hfov=hfov,
+                         margin=FIT_MARGIN) for d in dirs]
     # One distance for the whole turn (the farthest fit), so the model does not breathe in and out.
-    r = max(float(np.linalg.norm(c.position - grid.centre())) for c in fits)
-    return [look_at_grid(grid, d, distance=r, width=base.width, height=base.height, hfov=hfov) for d in dirs]
+    r = max(float(np.linalg.norm(c.position - centre)) for c in fits)
+    return [look_at_grid(grid, d, distance=r, target=centre, width=base.width, height=base.height, hfov=hfov)
+            for d in dirs]
 
 
 # ---------------------------------------------------------------------------------------------------- rendering
@@ -108,8 +117,9 @@ class RenderOptions:
 
     mode: str = "mesh"
     """``"mesh"``, ``"raycast"`` or ``"both"``."""
-    shell: str = "own"
-    """Shell source: ``"none"``, ``"own"``, ``"poses"`` or ``"view"``."""
+    shell: str | None = None
+    """Shell source: ``"none"``, ``"own"``, ``"poses"`` or ``"view"`` for mesh and ray cast alike; None: ``"own"``
+    for the mesh and ``"none"`` (the whole model) for the ray cast."""
     poses: int = 6
     """Number of cameras for ``shell="poses"``."""
     meshing: str = "greedy"
@@ -129,35 +139,62 @@ class RenderOptions:
     threshold: float | None = None
     """Occupancy threshold for scores, None for the argmax rule."""
 
+    @property
+    def mesh_shell(self) -> str:
+        """The shell source of mesh images."""
+        return "own" if self.shell is None else self.shell
+
+    @property
+    def raycast_shell(self) -> str:
+        """The shell source of ray-cast images."""
+        return "none" if self.shell is None else self.shell
+
+
+def shell_volume(inp: RenderInput, opts: RenderOptions, shell: str, camera: Camera) -> Any:
+    """The volume after a shell: ``inp.volume`` itself for ``"none"``, else ``fruxel.kernels.shell`` of it (same
+    shape, kind of array and device).
+
+    Args:
+        inp: the model.
+        opts: the number of poses, backend, device and threshold.
+        shell: the shell source (:data:`SHELLS`).
+        camera: the viewing camera (for ``shell="view"``).
+    """
+    from fruxel import kernels
+
+    if shell == "none":
+        return inp.volume
+    if shell == "own":
+        cams = inp.grid.camera()
+    elif shell == "poses":
+        cams = kernels.orbit_cameras(inp.grid, opts.poses)
+    else:
+        cams = camera
+    return kernels.shell(inp.volume, inp.grid, cams, backend=opts.backend, device=opts.device,
+                         threshold=opts.threshold)
+
+
+def volume_labels(volume: Any, inp: RenderInput, threshold: float | None) -> np.ndarray:
+    """Labels ``(D, H, W)`` uint8 numpy of a volume of ``inp``'s kind (labels, or scores by the occupancy rule)."""
+    from fruxel import labels_from_scores
+
+    from .shading import to_numpy
+
+    if inp.is_scores:
+        return labels_from_scores(to_numpy(volume)[0], threshold=threshold, axis=0)
+    return np.ascontiguousarray(to_numpy(volume), dtype=np.uint8)
+
 
 def shell_labels(inp: RenderInput, opts: RenderOptions, camera: Camera) -> np.ndarray:
-    """The labels to mesh: ``(D, H, W)`` uint8 numpy, the volume after the chosen shell.
+    """The labels to mesh: ``(D, H, W)`` uint8 numpy, the volume after the mesh's shell
+    (:attr:`RenderOptions.mesh_shell`).
 
     Args:
         inp: the model.
         opts: shell source, backend and threshold.
         camera: the viewing camera (for ``shell="view"``).
     """
-    import numpy as np
-
-    from fruxel import kernels, labels_from_scores
-
-    from .shading import to_numpy
-
-    if opts.shell == "none":
-        vol = inp.volume
-    else:
-        if opts.shell == "own":
-            cams = inp.grid.camera()
-        elif opts.shell == "poses":
-            cams = kernels.orbit_cameras(inp.grid, opts.poses)
-        else:
-            cams = camera
-        vol = kernels.shell(inp.volume, inp.grid, cams, backend=opts.backend, device=opts.device,
-                            threshold=opts.threshold)
-    if inp.is_scores:
-        return labels_from_scores(to_numpy(vol)[0], threshold=opts.threshold, axis=0)
-    return np.ascontiguousarray(to_numpy(vol), dtype=np.uint8)
+    return volume_labels(shell_volume(inp, opts, opts.mesh_shell, camera), inp, opts.threshold)
 
 
 def build_mesh(inp: RenderInput, opts: RenderOptions, camera: Camera) -> TriMesh:
@@ -167,20 +204,48 @@ def build_mesh(inp: RenderInput, opts: RenderOptions, camera: Camera) -> TriMesh
     return mesh_labels(shell_labels(inp, opts, camera), inp.grid, inp.classes.palette(), mode=opts.meshing)
 
 
+def occupied_points(labels: Any, grid: FruxelGrid) -> np.ndarray | None:
+    """The lattice points that are corners of occupied cells: ``(N, 3)`` float64, grid frame, what a view must
+    show to show the whole model (the cells are convex, so their corners bound them); None when no cell is
+    occupied.
+
+    Args:
+        labels: ``(D, H, W)`` integer labels, 0 = empty.
+        grid: their grid.
+    """
+    occupied = np.asarray(labels) != 0
+    if not occupied.any():
+        return None
+    d, h, w = occupied.shape
+    corner = np.zeros((d + 1, h + 1, w + 1), dtype=bool)
+    for dk in (0, 1):
+        for dj in (0, 1):
+            for di in (0, 1):
+                corner[dk:dk + d, dj:dj + h, di:di + w] |= occupied
+    return grid.corner_points(*np.nonzero(corner))
+
+
 class FrameRenderer:
-    """Draws the images of one model for a sequence of cameras, rebuilding the mesh only when the shell changes."""
+    """Draws the images of one model for a sequence of cameras, rebuilding the mesh (and the ray cast's shell)
+    only when the shell changes (every frame for ``shell="view"``)."""
 
     def __init__(self, inp: RenderInput, opts: RenderOptions) -> None:
         self.inp = inp
         self.opts = opts
         self.mesh: TriMesh | None = None
         self._view: Any = None
+        self._raycast_volume: Any = None
 
     def mesh_for(self, camera: Camera) -> TriMesh:
         """The mesh for ``camera``: built once, or per camera for ``shell="view"``."""
-        if self.mesh is None or self.opts.shell == "view":
+        if self.mesh is None or self.opts.mesh_shell == "view":
             self.mesh = build_mesh(self.inp, self.opts, camera)
         return self.mesh
+
+    def model_points(self) -> np.ndarray | None:
+        """The corners of the model's occupied cells (:func:`occupied_points`), grid frame: what a view of the
+        model must show; None for an empty model."""
+        return occupied_points(volume_labels(self.inp.volume, self.inp, self.opts.threshold), self.inp.grid)
 
     def mesh_image(self, camera: Camera) -> tuple[np.ndarray, list[int]]:
         """``(h, w, 3)`` uint8 pyrender image of the mesh and the labels it shows."""
@@ -197,13 +262,20 @@ class FrameRenderer:
             self._view.set_mesh(mesh)
         return self._view.render(), present_labels(mesh.labels)
 
+    def raycast_volume(self, camera: Camera) -> Any:
+        """The volume the ray cast sees: the model after :attr:`RenderOptions.raycast_shell`."""
+        shell = self.opts.raycast_shell
+        if shell == "view" or self._raycast_volume is None:
+            self._raycast_volume = shell_volume(self.inp, self.opts, shell, camera)
+        return self._raycast_volume
+
     def raycast_image(self, camera: Camera) -> tuple[np.ndarray, list[int]]:
         """``(h, w, 3)`` uint8 ray-cast image and the labels it shows."""
         from .legend import present_labels
         from .raycast import RaycastStyle, raycast_image
 
         style = RaycastStyle(shading=self.opts.shading, fog=self.opts.fog)
-        img, labels = raycast_image(self.inp.volume, self.inp.grid, camera, self.inp.classes.palette(),
+        img, labels = raycast_image(self.raycast_volume(camera), self.inp.grid, camera, self.inp.classes.palette(),
                                     backend=self.opts.backend, device=self.opts.device,
                                     threshold=self.opts.threshold, style=style)
         return img, present_labels(labels)
@@ -226,9 +298,11 @@ class FrameRenderer:
         else:
             mimg, mp = self.mesh_image(camera)
             rimg, rp = self.raycast_image(camera)
-            mimg = draw_caption(mimg, f"mesh: shell {self.opts.shell}, {self.opts.meshing}, "
+            mimg = draw_caption(mimg, f"mesh: shell {self.opts.mesh_shell}, {self.opts.meshing}, "
                                       f"{0 if self.mesh is None else self.mesh.n_faces} triangles")
-            rimg = draw_caption(rimg, f"ray cast: first_hit on {self._backend_name()}")
+            shell = self.opts.raycast_shell
+            rimg = draw_caption(rimg, f"ray cast: first_hit on {self._backend_name()}"
+                                      + ("" if shell == "none" else f", shell {shell}"))
             gap = np.full((mimg.shape[0], 2, 3), 160, np.uint8)
             img, present = np.concatenate([mimg, gap, rimg], axis=1), sorted(set(mp) | set(rp))
         if self.opts.legend:

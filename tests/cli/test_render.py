@@ -423,6 +423,134 @@ def test_unwritable_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     _one_error_line(rc, capsys.readouterr().err, "cannot write")
 
 
+# ---------------------------------------------------------------------------------------------------- outputs
+def test_export_makes_its_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    dest = tmp_path / "newdir" / "sub" / "x.glb"
+    assert run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path / "o2", "--export", dest) == 0
+    assert capsys.readouterr().out.split() == [str(tmp_path / "o2" / "sample_room_mesh.png"), str(dest)]
+    assert dest.stat().st_size > 0
+
+
+def test_a_failed_output_leaves_nothing_behind(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """When the export cannot be written the image is not written either, the folder made for it goes again,
+    and the error names the export, not a temporary file."""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    # root may write into a read-only folder; /proc takes no new files from anyone.
+    dest = locked / "x.glb" if not os.access(locked, os.W_OK) else Path("/proc/x.glb")
+    if not dest.parent.is_dir():
+        pytest.skip("no folder here refuses new files")
+    try:
+        rc = run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path / "o2", "--export", dest)
+    finally:
+        locked.chmod(0o700)
+    err = capsys.readouterr().err
+    _one_error_line(rc, err, "cannot write", str(dest))
+    assert ".tmp" not in err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["locked"]
+
+
+def test_a_failed_export_leaves_the_image_out_too(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same with a write that fails part way (here: a full disk while writing the export), as root too."""
+    import fruxel.mesh
+
+    def full_disk(mesh: object, suffix: str) -> bytes:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(fruxel.mesh, "encode_mesh", full_disk)
+    (tmp_path / "o2").mkdir()
+    (tmp_path / "o2" / "sample_room_mesh.png").write_bytes(b"the old image")
+    rc = run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path / "o2", "--export", tmp_path / "n" / "x.glb")
+    err = capsys.readouterr().err
+    _one_error_line(rc, err, "No space left")
+    assert (tmp_path / "o2" / "sample_room_mesh.png").read_bytes() == b"the old image"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["o2", "sample_room_mesh.png"]
+
+
+def test_stale_temporaries_of_killed_runs_are_removed(tmp_path: Path) -> None:
+    """A run killed with SIGKILL leaves its temporary file; the next run writing the same output removes it."""
+    stale = tmp_path / ".sample_room_mesh_orbit.gif.0123456789ab.tmp.gif"
+    stale.write_bytes(b"half a gif")
+    other = tmp_path / ".notes.txt.0123456789ab.tmp.txt"
+    other.write_bytes(b"someone else's")
+    old = time.time() - 600
+    for p in (stale, other):
+        os.utime(p, (old, old))
+    assert run_cli("--backend", BACKEND, "--orbit", "2", "--size", SIZE, "--out", tmp_path) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [other.name, "sample_room_mesh_orbit.gif"]
+
+
+@pytest.mark.parametrize(("out", "extra", "written"), [
+    ("pic.png", [], "pic.png"),
+    ("pic.jpg", ["--mode", "raycast"], "pic.jpg"),
+    ("sub/turn.gif", ["--orbit", "2"], "sub/turn.gif"),
+    ("folder.v2", [], "folder.v2/sample_room_mesh.png"),
+])
+def test_out_with_an_image_or_video_suffix_is_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str,
+                                                       extra: list[str], written: str) -> None:
+    assert run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path / out, *extra) == 0
+    assert capsys.readouterr().out.split() == [str(tmp_path / written)]
+    target = tmp_path / written
+    assert target.is_file()
+    with Image.open(target) as im:
+        assert im.format == {".png": "PNG", ".jpg": "JPEG", ".gif": "GIF"}[target.suffix]
+        assert im.size == (96, 72)
+
+
+@pytest.mark.parametrize(("out", "extra", "words"), [
+    ("pic.png", ["--orbit", "2"], "--orbit writes a video"),
+    ("turn.gif", [], "is a video"),
+    ("turn.gif", ["--orbit", "2", "--video", "mp4"], "different formats"),
+    ("x", ["--video", "mp4"], "--video"),
+    ("x.png", ["--benchmark"], "must be a folder"),
+    ("x", ["--view"], "--view"),
+])
+def test_out_that_does_not_fit_the_options_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str,
+                                                      extra: list[str], words: str) -> None:
+    rc = run_cli("--backend", BACKEND, "--size", SIZE, "--out", tmp_path / out, *extra)
+    _one_error_line(rc, capsys.readouterr().err, words)
+    assert not any(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------------------------------- shells
+def test_raycast_shows_the_shell_asked_for(tmp_path: Path) -> None:
+    """--shell applies to ray casts: the own-view shell casts differently from the whole model, and the default
+    ray cast is the whole model."""
+    images = {}
+    for shell in (None, "none", "own", "poses"):
+        out = tmp_path / f"{shell}.png"
+        args = ["--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--size", SIZE]
+        assert run_cli(*args, *(["--shell", shell] if shell else []), "--out", out) == 0
+        images[shell] = read_png(out)
+    assert np.array_equal(images[None], images["none"])
+    assert not np.array_equal(images["own"], images["none"]) and not np.array_equal(images["poses"], images["none"])
+    # The own-view shell keeps only what the grid camera sees: the ray cast through it shows less of the model.
+    hits = kernels.first_hit(kernels.shell(MODEL.labels, MODEL.grid, MODEL.grid.camera(), backend=BACKEND),
+                             MODEL.grid, default_camera(MODEL.grid, 96, 72), backend=BACKEND)
+    np.testing.assert_array_equal(images["own"], np.where((hits.label != 0)[..., None], PALETTE[hits.label], 255))
+
+
+def test_orbit_frames_the_model(tmp_path: Path) -> None:
+    """Orbit frames show the model large and centred: framed on its occupied cells, not on the whole frustum."""
+    labels = np.zeros_like(MODEL.labels)
+    labels[20:30, 10:20, 40:52] = MODEL.labels[20:30, 10:20, 40:52]
+    labels[20:30, 10:20, 40:52][labels[20:30, 10:20, 40:52] == 0] = FURNITURE
+    fruxel.save(tmp_path / "small.npz", fruxel.FruxelModel(labels, MODEL.grid, MODEL.classes))
+    assert run_cli(tmp_path / "small.npz", "--backend", BACKEND, "--orbit", "4", "--shell", "none", "--no-legend",
+                   "--size", "120x90", "--out", tmp_path / "turn.gif") == 0
+    with Image.open(tmp_path / "turn.gif") as gif:
+        for f in range(4):
+            gif.seek(f)
+            fg = np.argwhere(np.any(np.asarray(gif.convert("RGB")) != 255, axis=-1))
+            (y0, x0), (y1, x1) = fg.min(axis=0), fg.max(axis=0)
+            # Large: the model spans most of the frame one way; about centred (the orbit turns around the
+            # centre of the model's bounding box, so perspective moves its image a little).
+            assert max((x1 - x0) / 120, (y1 - y0) / 90) > 0.6
+            assert abs((x0 + x1) / 2 - 60) < 0.15 * 120 and abs((y0 + y1) / 2 - 45) < 0.15 * 90
+
+
 def test_view_shell_frames_shade_each_new_mesh_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """With a shell per view and lit shading, each orbit frame builds one pyrender mesh (its own, shaded for its
     camera; the previous one is not re-shaded on the way), and the frames equal those of fresh renderers."""
