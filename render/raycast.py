@@ -18,7 +18,7 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
-from .shading import DEFAULT_STYLE, RaycastStyle, shade, to_numpy
+from .shading import DEFAULT_STYLE, RaycastStyle, fog_range, shade, to_numpy
 
 __all__ = ["RaycastStyle", "first_hits", "raycast_image", "shade", "to_numpy"]
 
@@ -51,6 +51,11 @@ def first_hits(
     return hits
 
 
+MAX_TILE_PIXELS = 1 << 22
+"""Most pixels ray cast at once; a larger image is cast in bands of rows (:func:`raycast_image`), so that the
+hits of one band (about 30 bytes a pixel) bound the memory, not the image's size."""
+
+
 def raycast_image(
     volume: Any,
     grid: FruxelGrid,
@@ -64,6 +69,10 @@ def raycast_image(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast one image of a volume.
 
+    An image of more than :data:`MAX_TILE_PIXELS` pixels is cast in bands of rows, each with the principal point
+    moved to its place (the same rays), and shaded with the fog range of the whole image (found in a first pass
+    over the bands when fog is on). Memory is then the result, 7 bytes a pixel, plus one band's hits.
+
     Args:
         volume: labels ``(D, H, W)`` or scores ``(1, C, D, H, W)``, numpy or torch (see :func:`first_hits`).
         grid: the volume's grid.
@@ -76,5 +85,28 @@ def raycast_image(
         image: ``(h, w, 3)`` uint8 RGB.
         labels: ``(h, w)`` int32 label of each pixel's first hit, 0 on a miss.
     """
-    hits = first_hits(volume, grid, camera, backend=backend, device=device, threshold=threshold)
-    return shade(hits, camera, palette, style), to_numpy(hits.label).astype(np.int32, copy=False)
+    def cast(cam: Camera) -> Any:
+        return first_hits(volume, grid, cam, backend=backend, device=device, threshold=threshold)
+
+    if camera.width * camera.height <= MAX_TILE_PIXELS:
+        hits = cast(camera)
+        return shade(hits, camera, palette, style), to_numpy(hits.label).astype(np.int32, copy=False)
+    rows = max(1, MAX_TILE_PIXELS // camera.width)
+    bands = [Camera(camera.fx, camera.fy, camera.cx, camera.cy - y0, camera.width, min(rows, camera.height - y0),
+                    camera.pose) for y0 in range(0, camera.height, rows)]
+    fog = None
+    if style.fog:
+        near, far = np.inf, -np.inf
+        for band in bands:
+            hits = cast(band)
+            depth = to_numpy(hits.depth)[to_numpy(hits.label) != 0]
+            if depth.size:
+                near, far = min(near, float(depth.min())), max(far, float(depth.max()))
+        fog = fog_range(np.array([near, far]), np.array([True, True])) if near <= far else None
+    image = np.empty((camera.height, camera.width, 3), dtype=np.uint8)
+    labels = np.empty((camera.height, camera.width), dtype=np.int32)
+    for y0, band in zip(range(0, camera.height, rows), bands, strict=True):
+        hits = cast(band)
+        image[y0:y0 + band.height] = shade(hits, band, palette, style, fog=fog)
+        labels[y0:y0 + band.height] = to_numpy(hits.label)
+    return image, labels

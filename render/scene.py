@@ -42,6 +42,11 @@ if TYPE_CHECKING:
 SHADINGS = ("lit", "flat")
 """Shadings of offscreen mesh images (``"pbr"`` is for the interactive Viewer only)."""
 
+MAX_TILE = 4096
+"""Largest image side drawn at once; larger images are drawn in tiles (:meth:`MeshView.render`). pyrender's
+multisampled framebuffers for a 16000 x 16000 image would take 8 GB, and OpenGL refuses sides beyond its
+limits."""
+
 # Share of the view depth range kept in front of the nearest and behind the farthest frustum corner: keeps
 # the whole grid between the clip planes without wasting depth-buffer precision.
 _CLIP_MARGIN = 0.05
@@ -193,6 +198,7 @@ class RendererPool:
 
     def __init__(self) -> None:
         self._renderer: Any = None
+        self._max_side: int | None = None
 
     def get(self, width: int, height: int) -> pyrender.OffscreenRenderer:
         """The renderer, set to draw ``width x height`` images."""
@@ -202,6 +208,20 @@ class RendererPool:
         self._renderer.viewport_width = int(width)
         self._renderer.viewport_height = int(height)
         return self._renderer
+
+    def max_side(self) -> int:
+        """The largest image side one draw may have: :data:`MAX_TILE`, or less where the OpenGL implementation
+        allows less (``GL_MAX_RENDERBUFFER_SIZE``, ``GL_MAX_VIEWPORT_DIMS``; 16384 on Mesa's llvmpipe)."""
+        if self._max_side is None:
+            r = self.get(16, 16)
+            # pyrender has no public call for this; its offscreen platform makes the context current.
+            r._platform.make_current()
+            from OpenGL.GL import GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS, glGetIntegerv
+
+            limits = [int(v) for v in np.ravel(glGetIntegerv(GL_MAX_VIEWPORT_DIMS))]
+            limits.append(int(np.ravel(glGetIntegerv(GL_MAX_RENDERBUFFER_SIZE))[0]))
+            self._max_side = max(1, min(MAX_TILE, *limits))
+        return self._max_side
 
     def close(self) -> None:
         """Delete the renderer (its GL context and buffers)."""
@@ -328,9 +348,33 @@ class MeshView:
             inner._update_context(self.scene, self.flags)
 
     def render(self) -> np.ndarray:
-        """Draw the scene and read it back: ``(height, width, 3)`` uint8 RGB, row 0 at the top."""
-        colour, _ = self.renderer().render(self.scene, flags=self.flags)
-        return np.ascontiguousarray(colour[..., :3])
+        """Draw the scene and read it back: ``(height, width, 3)`` uint8 RGB, row 0 at the top.
+
+        An image with a side above :meth:`RendererPool.max_side` is drawn in tiles of at most that size, each
+        with the principal point moved to its place (the same projection, cut into pieces), so any image the
+        camera allows (up to 2^28 pixels) can be drawn and the GPU memory of one draw stays bounded.
+        """
+        if self._camera is None:
+            raise ValueError("MeshView has no camera: call set_camera first")
+        cam = self._camera
+        tile = self._pool.max_side()
+        if cam.width <= tile and cam.height <= tile:
+            colour, _ = self.renderer().render(self.scene, flags=self.flags)
+            return np.ascontiguousarray(colour[..., :3])
+        tw, th = min(cam.width, tile), min(cam.height, tile)
+        renderer = self._pool.get(tw, th)
+        node = self._camera_node.camera
+        out = np.empty((cam.height, cam.width, 3), dtype=np.uint8)
+        try:
+            for y0 in range(0, cam.height, th):
+                for x0 in range(0, cam.width, tw):
+                    node.cx, node.cy = cam.cx - x0, cam.cy - y0
+                    colour, _ = renderer.render(self.scene, flags=self.flags)
+                    h, w = min(th, cam.height - y0), min(tw, cam.width - x0)
+                    out[y0:y0 + h, x0:x0 + w] = colour[:h, :w, :3]
+        finally:
+            node.cx, node.cy = cam.cx, cam.cy
+        return out
 
 
 def render_mesh(

@@ -112,7 +112,8 @@ def to_numpy(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def shade(hits: Any, camera: Any, palette: Any, style: RaycastStyle = DEFAULT_STYLE) -> np.ndarray:
+def shade(hits: Any, camera: Any, palette: Any, style: RaycastStyle = DEFAULT_STYLE,
+          fog: tuple[float, float] | None = None) -> np.ndarray:
     """The shaded image of one view's hits: ``(h, w, 3)`` uint8 RGB on the host.
 
     Args:
@@ -122,6 +123,8 @@ def shade(hits: Any, camera: Any, palette: Any, style: RaycastStyle = DEFAULT_ST
         camera: the :class:`fruxel.Camera` the hits were cast from; the head light turns with it.
         palette: ``(C, 3)`` uint8 class colours; every label must be below C.
         style: shading, light, fog and background.
+        fog: with ``style.fog``, the ``(near, far)`` range of the fog in metres; None takes it from these hits
+            (:func:`fog_range`). A picture shaded in pieces passes the whole picture's range.
 
     Raises:
         ValueError: a palette that is not ``(C, 3)``.
@@ -152,7 +155,7 @@ def shade(hits: Any, camera: Any, palette: Any, style: RaycastStyle = DEFAULT_ST
     background = f32(bg)
     if style.fog:
         depth = f32(hits.depth)
-        fr = fog_range(depth, hit)
+        fr = fog_range(depth, hit) if fog is None else fog
         if fr is not None:
             f = ((depth - fr[0]) / (fr[1] - fr[0])).clip(0.0, 1.0)[..., None]
             colour = colour * (1.0 - f) + background * f

@@ -84,3 +84,18 @@ def test_style_validation() -> None:
         RaycastStyle(shading="toon")
     with pytest.raises(ValueError):
         RaycastStyle(ambient=-0.1)
+
+
+@pytest.mark.parametrize("style", [RaycastStyle(shading="flat"), RaycastStyle(fog=True)])
+def test_large_images_are_cast_in_bands(style: RaycastStyle, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond MAX_TILE_PIXELS an image is cast in bands of rows; it equals the image cast at once (fog over the
+    whole image's depth range, not per band)."""
+    from fruxel.render import raycast
+
+    whole, lw = raycast_image(MODEL.labels, MODEL.grid, CAM, PALETTE, style=style)
+    monkeypatch.setattr(raycast, "MAX_TILE_PIXELS", 7 * CAM.width + 5)
+    banded, lb = raycast_image(MODEL.labels, MODEL.grid, CAM, PALETTE, style=style)
+    assert banded.shape == whole.shape and lb.dtype == np.int32
+    assert np.mean(lb != lw) < 1e-3
+    same = lb == lw
+    assert np.abs(banded.astype(int) - whole.astype(int))[same].max() <= 1
