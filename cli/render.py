@@ -418,7 +418,7 @@ def run_render(args: argparse.Namespace) -> list[Path]:
 
         cams = orbit(inp.grid, camera, args.orbit, points=frames.model_points())
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
-        images = [frames.image(c) for c in tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None)]
+        images = frames.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
         outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix)))
     else:
         image, fmt = frames.image(camera), image_format(target)

@@ -1,4 +1,4 @@
-"""Small compatibility shims for third-party packages: pyrender, applied before it is imported, and Pillow's fonts.
+"""Small compatibility shims for third-party packages: pyrender, applied before it is imported, and the text font.
 
 pyrender 0.1.45 (the last release) refers to ``np.infty``, which NumPy 2 removed, and picks its OpenGL platform
 from ``PYOPENGL_PLATFORM`` at import time. Every import of pyrender in fruxel goes through :func:`import_pyrender`
@@ -7,6 +7,8 @@ from ``PYOPENGL_PLATFORM`` at import time. Every import of pyrender in fruxel go
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import os
 from typing import Any
 
@@ -42,10 +44,29 @@ def import_pyrender(headless: bool = True) -> Any:
     return pyrender
 
 
+@functools.cache
+def _dejavu() -> str | None:
+    """The path of DejaVu Sans as matplotlib ships it (found without importing matplotlib), or None."""
+    spec = importlib.util.find_spec("matplotlib")
+    for folder in (spec.submodule_search_locations or []) if spec is not None else []:
+        path = os.path.join(folder, "mpl-data", "fonts", "ttf", "DejaVuSans.ttf")
+        if os.path.isfile(path):
+            return path
+    return None
+
+
 def default_font(size: int) -> Any:
-    """Pillow's default font at ``size`` pixels; Pillow before 10.1 has only its fixed bitmap font."""
+    """The font of every caption and legend fruxel draws: DejaVu Sans at ``size`` pixels.
+
+    DejaVu ships with matplotlib (a dependency of the ``render`` and ``train`` extras). Pillow's own default font
+    (the fallback where matplotlib is missing) gives a space two pixels at caption sizes, so that "1232
+    triangles" reads as "1232triangles".
+    """
     from PIL import ImageFont
 
+    path = _dejavu()
+    if path is not None:
+        return ImageFont.truetype(path, size)
     try:
         return ImageFont.load_default(size=size)
     except TypeError:

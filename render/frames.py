@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -285,29 +286,41 @@ class FrameRenderer:
 
         return kernels.registry.describe(self.opts.backend, self.opts.device, self.inp.volume)
 
-    def image(self, camera: Camera) -> np.ndarray:
-        """The image of the chosen mode, with legend (and captions for ``"both"``): ``(h, w', 3)`` uint8."""
-        import numpy as np
-
-        from .legend import draw_caption, draw_legend
+    def picture(self, camera: Camera) -> tuple[np.ndarray, list[int]]:
+        """The image of the chosen mode without legend (with captions for ``"both"``): ``(h, w', 3)`` uint8, and
+        the labels it shows."""
+        from .legend import draw_caption
 
         if self.opts.mode == "mesh":
-            img, present = self.mesh_image(camera)
-        elif self.opts.mode == "raycast":
-            img, present = self.raycast_image(camera)
-        else:
-            mimg, mp = self.mesh_image(camera)
-            rimg, rp = self.raycast_image(camera)
-            mimg = draw_caption(mimg, f"mesh: shell {self.opts.mesh_shell}, {self.opts.meshing}, "
-                                      f"{0 if self.mesh is None else self.mesh.n_faces} triangles")
-            shell = self.opts.raycast_shell
-            rimg = draw_caption(rimg, f"ray cast: first_hit on {self._backend_name()}"
-                                      + ("" if shell == "none" else f", shell {shell}"))
-            gap = np.full((mimg.shape[0], 2, 3), 160, np.uint8)
-            img, present = np.concatenate([mimg, gap, rimg], axis=1), sorted(set(mp) | set(rp))
-        if self.opts.legend:
-            img = draw_legend(img, self.inp.classes, present)
-        return img
+            return self.mesh_image(camera)
+        if self.opts.mode == "raycast":
+            return self.raycast_image(camera)
+        mimg, mp = self.mesh_image(camera)
+        rimg, rp = self.raycast_image(camera)
+        mimg = draw_caption(mimg, f"mesh: shell {self.opts.mesh_shell}, {self.opts.meshing}, "
+                                  f"{0 if self.mesh is None else self.mesh.n_faces} triangles")
+        shell = self.opts.raycast_shell
+        rimg = draw_caption(rimg, f"ray cast: first_hit on {self._backend_name()}"
+                                  + ("" if shell == "none" else f", shell {shell}"))
+        gap = np.full((mimg.shape[0], 2, 3), 160, np.uint8)
+        return np.concatenate([mimg, gap, rimg], axis=1), sorted(set(mp) | set(rp))
+
+    def image(self, camera: Camera) -> np.ndarray:
+        """The image of the chosen mode, with legend (and captions for ``"both"``): ``(h, w', 3)`` uint8."""
+        return self.images([camera])[0]
+
+    def images(self, cameras: Iterable[Camera]) -> list[np.ndarray]:
+        """The images of a sequence of views (an orbit), each as :meth:`image` gives it, with the legend in one
+        corner for all of them (the one that hides the least over the whole sequence) listing every class any
+        of them shows."""
+        from .legend import draw_legend, legend_corner
+
+        pictures = [self.picture(c) for c in cameras]
+        if not self.opts.legend:
+            return [p for p, _ in pictures]
+        present = sorted({c for _, labels in pictures for c in labels})
+        corner = legend_corner([p for p, _ in pictures], self.inp.classes, present)
+        return [draw_legend(p, self.inp.classes, present, corner=corner) for p, _ in pictures]
 
 
 def _has_display() -> bool:

@@ -102,6 +102,21 @@ def test_mesh_mode_draws_class_colours(tmp_path: Path, shell: str, meshing: str)
     assert {WALL, FLOOR, FURNITURE} <= colours_present(img)
 
 
+def test_legend_leaves_the_frustum_apex_in_view(tmp_path: Path) -> None:
+    """With --frustum the default view has the frustum's apex (the grid camera) near its bottom-left corner; the
+    legend goes elsewhere rather than cover it."""
+    for legend in ("", "--no-legend"):
+        assert run_cli("--backend", BACKEND, "--size", "160x120", "--frustum", *([legend] if legend else []),
+                       "--out", tmp_path / f"f{legend}.png") == 0
+    with_legend, without = read_png(tmp_path / "f.png"), read_png(tmp_path / "f--no-legend.png")
+    x, y, _ = default_camera(MODEL.grid, 160, 120).project(np.zeros(3))
+    x, y = int(x), int(y)
+    assert 0 <= x < 160 and 0 <= y < 120
+    assert np.array_equal(with_legend[max(0, y - 4):y + 5, max(0, x - 4):x + 5],
+                          without[max(0, y - 4):y + 5, max(0, x - 4):x + 5])
+    assert not np.array_equal(with_legend, without)
+
+
 def test_lit_mesh_with_legend_and_frustum(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert run_cli("--backend", BACKEND, "--size", "160x120", "--frustum", "--out", tmp_path) == 0
     out = capsys.readouterr().out.split()
