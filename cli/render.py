@@ -111,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RenderOptions, "frustum")
     config_option(p, RenderOptions, "threshold", type=unit_fraction, metavar="T")
     p.add_argument("--size", type=image_size, default=None, metavar="WxH",
-                   help=f"image size in pixels (default: {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}, or --camera's)")
+                   help=f"image size in pixels (default: {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}, or --camera's); up to "
+                   "2^28 pixels, large images drawn in tiles at about 8 bytes a pixel of memory (16000x16000: 2-3 GB)")
     p.add_argument("--camera", default=None, metavar="JSON", help="viewing camera: Camera JSON text or a file")
     add_grid_options(p, _default_grid(), size_default=False,
                      what="of a bare logits tensor; with --benchmark, N for an N^3 room")

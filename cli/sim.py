@@ -2,7 +2,7 @@
 
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp]
-    fruxel-sim preview --out sheet.png [--seed S] [--split train] [--index I] [--count N] [--image 256]
+    fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.shards`); it resumes an interrupted run in the
 same folder and refuses a folder made with other settings. ``preview`` writes a contact sheet: per sample the
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from fruxel.train.sim.config import DEFAULT_GRID, AugmentConfig, ImageConfig, SimConfig
@@ -32,6 +33,7 @@ from .common import (
     non_negative_int,
     positive_int,
     run,
+    write_outputs,
 )
 
 PROG = "fruxel-sim"
@@ -70,10 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     _config_options(g, ImageConfig())
 
-    v = sub.add_parser("preview", help="write a contact sheet PNG of a few samples",
+    v = sub.add_parser("preview", help="write a contact sheet image of a few samples",
                        description="Contact sheet: camera image | own-view ground-truth labels | ray-cast render of "
                        "the ground truth from a second pose, with a class legend.")
-    v.add_argument("--out", required=True, metavar="PNG", help="the PNG to write")
+    v.add_argument("--out", required=True, type=Path, metavar="IMAGE",
+                   help="the image to write; its suffix picks the format (.png, .jpg, ...)")
     v.add_argument("--split", default="train", help="split name (seeds differ per split; default train)")
     v.add_argument("--index", type=non_negative_int, default=0, help="first sample index (default 0)")
     v.add_argument("--count", type=positive_int, default=1, help="samples, one row each (default 1)")
@@ -116,13 +119,13 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from PIL import Image
-
-    from fruxel.io import atomic_write
+    from fruxel.render.images import image_format, save_image
     from fruxel.render.raycast import RaycastStyle, raycast_image
     from fruxel.train.sim.images import contact_sheet, second_camera
     from fruxel.train.sim.shards import SampleMaker
 
+    # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
+    fmt = image_format(args.out)
     config = _config(args, ((args.split, args.index + args.count),))
     classes = config.classes
     palette = classes.palette()
@@ -142,8 +145,7 @@ def _preview(args: argparse.Namespace) -> int:
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
                           f"grid {_grid_text(config)}")
     sheet = contact_sheet(rows, classes.names, palette, titles)
-    with atomic_write(args.out) as f:
-        Image.fromarray(sheet).save(f, format="PNG")
+    write_outputs([(args.out, lambda tmp: save_image(tmp, sheet, fmt))])
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")
     return 0
 

@@ -302,6 +302,23 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
                         height=height, hfov=grid.hfov)
 
 
+def _wrap(text: str, width: int, font: Any, measure: Any) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels, broken at spaces (a word wider than that is cut and
+    ends in an ellipsis)."""
+    lines: list[str] = []
+    for word in text.split():
+        joined = f"{lines[-1]} {word}" if lines else word
+        if lines and measure.textlength(joined, font=font) <= width:
+            lines[-1] = joined
+            continue
+        if measure.textlength(word, font=font) > width:
+            while len(word) > 1 and measure.textlength(word + "…", font=font) > width:
+                word = word[:-1]
+            word += "…"
+        lines.append(word)
+    return lines or [""]
+
+
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
                   titles: Sequence[str]) -> np.ndarray:
     """Compose preview panels into one image: a title row, one row per sample, a class legend.
@@ -330,23 +347,27 @@ def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], p
         scaled.append(out)
     font = default_font(13)
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    # Panel titles wrap to their panel's width (narrow panels got overlapping titles).
+    wrapped = [[_wrap(name, panel.shape[1], font, measure) for name, panel in row] for row in scaled]
+    title_lines = [max(len(lines) for lines in row) for row in wrapped]
     legend_w = pad + sum(30 + int(measure.textlength(n, font=font)) for n in names[1:])
     titles_w = pad + max(int(measure.textlength(t, font=font)) for t in titles) + pad
     width = max(pad + max(sum(p.shape[1] + pad for _, p in row) for row in scaled), legend_w, titles_w)
     legend_h = caption + 2 * pad
-    height = pad + len(scaled) * (2 * caption + panel_h + pad) + legend_h
+    height = pad + sum((1 + n) * caption + panel_h + pad for n in title_lines) + legend_h
     sheet = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     y = pad
-    for row, title in zip(scaled, titles, strict=True):
+    for row, lines, n_lines, title in zip(scaled, wrapped, title_lines, titles, strict=True):
         draw.text((pad, y), title, fill=(0, 0, 0), font=font)
         y += caption
         x = pad
-        for name, panel in row:
-            draw.text((x, y), name, fill=(60, 60, 60), font=font)
-            sheet.paste(Image.fromarray(panel), (x, y + caption))
+        for (_, panel), name_lines in zip(row, lines, strict=True):
+            for i, line in enumerate(name_lines):
+                draw.text((x, y + i * caption), line, fill=(60, 60, 60), font=font)
+            sheet.paste(Image.fromarray(panel), (x, y + n_lines * caption))
             x += panel.shape[1] + pad
-        y += caption + panel_h + pad
+        y += n_lines * caption + panel_h + pad
     pal = np.asarray(palette, dtype=np.uint8)
     x = pad
     for c, name in enumerate(names):
