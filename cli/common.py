@@ -201,7 +201,9 @@ def grid_size(text: str) -> tuple[int, int, int]:
 def _tidy(doc: str) -> str:
     """A field docstring as plain help text: reST roles and literals unwrapped, whitespace collapsed, ``%``
     escaped for argparse."""
-    text = re.sub(r":[a-z]+:`~?([^`<]*?)\s*(?:<[^>]*>)?`", lambda m: m.group(1).split(".")[-1], doc)
+    # Sphinx semantics: :role:`~a.b.c` shows "c", :role:`a.b.c` shows it whole.
+    text = re.sub(r":[a-z]+:`(~?)([^`<]*?)\s*(?:<[^>]*>)?`",
+                  lambda m: m.group(2).split(".")[-1] if m.group(1) else m.group(2), doc)
     text = text.replace("``", "")
     return one_line(text).replace("%", "%%")
 
@@ -279,6 +281,8 @@ def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: An
     if kind == "bool" and "action" not in kwargs and "type" not in kwargs:
         flags = flags or ((f"--no-{option}",) if default else (f"--{option}",))
         kwargs.setdefault("action", "store_false" if default else "store_true")
+        # The docstring describes the setting; the flag turns it on, or (--no-...) off.
+        help_text += f" (default: {'on; this flag turns it off' if default else 'off'})"
     else:
         flags = flags or (f"--{option}",)
         if "type" not in kwargs and "choices" not in kwargs and kind in _SCALARS:
@@ -314,8 +318,8 @@ def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = T
     parser.add_argument("--grid", type=grid_size, default=None, metavar="N|WxHxD",
                         help=f"grid size in cells, N for N x N x N or W x H x D{' ' + what if what else ''}"
                         + (f" (default: {size})" if size_default else ""))
-    for name in ("z_near", "z_far", "hfov"):
-        parser.add_argument(f"--{name.replace('_', '-')}", dest=name, type=float, default=None,
+    for name, metavar in (("z_near", "M"), ("z_far", "M"), ("hfov", "DEG")):
+        parser.add_argument(f"--{name.replace('_', '-')}", dest=name, type=float, default=None, metavar=metavar,
                             help=f"grid: {_tidy(docs.get(name, name))} (default: {getattr(default, name):g})")
 
 

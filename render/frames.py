@@ -117,14 +117,16 @@ class RenderOptions:
     """What to draw and how (the CLI's choices)."""
 
     mode: str = "mesh"
-    """``"mesh"``, ``"raycast"`` or ``"both"``."""
+    """``"mesh"`` (a trapezoid mesh in pyrender), ``"raycast"`` (first_hit per pixel) or ``"both"``, side by
+    side."""
     shell: str | None = None
     """Shell source: ``"none"``, ``"own"``, ``"poses"`` or ``"view"`` for mesh and ray cast alike; None: ``"own"``
     for the mesh and ``"none"`` (the whole model) for the ray cast."""
     poses: int = 6
-    """Number of cameras for ``shell="poses"``."""
+    """Number of cameras around the grid for the ``"poses"`` shell."""
     meshing: str = "greedy"
-    """``"full"``, ``"culled"`` or ``"greedy"``."""
+    """``"full"`` (a hexahedron per cell), ``"culled"`` (boundary faces) or ``"greedy"`` (boundary faces merged
+    into rectangles), see :mod:`fruxel.mesh`."""
     shading: str = "lit"
     """``"lit"`` or ``"flat"``, for mesh and ray-cast images alike."""
     fog: bool = False
@@ -134,11 +136,12 @@ class RenderOptions:
     frustum: bool = False
     """Draw the frustum's edges in mesh images."""
     backend: str | None = None
-    """Kernel backend, None for the best available."""
+    """Kernel backend, ``"warp"`` or ``"opencl"``; unset (None): the best available."""
     device: str | None = None
-    """Warp device, None to follow the data."""
+    """Where Warp runs, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; unset (None): where the data are."""
     threshold: float | None = None
-    """Occupancy threshold for scores, None for the argmax rule."""
+    """For logits: a cell is occupied when ``1 - p(empty) >= threshold``; unset (None): when its argmax is not
+    the empty class."""
 
     @property
     def mesh_shell(self) -> str:

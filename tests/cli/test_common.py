@@ -123,7 +123,7 @@ class _Config:
     """A config of the tests."""
 
     steps: int = 100
-    """Optimiser steps to take, ``>= 1`` (see :class:`fruxel.FruxelGrid`)."""
+    """Optimiser steps to take, ``>= 1`` (see :class:`fruxel.FruxelGrid`, :func:`~fruxel.io.load`)."""
     rate: float | None = None
     """Learning rate; None picks one (100% sure)."""
     mode: str = "fast"
@@ -161,8 +161,10 @@ def test_config_options_take_defaults_types_and_help_from_the_dataclass(capsys: 
     with pytest.raises(SystemExit):
         p.parse_args(["--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "Optimiser steps to take, >= 1 (see FruxelGrid). (default: 100)" in text
-    assert "None picks one (100% sure)" in text and "--no-legend Draw the legend." in text
+    assert "Optimiser steps to take, >= 1 (see fruxel.FruxelGrid, load). (default: 100)" in text
+    assert "None picks one (100% sure)" in text
+    assert "--no-legend Draw the legend. (default: on; this flag turns it off)" in text
+    assert "--fog Depth fog. (default: off)" in text
     assert "How to run. (default: slow)" in text
 
 
