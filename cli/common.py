@@ -4,7 +4,7 @@ Every command (``fruxel-render``, ``fruxel-sim``, and the training, evaluation a
 ``main(argv=None) -> int`` written the same way::
 
     import argparse
-    from fruxel.cli.common import OneLineParser, config_option, run
+    from fruxel.cli.common import OneLineParser, config_option, positive_int, run, write_outputs
 
     def build_parser() -> argparse.ArgumentParser:          # standard library and fruxel's core only: --help is instant
         p = OneLineParser(prog="fruxel-x", description="...")
@@ -13,6 +13,7 @@ Every command (``fruxel-render``, ``fruxel-sim``, and the training, evaluation a
 
     def _main(args: argparse.Namespace) -> int | None:      # the work; heavy imports inside
         ...                                                 # raise a FruxelError subclass for bad input
+        write_outputs([(args.out, lambda tmp: save(tmp, result))])   # all outputs or none
 
     def main(argv: list[str] | None = None) -> int:
         return run(_main, build_parser(), argv)
@@ -114,7 +115,7 @@ def run(main_impl: Callable[[argparse.Namespace], int | None], parser: argparse.
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (FruxelError, OSError) as e:
-        msg = describe_os_error(e) if isinstance(e, OSError) else one_line(e)
+        msg = one_line(e) if isinstance(e, FruxelError) else describe_os_error(e)
         hint = " (see --help)" if isinstance(e, UsageError) else ""
         print(f"{prog}: error: {msg}{hint}", file=sys.stderr)
         return EXIT_USAGE

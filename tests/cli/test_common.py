@@ -193,3 +193,22 @@ def test_grid_without_a_default_size() -> None:
     with pytest.raises(UsageError, match="--z-far .* give --grid"):
         grid_from_args(p.parse_args(["--z-far", "7"]), GRID, size_default=False)
     assert issubclass(UsageError, FruxelError)
+
+
+# ---------------------------------------------------------------------------------------------------- outputs
+def test_write_outputs_all_or_none(tmp_path: Path) -> None:
+    from fruxel.cli.common import OutputError, write_outputs
+
+    a, b = tmp_path / "new" / "deep" / "a.txt", tmp_path / "b.bin"
+    b.write_bytes(b"old")
+
+    def fail(tmp: Path) -> None:
+        raise OSError(28, "No space left on device", str(tmp))
+
+    with pytest.raises(OutputError, match=f"cannot write {b}: No space left on device$"):
+        write_outputs([(a, lambda tmp: tmp.write_text("a")), (b, fail)])
+    assert b.read_bytes() == b"old" and sorted(p.name for p in tmp_path.rglob("*")) == ["b.bin"]
+    assert write_outputs([(a, lambda tmp: tmp.write_text("a")), (b, lambda tmp: tmp.write_bytes(b"new"))]) == [a, b]
+    assert a.read_text() == "a" and b.read_bytes() == b"new"
+    with pytest.raises(OutputError, match="is not a folder"):
+        write_outputs([(b / "x.txt", lambda tmp: tmp.write_text("x"))])
