@@ -161,7 +161,7 @@ def machine() -> dict[str, Any]:
 
 def gl_renderer() -> str:
     """The OpenGL renderer string of an offscreen (EGL) context, e.g. ``llvmpipe (LLVM 15.0.7, 256 bits)``."""
-    code = ("from fruxel._compat import prepare_pyrender; prepare_pyrender(True); import pyrender; "
+    code = ("from fruxel.render.compat import prepare_pyrender; prepare_pyrender(True); import pyrender; "
             "s = pyrender.Scene(); s.add(pyrender.PerspectiveCamera(yfov=1.0)); "
             "r = pyrender.OffscreenRenderer(8, 8); r.render(s); "
             "from OpenGL.GL import glGetString, GL_RENDERER; print(glGetString(GL_RENDERER).decode()); r.delete()")

@@ -21,7 +21,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from fruxel.io import atomic_path, atomic_write, replace_markdown_section
+from fruxel.io import atomic_path, atomic_write
+from fruxel.render.markdown import replace_markdown_section
 
 ROOT = Path(__file__).resolve().parents[1]
 """The source checkout."""
@@ -233,5 +234,5 @@ def write_text(path: Path, text: str) -> None:
 # ---------------------------------------------------------------------------------------------- BENCHMARKS.md
 def replace_section(path: Path, heading: str, text: str) -> None:
     """Replace the ``heading`` section of BENCHMARKS.md-like ``path`` with ``text``, or append it
-    (:func:`fruxel.io.replace_markdown_section`; a missing file gets this folder's title)."""
+    (:func:`fruxel.render.markdown.replace_markdown_section`; a missing file gets this folder's title)."""
     replace_markdown_section(path, heading, text, new_file=_NEW_FILE)

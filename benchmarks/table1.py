@@ -22,14 +22,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fruxel.cli import device_name, positive_int
-    from fruxel.render.cli import _grid_spec, _size
-    from fruxel.render.table1 import config_from_args, format_table, load_runs, record, run, verdicts
+    from fruxel.cli.common import device_name, grid_size, image_size, positive_int
+    from fruxel.cli.render import config_from_args
+    from fruxel.render.table1 import format_table, load_runs, record, run, verdicts
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--size", type=_size, default=None, metavar="WxH")
+    p.add_argument("--size", type=image_size, default=None, metavar="WxH")
     p.add_argument("--frames", type=positive_int, default=None)
-    p.add_argument("--grid", type=_grid_spec, default=None, metavar="N")
+    p.add_argument("--grid", type=grid_size, default=None, metavar="N")
     p.add_argument("--backend", choices=("warp", "opencl"), default=None, help="shell kernel of the mesh rows")
     p.add_argument("--device", type=device_name, default=None)
     p.add_argument("--backends", default=None, help="ray-cast rows, e.g. warp,opencl or warp-cuda")

@@ -1,7 +1,8 @@
 """fruxel: semantic fruxel (frustum voxel) models of a scene from one image.
 
 The core package is numpy-only: grid geometry (:class:`FruxelGrid`), viewing cameras (:class:`Camera`), the
-model container (:class:`FruxelModel`), files (:func:`save`, :func:`load`) and trapezoid meshing. Compute
+model container (:class:`FruxelModel`), files (:func:`save`, :func:`load` for models; :func:`save_logits`,
+:func:`load_logits` for a network's logits) and trapezoid meshing. Compute
 kernels live in :mod:`fruxel.kernels`, display in :mod:`fruxel.render`, the network and simulator in
 :mod:`fruxel.train`; they are imported on demand so that ``import fruxel`` stays light.
 """
@@ -13,8 +14,9 @@ from typing import Any
 
 from .camera import Camera, CameraError
 from .classes import DEFAULT_CLASSES, ClassTable, ClassTableError
+from .errors import FruxelError
 from .grid import FruxelGrid, GridError
-from .io import FruxelFileError, load, save
+from .io import FruxelFileError, LogitsFile, load, load_logits, save, save_logits
 from .mesh import TriMesh, export_mesh, mesh_labels
 from .model import FruxelModel, ModelError, labels_from_scores
 
@@ -26,18 +28,22 @@ __all__ = [
     "CameraError",
     "ClassTable",
     "ClassTableError",
+    "FruxelError",
     "FruxelFileError",
     "FruxelGrid",
     "FruxelModel",
     "GridError",
+    "LogitsFile",
     "ModelError",
     "TriMesh",
     "__version__",
     "export_mesh",
     "labels_from_scores",
     "load",
+    "load_logits",
     "mesh_labels",
     "save",
+    "save_logits",
 ]
 
 _SUBMODULES = ("kernels", "render", "train")

@@ -14,9 +14,14 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from .errors import FruxelError
+
+if TYPE_CHECKING:
+    from .grid import FruxelGrid
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply an OpenCV camera-to-world pose by this to get the OpenGL camera-to-world pose."""
@@ -45,7 +50,7 @@ def orbit_direction(azimuth: Any, elevation: Any) -> np.ndarray:
     return np.stack(np.broadcast_arrays(np.sin(az) * np.cos(el), -np.sin(el), -np.cos(az) * np.cos(el)), axis=-1)
 
 
-class CameraError(ValueError):
+class CameraError(FruxelError, ValueError):
     """Raised for impossible camera parameters: non-positive focal lengths or sizes, non-finite numbers,
     a pose that is not a rigid 4x4 transform."""
 
@@ -289,3 +294,106 @@ class Camera:
     def __repr__(self) -> str:
         return (f"Camera(fx={self.fx:g}, fy={self.fy:g}, cx={self.cx:g}, cy={self.cy:g}, "
                 f"width={self.width}, height={self.height}, position={self.position.round(4).tolist()})")
+
+
+def look_at_grid(
+    grid: FruxelGrid,
+    direction: Any,
+    *,
+    distance: float | None = None,
+    target: Any = None,
+    points: Any = None,
+    width: int = 640,
+    height: int = 480,
+    hfov: float = 60.0,
+    margin: float = 0.0,
+    centre: bool = False,
+) -> Camera:
+    """A camera looking at a grid: the one way fruxel frames a view of a grid or of what is in it.
+
+    The eye stands at ``target + distance * direction`` and looks at ``target``, with the grid's up (``-y``) up in
+    the image (``+z`` when the view is within 2.6 degrees of vertical, where ``-y`` is no longer usable). Every
+    "camera around the grid" in fruxel comes from here: the predefined VMS poses
+    (:func:`fruxel.kernels.orbit_cameras`), the shell losses' random novel views, the benchmark scene's oblique
+    view (:func:`fruxel.data.rooms.oblique_camera`), ``fruxel-render``'s default view and orbits, and the
+    simulator preview's second view.
+
+    Args:
+        grid: the grid looked at.
+        direction: ``(3,)`` direction from the target towards the eye, grid frame (OpenCV axes); normalised here
+            unless it is a unit vector already. :func:`orbit_direction` gives it from azimuth and elevation.
+        distance: metres from the target to the eye. None fits it: the smallest distance at which every one of
+            ``points`` projects into the image with ``margin`` of the width and height left free on each side
+            (computed exactly: the view's rotation does not depend on the distance).
+        target: ``(3,)`` point looked at, grid frame; default :meth:`FruxelGrid.centre` (the centre of the
+            frustum's bounding box).
+        points: ``(N, 3)`` points to fit, grid frame; default the frustum's 8 corners (the whole grid).
+        width, height, hfov: image size in pixels and horizontal field of view in degrees.
+        margin: share of the image width and height kept free on each side when fitting, in [0, 0.5).
+        centre: when fitting, also move the target sideways (rounds of shift and refit, until the points' image is
+            centred within ``_CENTRE_TOLERANCE`` pixels), for a still view; False keeps the target in the middle of
+            the image (orbits that turn around one point).
+
+    Returns:
+        The camera, ``width x height`` pixels, ``fx = fy``, principal point at the image centre.
+
+    Raises:
+        CameraError: a zero or non-finite direction, a non-positive or non-finite distance, a margin outside
+            [0, 0.5), or no points to fit.
+    """
+    d = np.asarray(direction, dtype=np.float64).reshape(3)
+    n = float(np.linalg.norm(d))
+    if not (math.isfinite(n) and n > 0.0):
+        raise CameraError(f"look_at_grid: direction must be a finite non-zero vector, got {d.tolist()}")
+    if abs(n - 1.0) > 1e-12:
+        d = d / n
+    # Straight above or below, the usual up (-y) is parallel to the view: +z is up instead.
+    up = (0.0, -1.0, 0.0) if abs(d[1]) < 0.999 else (0.0, 0.0, 1.0)
+    aim = grid.centre() if target is None else np.asarray(target, dtype=np.float64).reshape(3)
+    if distance is not None:
+        r = float(distance)
+        if not (math.isfinite(r) and r > 0.0):
+            raise CameraError(f"look_at_grid: distance must be > 0, got {distance}")
+        return Camera.look_at(aim + r * d, aim, up=up, width=width, height=height, hfov=hfov)
+    if not 0.0 <= margin < 0.5:
+        raise CameraError(f"look_at_grid: margin must be in [0, 0.5), got {margin}")
+    pts = grid.frustum_corners() if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0 or not np.all(np.isfinite(pts)):
+        raise CameraError("look_at_grid: no finite points to fit")
+    scale = float(np.ptp(pts, axis=0).max()) + float(np.abs(pts - aim).max())
+    # Any eye on the ray gives the same rotation; only the distance changes what the image shows.
+    cam = Camera.look_at(aim + d, aim, up=up, width=width, height=height, hfov=hfov)
+    r = _fit_distance(cam, pts - aim, margin, scale)
+    for _ in range(_CENTRE_ROUNDS if centre else 0):
+        cam = Camera.look_at(aim + r * d, aim, up=up, width=width, height=height, hfov=hfov)
+        p = cam.project(pts)
+        # Move the aim point sideways in the image plane by the offset of the points' image from the centre,
+        # converted to metres at the aim point's depth, then fit the distance again.
+        off_x = 0.5 * (p[:, 0].min() + p[:, 0].max()) - cam.cx
+        off_y = 0.5 * (p[:, 1].min() + p[:, 1].max()) - cam.cy
+        if max(abs(off_x), abs(off_y)) < _CENTRE_TOLERANCE:
+            break
+        aim = aim + r * (off_x / cam.fx * cam.rotation[:, 0] + off_y / cam.fy * cam.rotation[:, 1])
+        r = _fit_distance(cam, pts - aim, margin, scale)
+    return Camera.look_at(aim + r * d, aim, up=up, width=width, height=height, hfov=hfov)
+
+
+_CENTRE_ROUNDS = 50
+"""Most rounds of shift-and-refit of :func:`look_at_grid`'s ``centre``; a few usually do."""
+_CENTRE_TOLERANCE = 0.01
+"""Pixels by which the fitted points' image may be off centre when ``centre`` stops."""
+
+
+def _fit_distance(cam: Camera, rel: np.ndarray, margin: float, scale: float) -> float:
+    """The smallest eye distance from the aim point at which points ``rel`` (relative to the aim point, ``(N, 3)``
+    grid frame) project inside ``cam``'s image less ``margin``; ``cam`` gives the view's rotation and intrinsics.
+
+    In the camera frame a point is ``(a_x, a_y, a_z + r)`` with ``a = R^T rel``; it lies inside the image when
+    ``a_z + r >= f |a| / (half extent - margin)`` along each image axis (the principal point is centred).
+    """
+    a = rel @ cam.rotation
+    half_x = cam.width * (0.5 - margin)
+    half_y = cam.height * (0.5 - margin)
+    need = np.maximum(cam.fx * np.abs(a[:, 0]) / half_x, cam.fy * np.abs(a[:, 1]) / half_y) - a[:, 2]
+    # In front of the camera as well, and never on the aim point itself (a model of one point).
+    return max(float(need.max()), float((-a[:, 2]).max()) + 1e-9 * scale, 1e-6 * scale, 1e-9)

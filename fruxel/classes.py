@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import FruxelError
+
 MAX_CLASSES = 256
 """Labels are stored as uint8, so a class table holds at most 256 classes (ids 0..255)."""
 
@@ -74,7 +76,7 @@ EXTRA_COLOURS: tuple[Colour, ...] = (
 """Colours handed out, in order, to classes created without one (the rest of Tableau 20)."""
 
 
-class ClassTableError(ValueError):
+class ClassTableError(FruxelError, ValueError):
     """Raised for an invalid class table (names, colours, sizes) or a label outside the table."""
 
 

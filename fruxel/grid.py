@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .errors import FruxelError
+
 if TYPE_CHECKING:
     from .camera import Camera
 
@@ -33,7 +35,7 @@ if TYPE_CHECKING:
 MAX_CELLS = 2**34
 
 
-class GridError(ValueError):
+class GridError(FruxelError, ValueError):
     """Raised for impossible grid parameters or out-of-range cell indices."""
 
 
@@ -254,13 +256,15 @@ class FruxelGrid:
         zc = self.z_near + (np.arange(self.depth) + 0.5) * self.dz
         return np.stack([self.du * zc, self.dv * zc, np.full_like(zc, self.dz)], axis=-1)
 
+    def frustum_corners(self) -> np.ndarray:
+        """The 8 corners of the frustum: ``(8, 3)`` float64, grid frame, in :meth:`cell_corners` order (bit 0: far
+        u side, bit 1: far v side, bit 2: far slice)."""
+        c = np.arange(8)
+        return self.corner_points((c >> 2) * self.depth, ((c >> 1) & 1) * self.height, (c & 1) * self.width)
+
     def bounds(self) -> np.ndarray:
         """Axis-aligned bounding box of the frustum: ``(2, 3)`` float64, rows min and max, grid frame."""
-        corners = self.corner_points(
-            np.array([0, 0, 0, 0, self.depth, self.depth, self.depth, self.depth]),
-            np.array([0, 0, self.height, self.height] * 2),
-            np.array([0, self.width] * 4),
-        )
+        corners = self.frustum_corners()
         return np.stack([corners.min(axis=0), corners.max(axis=0)])
 
     def centre(self) -> np.ndarray:

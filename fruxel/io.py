@@ -1,27 +1,39 @@
-"""Model files (SPEC section 5): an ``.npz`` archive read and written without pickle; and the package's atomic
-writes and strict npy-member reading, which the simulator's shards, mesh export and the renderer share.
+"""Model files (SPEC section 5) and logits files (SPEC section 8): ``.npz`` archives read and written without
+pickle; and the package's atomic writes and strict npy-member reading, which the simulator's shards, mesh export
+and the renderer share.
 
-Layout, format version 1:
+Model file layout, format version 1:
 
 - ``labels``: ``(D, H, W)`` uint8 npy member, the model's labels indexed ``[k, j, i]``.
 - ``meta``: 0-d numpy unicode (``<U``) npy member holding one JSON object,
   ``{"format": "fruxel", "version": 1, "grid": FruxelGrid.to_dict(), "classes": ClassTable.to_dict()}``.
   A bytes (``|S``) member holding UTF-8 JSON is read too.
 
-Members are deflate-compressed (label volumes are mostly zeros). :func:`save` writes atomically
+Logits file layout (a network's output for one image, for ``fruxel-render``, predictions and tests), format
+version 1:
+
+- ``logits``: ``(C, D, H, W)`` float16 or float32 npy member (NCDHW without the batch axis; channel 0 = empty),
+  C-ordered; read in either byte order and returned in the machine's.
+- ``meta``: as above, with ``"format": "fruxel-logits"``; ``classes`` has C entries.
+
+Model members are deflate-compressed (label volumes are mostly zeros); logits are stored uncompressed (float
+scores hardly compress, and large ones load faster so). :func:`save` and :func:`save_logits` write atomically
 (:func:`atomic_write`): a temporary file in the target's directory, fsync, then ``os.replace``, so a crash leaves
 the old file or the new one, never a half-written file under the target's name.
 
-:func:`load` never unpickles and never trusts a size before checking it: it opens the archive with
-:mod:`zipfile`, checks the member names, parses each member's npy header (:func:`open_npy_member`) and refuses
-wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-checks the label
-shape with the grid in ``meta``, then reads exactly the bytes the header announces. Every problem raises one
-:class:`FruxelFileError` naming the file and the problem, with no chained traceback.
+:func:`load` and :func:`load_logits` never unpickle and never trust a size before checking it: they open the
+archive with :mod:`zipfile`, check the member names, parse each member's npy header (:func:`open_npy_member`)
+and refuse wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-check the
+array's shape with the grid and classes in ``meta``, then read exactly the bytes the header announces (and
+refuse NaN or infinite logits). Every problem raises one :class:`FruxelFileError` naming the file and the
+problem, with no chained traceback.
 
 Shared helpers (numpy and the standard library only):
 
 - :func:`atomic_write` (a file object) and :func:`atomic_path` (a temporary file name, for writers that need one
-  with the right suffix: PIL, imageio, matplotlib) replace a file atomically and durably.
+  with the right suffix: PIL, imageio, matplotlib) replace a file atomically and durably; :func:`atomic_files`
+  replaces several files together, all or none; :func:`remove_stale_temporaries` removes what killed writers
+  of a file left behind.
 - :func:`open_archive`, :func:`open_npy_member`, :func:`read_npy_member` and :func:`describe_read_error` read
   npz archives strictly; they raise the neutral :class:`ArchiveError`, which each reader turns into its own
   error naming the file (:class:`FruxelFileError` here, ``DatasetError`` in :mod:`fruxel.train.sim.shards`).
@@ -34,17 +46,26 @@ import json
 import os
 import re
 import secrets
+import stat
+import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
 import numpy.lib.format as npy_format
 
+try:
+    import fcntl
+except ImportError:  # Windows: no flock, see remove_stale_temporaries
+    fcntl = None  # type: ignore[assignment]
+
 from .classes import ClassTable, ClassTableError
+from .errors import FruxelError
 from .grid import MAX_CELLS, FruxelGrid, GridError
-from .model import FruxelModel
+from .model import FruxelModel, ModelError, labels_from_scores
 
 FORMAT_NAME = "fruxel"
 """Value of ``meta["format"]``."""
@@ -52,19 +73,31 @@ FORMAT_NAME = "fruxel"
 FORMAT_VERSION = 1
 """The file format version this module writes and reads."""
 
+LOGITS_FORMAT_NAME = "fruxel-logits"
+"""Value of ``meta["format"]`` in a logits file."""
+
+LOGITS_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
+"""The dtypes of a logits file's ``logits`` (in the machine's byte order; the other order is read too)."""
+
+MAX_LOGITS_BYTES = 1 << 36
+"""Largest ``logits`` member accepted, in bytes (64 GiB): a header claiming more is refused before reading."""
+
 MAX_META_CHARS = 1 << 20
 """Longest ``meta`` JSON accepted, in characters: far above any real grid plus 256 class names."""
 
+T = TypeVar("T")
+
 _MEMBERS = ("labels.npy", "meta.npy")
+_LOGITS_MEMBERS = ("logits.npy", "meta.npy")
 _META_KEYS = ("format", "version", "grid", "classes")
 
 
-class FruxelFileError(ValueError):
-    """A file that is not a valid fruxel model file (or cannot be read). The message names the file and the
-    problem; :attr:`path` and :attr:`problem` hold them separately."""
+class FruxelFileError(FruxelError, ValueError):
+    """A file that is not a valid fruxel model file or logits file (or cannot be read). The message names the
+    file and the problem; :attr:`path` and :attr:`problem` hold them separately."""
 
-    def __init__(self, path: str, problem: str) -> None:
-        super().__init__(f"cannot load fruxel model {path!r}: {problem}")
+    def __init__(self, path: str, problem: str, kind: str = "fruxel model") -> None:
+        super().__init__(f"cannot load {kind} {path!r}: {problem}")
         self.path = path
         """The file name as given to :func:`load`."""
         self.problem = problem
@@ -78,19 +111,100 @@ class ArchiveError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------------- atomic writes
-def _create_temporary(target: str, suffix: str) -> tuple[str, int]:
-    """Create a new, empty, hidden file beside ``target``; returns its name and an open write descriptor."""
+STALE_AGE = 5.0
+"""Seconds a temporary file must have existed before :func:`remove_stale_temporaries` may take it for a dead
+writer's (a live writer holds a lock on it from a moment after creating it)."""
+
+
+def _temporary_name(target: str, suffix: str) -> str:
+    # Beside the target (os.replace must not cross file systems), short enough for any name limit.
     directory = os.path.dirname(os.path.abspath(target))
+    return os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp{suffix}")
+
+
+def _hold(fd: int) -> int:
+    """A duplicate of ``fd`` holding an exclusive ``flock`` on the file: the mark of a live writer, which the
+    kernel drops when the process dies. Close the duplicate to release it. Without ``fcntl`` (Windows) the
+    duplicate marks nothing."""
+    lock = os.dup(fd)
+    if fcntl is not None:
+        with contextlib.suppress(OSError):
+            fcntl.flock(lock, fcntl.LOCK_EX)
+    return lock
+
+
+def _create_temporary(target: str, suffix: str) -> tuple[str, int, int]:
+    """Create a new, empty, hidden file beside ``target``; returns its name, an open write descriptor and the
+    descriptor of the writer's lock on it (:func:`_hold`)."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     while True:
-        # Beside the target (os.replace must not cross file systems), short enough for any name limit.
-        tmp = os.path.join(directory, f".{os.path.basename(target)[:120]}.{secrets.token_hex(6)}.tmp{suffix}")
+        tmp = _temporary_name(target, suffix)
         try:
             # Mode 0o666 lets the umask decide the permissions, as for any newly created file (mkstemp's 0o600
             # would leave written models, meshes and images private).
-            return tmp, os.open(tmp, flags, 0o666)
+            fd = os.open(tmp, flags, 0o666)
         except FileExistsError:
             continue
+        return tmp, fd, _hold(fd)
+
+
+def _discard(tmp: str, lock: int) -> None:
+    with contextlib.suppress(OSError):
+        os.remove(tmp)
+    os.close(lock)
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str], min_age: float = STALE_AGE) -> list[str]:
+    """Remove the temporary files that killed writers of ``path`` left beside it.
+
+    :func:`atomic_write`, :func:`atomic_path` and :func:`atomic_files` remove their temporary file on any error,
+    but a process killed with ``SIGKILL`` (or a power cut) cannot. Such a file is recognised by its name
+    (``.NAME.XXXXXXXXXXXX.tmp`` or ``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` for ``path`` = ``NAME``), and told from a
+    live writer's by the lock every writer holds on its temporary file until it is done (``flock``, released by
+    the kernel when a process dies). Files younger than ``min_age`` seconds are left alone (a writer takes its
+    lock a moment after creating the file). Where ``flock`` is missing, only files older than a day go.
+
+    Args:
+        path: the output whose stale temporaries to remove; its folder may be missing.
+        min_age: seconds since the last change below which a file is kept.
+
+    Returns:
+        The names removed.
+    """
+    target = os.fsdecode(path)
+    directory = os.path.dirname(os.path.abspath(target))
+    base = os.path.basename(target)
+    pattern = re.compile(rf"\.{re.escape(base[:120])}\.[0-9a-f]{{12}}\.tmp(?:{re.escape(Path(base).suffix)})?")
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        if not pattern.fullmatch(name):
+            continue
+        tmp = os.path.join(directory, name)
+        try:
+            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError:
+            continue
+        try:
+            st = os.fstat(fd)
+            age = time.time() - st.st_mtime
+            if not stat.S_ISREG(st.st_mode) or age < (min_age if fcntl is not None else 86400.0):
+                continue
+            if fcntl is not None:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    continue  # a live writer holds it
+            os.remove(tmp)
+            removed.append(tmp)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _fsync_directory(directory: str) -> None:
@@ -102,6 +216,14 @@ def _fsync_directory(directory: str) -> None:
     try:
         with contextlib.suppress(OSError):
             os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: str) -> None:
+    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+    try:
+        os.fsync(fd)
     finally:
         os.close(fd)
 
@@ -120,7 +242,7 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
     fsynced, so a reader or a crash sees the old file or the complete new one, never part of one. When the block
     (or the sync or the rename) raises, including ``KeyboardInterrupt``, the temporary file is removed, the old
     file is left as it was and the exception propagates. Only a killed process can leave the temporary file;
-    a program that cleans up after one can recognise it by its name.
+    :func:`remove_stale_temporaries` cleans up after one.
 
     Args:
         path: the file to write; its folder must exist.
@@ -137,7 +259,7 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_write() writes in mode 'wb' or 'w', not {mode!r}")
     target = os.fsdecode(path)
-    tmp, fd = _create_temporary(target, "")
+    tmp, fd, lock = _create_temporary(target, "")
     try:
         with os.fdopen(fd, mode, encoding=None if "b" in mode else encoding) as f:
             yield f
@@ -145,32 +267,60 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb", *, encoding: st
             os.fsync(f.fileno())
         _commit(tmp, target)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
+        _discard(tmp, lock)
         raise
+    os.close(lock)
 
 
-def replace_markdown_section(path: str | os.PathLike[str], heading: str, text: str, *,
-                             new_file: str = "# Benchmarks\n") -> None:
-    """Replace the ``heading`` section of a Markdown file with ``text``, or append it; the other sections stay.
+class AtomicFiles:
+    """The temporary files of one :func:`atomic_files` block, committed together when it ends."""
 
-    A section runs from its heading line to the next ``## `` heading (its own ``### `` subsections included) or
-    the end of the file. The file is rewritten atomically (:func:`atomic_write`): several writers keep their own
-    sections of one file, and readers never see half of it.
+    def __init__(self) -> None:
+        self._pending: list[tuple[str, str, int]] = []
 
-    Args:
-        path: the Markdown file; a missing one starts as ``new_file``.
-        heading: the section's heading line, e.g. ``"## Kernels"``.
-        text: the whole new section, heading line included; one blank line is kept before the next section.
-        new_file: the text of a file that does not exist yet (its title).
+    def path(self, path: str | os.PathLike[str]) -> Path:
+        """A new, empty temporary file for the target ``path`` (``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` beside it, with
+        its suffix, for writers that pick the format by the name); write it (overwriting it) and close it.
+
+        Raises:
+            OSError: it cannot be created (a missing folder, no permission).
+        """
+        target = os.fsdecode(path)
+        tmp, fd, lock = _create_temporary(target, Path(target).suffix)
+        os.close(fd)
+        self._pending.append((tmp, target, lock))
+        return Path(tmp)
+
+
+@contextlib.contextmanager
+def atomic_files() -> Iterator[AtomicFiles]:
+    """Replace several files together: all of them, or (when anything fails before the renames) none.
+
+    Each :meth:`AtomicFiles.path` gives a temporary file for one target. When the block ends normally every
+    temporary file is fsynced, then each is renamed onto its target and the folders are fsynced; when the block,
+    a sync or a rename raises (``KeyboardInterrupt`` too), the temporary files not yet renamed are removed and
+    the exception propagates. Until the renames nothing under a target's name has changed, so a failed block
+    leaves every old file as it was; only a rename failing half way (which a full disk or a permission error
+    cannot cause: the data are already written) could leave some targets new and some old.
+
+    Yields:
+        The set of pending files.
     """
-    target = Path(path)
-    old = target.read_text(encoding="utf-8") if target.exists() else new_file
-    pattern = re.compile(rf"^{re.escape(heading)}\n.*?(?=^## |\Z)", re.MULTILINE | re.DOTALL)
-    block = text.rstrip("\n") + "\n\n"
-    new = pattern.sub(lambda _: block, old, count=1) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block
-    with atomic_write(target, "w") as f:
-        f.write(new.rstrip("\n") + "\n")
+    files = AtomicFiles()
+    pending = files._pending
+    try:
+        yield files
+        for tmp, _, _ in pending:
+            _fsync_file(tmp)
+        while pending:
+            tmp, target, lock = pending[0]
+            _commit(tmp, target)
+            pending.pop(0)
+            os.close(lock)
+    except BaseException:
+        for tmp, _, lock in pending:
+            _discard(tmp, lock)
+        raise
 
 
 @contextlib.contextmanager
@@ -182,7 +332,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     ``.room.png.0123456789ab.tmp.png``), created empty before the block runs. When the block ends normally the
     file is fsynced, renamed onto ``path`` and the folder fsynced; when anything raises, including
     ``KeyboardInterrupt``, the temporary file is removed and the old file stays as it was (as for
-    :func:`atomic_write`).
+    :func:`atomic_write`). One file of :func:`atomic_files`.
 
     Args:
         path: the file to write; its folder must exist.
@@ -193,21 +343,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     Raises:
         OSError: the file cannot be written or replaced.
     """
-    target = os.fsdecode(path)
-    tmp, fd = _create_temporary(target, Path(target).suffix)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        fd = os.open(tmp, os.O_RDWR | getattr(os, "O_BINARY", 0))
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        _commit(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
+    with atomic_files() as files:
+        yield files.path(path)
 
 
 # ---------------------------------------------------------------------------------------------------- strict reading
@@ -440,10 +577,6 @@ def _listing(missing: list[str], extra: list[str]) -> str:
     return ": " + ", ".join(parts)
 
 
-def _read_meta(zf: zipfile.ZipFile) -> tuple[FruxelGrid, ClassTable]:
-    return _check_meta(read_json_member(zf, "meta", MAX_META_CHARS))
-
-
 def read_json_member(zf: zipfile.ZipFile, name: str, max_chars: int) -> Any:
     """The JSON value stored in member ``name.npy`` as a 0-d string (unicode, or UTF-8 bytes), read without
     pickle and with a size limit checked before anything is read.
@@ -476,15 +609,15 @@ def read_json_member(zf: zipfile.ZipFile, name: str, max_chars: int) -> Any:
     raise ArchiveError(problem)
 
 
-def _check_meta(meta: Any) -> tuple[FruxelGrid, ClassTable]:
+def _check_meta(meta: Any, format_name: str = FORMAT_NAME) -> tuple[FruxelGrid, ClassTable]:
     if not isinstance(meta, dict):
         raise ArchiveError(f"meta must be a JSON object, got {type(meta).__name__}")
     missing = [k for k in _META_KEYS if k not in meta]
     extra = sorted(str(k) for k in set(meta) - set(_META_KEYS))
     if missing or extra:
         raise ArchiveError(f"wrong meta keys{_listing(missing, extra)}")
-    if meta["format"] != FORMAT_NAME:
-        raise ArchiveError(f"meta format is {meta['format']!r}, expected {FORMAT_NAME!r}")
+    if meta["format"] != format_name:
+        raise ArchiveError(f"meta format is {meta['format']!r}, expected {format_name!r}")
     version = meta["version"]
     if isinstance(version, bool) or not isinstance(version, int):
         raise ArchiveError(f"meta version must be an integer, got {version!r}")
@@ -524,7 +657,7 @@ def _read_labels(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> 
     return labels
 
 
-def _load(path: str) -> FruxelModel:
+def _open_file(path: str) -> IO[bytes]:
     try:
         f = open(path, "rb")
     except FileNotFoundError:
@@ -533,18 +666,53 @@ def _load(path: str) -> FruxelModel:
         raise ArchiveError("it is a directory, not a file") from None
     except OSError as e:
         raise ArchiveError(f"cannot open it ({e.strerror or e})") from None
-    with f:
-        if os.path.isdir(path):
-            raise ArchiveError("it is a directory, not a file")
-        with open_archive(f) as zf:
-            names = zf.namelist()
-            if sorted(names) != sorted(_MEMBERS):
-                missing = [m[:-4] for m in _MEMBERS if m not in names]
-                extra = sorted({n for n in names if n not in _MEMBERS} | {n for n in names if names.count(n) > 1})
-                raise ArchiveError(f"wrong keys{_listing(missing, extra)}; expected exactly 'labels' and 'meta'")
-            grid, classes = _read_meta(zf)
-            labels = _read_labels(zf, grid, classes)
-    return FruxelModel(labels, grid, classes)
+    if os.path.isdir(path):
+        f.close()
+        raise ArchiveError("it is a directory, not a file")
+    return f
+
+
+def _check_members(zf: zipfile.ZipFile, expected: tuple[str, ...]) -> None:
+    names = zf.namelist()
+    if sorted(names) == sorted(expected):
+        return
+    # The other kind of fruxel file gets a pointer to its reader rather than a list of keys.
+    if sorted(names) == sorted(_LOGITS_MEMBERS):
+        raise ArchiveError("it is a logits file, not a model (fruxel.load_logits reads it)")
+    if sorted(names) == sorted(_MEMBERS):
+        raise ArchiveError("it is a fruxel model file (labels), not logits (fruxel.load reads it)")
+    missing = [m[:-4] for m in expected if m not in names]
+    extra = sorted({n for n in names if n not in expected} | {n for n in names if names.count(n) > 1})
+    wanted = " and ".join(repr(m[:-4]) for m in expected)
+    raise ArchiveError(f"wrong keys{_listing(missing, extra)}; expected exactly {wanted}")
+
+
+def file_kind(path: str | os.PathLike[str]) -> str | None:
+    """What a file is, from its archive's member names alone: ``"model"`` (:func:`load`), ``"logits"``
+    (:func:`load_logits`), or None for anything else (including a missing or unreadable file, which the
+    loaders then report properly). Reads only the zip directory."""
+    try:
+        with open(path, "rb") as f, open_archive(f) as zf:
+            names = sorted(zf.namelist())
+    except Exception:  # noqa: BLE001 - any file that cannot be opened as an archive is neither kind
+        return None
+    return {tuple(sorted(_MEMBERS)): "model", tuple(sorted(_LOGITS_MEMBERS)): "logits"}.get(tuple(names))
+
+
+def _read_strictly(path: str | os.PathLike[str], kind: str, members: tuple[str, ...], format_name: str,
+                   read: Callable[[zipfile.ZipFile, FruxelGrid, ClassTable], T]) -> T:
+    """Open a fruxel archive, check its members and meta, and return ``read(zf, grid, classes)``; any problem
+    becomes one :class:`FruxelFileError` naming the file, with no chained exception."""
+    name = os.fsdecode(path)
+    try:
+        with _open_file(name) as f, open_archive(f) as zf:
+            _check_members(zf, members)
+            grid, classes = _check_meta(read_json_member(zf, "meta", MAX_META_CHARS), format_name)
+            return read(zf, grid, classes)
+    except Exception as e:
+        # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
+        problem = describe_read_error(e)
+    raise FruxelFileError(name, problem, kind)
 
 
 def load(path: str | os.PathLike[str]) -> FruxelModel:
@@ -563,10 +731,117 @@ def load(path: str | os.PathLike[str]) -> FruxelModel:
             version, an invalid grid or class table, or labels outside the class table. One error, whose
             message names the file and the problem, with no chained exception.
     """
-    name = os.fsdecode(path)
+    return _read_strictly(path, "fruxel model", _MEMBERS, FORMAT_NAME,
+                          lambda zf, grid, classes: FruxelModel(_read_labels(zf, grid, classes), grid, classes))
+
+
+# ---------------------------------------------------------------------------------------------------- logits
+@dataclass(frozen=True, eq=False)
+class LogitsFile:
+    """The contents of a logits file (:func:`load_logits`): a network's scores for one image, with their grid and
+    classes."""
+
+    logits: np.ndarray
+    """``(C, D, H, W)`` float16 or float32, C-contiguous, writable, machine byte order, all finite; channel 0 =
+    empty."""
+    grid: FruxelGrid
+    """The grid of the logits' ``(D, H, W)``."""
+    classes: ClassTable
+    """The C classes of the channels."""
+
+    def labels(self, threshold: float | None = None) -> np.ndarray:
+        """Labels ``(D, H, W)`` uint8 by the occupancy rule of :func:`fruxel.labels_from_scores`."""
+        return labels_from_scores(self.logits, threshold=threshold, axis=0)
+
+    def to_model(self, threshold: float | None = None) -> FruxelModel:
+        """The :class:`FruxelModel` of :meth:`labels`."""
+        return FruxelModel(self.labels(threshold), self.grid, self.classes)
+
+
+def _as_numpy(x: Any) -> np.ndarray:
+    if hasattr(x, "detach") and hasattr(x, "cpu"):
+        # A torch tensor (on any device), read without importing torch here.
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _check_logits(logits: Any, grid: Any, classes: Any) -> np.ndarray:
+    if not isinstance(grid, FruxelGrid):
+        raise ModelError(f"save_logits() needs a FruxelGrid, got {type(grid).__name__}")
+    if not isinstance(classes, ClassTable):
+        raise ModelError(f"save_logits() needs a ClassTable, got {type(classes).__name__}")
     try:
-        return _load(name)
-    except Exception as e:
-        # Whatever a damaged archive provokes is still a damaged file, and the caller gets the one documented error.
-        problem = describe_read_error(e)
-    raise FruxelFileError(name, problem)
+        arr = _as_numpy(logits)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ModelError(f"logits must be a numpy array, got {type(logits).__name__} ({e})") from None
+    if arr.dtype.newbyteorder("=") not in LOGITS_DTYPES:
+        raise ModelError(f"logits must be float16 or float32, got dtype {arr.dtype} (convert with .astype)")
+    want = (len(classes), *grid.shape)
+    if arr.shape != want:
+        raise ModelError(f"logits must have shape (C, D, H, W) = {want} for {len(classes)} classes and the grid's "
+                         f"(D, H, W), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ModelError("logits contain NaN or infinite values")
+    return np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("="))
+
+
+def save_logits(path: str | os.PathLike[str], logits: Any, grid: FruxelGrid, classes: ClassTable) -> None:
+    """Write a logits file (format in the module docstring) atomically.
+
+    Args:
+        path: target file name, used as given (``.npz`` by convention).
+        logits: ``(C, D, H, W)`` float16 or float32 scores, channel 0 = empty; a numpy array (or a torch tensor,
+            copied to the host). Stored in that dtype.
+        grid: the grid of ``(D, H, W)``.
+        classes: the C classes of the channels.
+
+    Raises:
+        ModelError: not a grid or class table, another dtype, a shape other than ``(len(classes), *grid.shape)``,
+            or NaN or infinite values.
+        OSError: the file cannot be written.
+    """
+    arr = _check_logits(logits, grid, classes)
+    meta = json.dumps({"format": LOGITS_FORMAT_NAME, "version": FORMAT_VERSION, "grid": grid.to_dict(),
+                       "classes": classes.to_dict()}, ensure_ascii=False)
+    with atomic_write(path) as f:
+        np.savez(f, logits=arr, meta=np.array(meta, dtype=np.str_))
+
+
+def _read_logits(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> np.ndarray:
+    with open_npy_member(zf, "logits.npy") as m:
+        shape, dtype = m.shape, m.dtype
+        if dtype.newbyteorder("=") not in LOGITS_DTYPES:
+            raise ArchiveError(f"member 'logits' has dtype {dtype}, expected float16 or float32")
+        if len(shape) != 4:
+            raise ArchiveError(f"member 'logits' has {len(shape)} dimensions (shape {shape}), expected 4 "
+                               f"(C, D, H, W)")
+        if m.nbytes > MAX_LOGITS_BYTES:
+            raise ArchiveError(f"member 'logits' header claims {m.nbytes} bytes (shape {shape}), more than the limit "
+                               f"{MAX_LOGITS_BYTES}")
+        want = (len(classes), *grid.shape)
+        if shape != want:
+            raise ArchiveError(f"member 'logits' has shape {shape} but meta's {len(classes)} classes and grid "
+                               f"(D, H, W) = {grid.shape} need {want}")
+        logits = m.read_array()
+    if not np.all(np.isfinite(logits)):
+        raise ArchiveError("the logits contain NaN or infinite values")
+    # A writable, C-ordered copy in the machine's byte order (torch.from_numpy and the kernels take it as it is).
+    return np.require(logits, dtype=dtype.newbyteorder("="), requirements=["C", "W"])
+
+
+def load_logits(path: str | os.PathLike[str]) -> LogitsFile:
+    """Read a logits file written by :func:`save_logits`, without pickle, as strictly as :func:`load`.
+
+    Args:
+        path: the file name.
+
+    Returns:
+        The logits ``(C, D, H, W)``, their grid and classes.
+
+    Raises:
+        FruxelFileError: the file is missing, unreadable, or not a valid logits file (a model file, wrong members,
+            an object array, another dtype, ndim or shape, a header claiming an absurd size, bad meta, NaN or
+            infinite values). One error naming the file and the problem.
+    """
+    return _read_strictly(path, "logits file", _LOGITS_MEMBERS, LOGITS_FORMAT_NAME,
+                          lambda zf, grid, classes: LogitsFile(_read_logits(zf, grid, classes), grid, classes))

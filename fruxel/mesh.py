@@ -495,10 +495,39 @@ def to_trimesh(mesh: TriMesh) -> trimesh.Trimesh:
     return tm
 
 
-def export_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
-    """Write a mesh to ``.ply`` (binary) or ``.glb`` with its vertex colours, atomically.
+GLTF_FROM_GRID = np.diag([1.0, -1.0, -1.0])
+"""Rotation from the grid frame (OpenCV: y down, z forward) to glTF's (+Y up, the default camera looking down
+-Z): 180 degrees about x. It keeps handedness, so faces keep their winding and outward normals."""
 
-    PLY also keeps the face labels, as the uchar face property ``label``; glTF has no place for them.
+
+def encode_mesh(mesh: TriMesh, suffix: str) -> bytes:
+    """The bytes of a mesh file of type ``suffix`` (:data:`EXPORT_FORMATS`), in that format's frame.
+
+    - ``.ply`` (binary, with the face labels as the uchar face property ``label``): the grid frame as it is
+      (OpenCV axes: x right, y down, z forward, metres), like every fruxel array.
+    - ``.glb``: glTF's frame, which every glTF viewer assumes: +Y up. Vertices are turned 180 degrees about x
+      (:data:`GLTF_FROM_GRID`: ``(x, y, z) -> (x, -y, -z)``), so a room stands upright and the grid camera's view
+      is glTF's default view down -Z. glTF has no place for face labels.
+
+    Raises:
+        ValueError: an unsupported suffix.
+    """
+    suffix = suffix.lower()
+    if suffix not in EXPORT_FORMATS:
+        raise ValueError(f"mesh export supports {EXPORT_FORMATS}, got {suffix!r}")
+    tm = to_trimesh(mesh)
+    if suffix == ".ply":
+        return tm.export(file_type="ply", encoding="binary")
+    # Negation is exact in float32, so the glTF vertices are the lattice points with two signs flipped.
+    tm.vertices = mesh.vertices * GLTF_FROM_GRID.diagonal().astype(np.float32)
+    return tm.export(file_type="glb")
+
+
+def export_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
+    """Write a mesh to ``.ply`` (binary) or ``.glb`` with its vertex colours, atomically, in the format's frame.
+
+    PLY keeps the grid frame (OpenCV axes, y down) and the face labels; GLB is in glTF's +Y-up frame (the grid
+    frame turned 180 degrees about x), see :func:`encode_mesh`.
 
     The file is written atomically (:func:`fruxel.io.atomic_write`: a temporary file in the same folder, synced
     and moved into place), so a reader never sees a partial file and a failed write leaves any earlier file
@@ -515,14 +544,9 @@ def export_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
         ValueError: an unsupported suffix.
     """
     dest = Path(path)
-    suffix = dest.suffix.lower()
-    if suffix not in EXPORT_FORMATS:
+    if dest.suffix.lower() not in EXPORT_FORMATS:
         raise ValueError(f"mesh export supports {EXPORT_FORMATS}, got {dest.name!r}")
-    tm = to_trimesh(mesh)
-    if suffix == ".ply":
-        data = tm.export(file_type="ply", encoding="binary")
-    else:
-        data = tm.export(file_type="glb")
+    data = encode_mesh(mesh, dest.suffix)
     with atomic_write(dest) as f:
         f.write(data)
     return dest

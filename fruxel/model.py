@@ -20,10 +20,11 @@ from typing import Any
 import numpy as np
 
 from .classes import DEFAULT_CLASSES, ClassTable
+from .errors import FruxelError
 from .grid import MAX_CELLS, FruxelGrid
 
 
-class ModelError(ValueError):
+class ModelError(FruxelError, ValueError):
     """Raised for inconsistent model contents: labels of the wrong shape or dtype, labels outside the class
     table, non-finite scores, or malformed Cartesian grids and point sets."""
 

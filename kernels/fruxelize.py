@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from fruxel.camera import check_pose
+from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid
 
 from .inputs import MAX_LABEL, VolumeError
@@ -62,7 +63,7 @@ MAX_CROSSINGS = 32
 """Crossings one column may collect through one closed part before that part falls back to the parity vote."""
 
 
-class MeshError(ValueError):
+class MeshError(FruxelError, ValueError):
     """Raised for meshes ``fruxelize`` cannot take: wrong shapes, non-finite vertices, face indices out of range,
     labels outside [0, 255]."""
 

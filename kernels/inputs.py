@@ -7,12 +7,14 @@ is never imported here, tensors are recognised by duck typing.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from fruxel.camera import Camera
+from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid
 
 MAX_LABEL = 255
@@ -23,7 +25,7 @@ EMPTY_LOGIT = -1.0e4
 float16, and far enough below 0 that p(empty) rounds to exactly 1."""
 
 
-class VolumeError(ValueError):
+class VolumeError(FruxelError, ValueError):
     """Raised for a volume the kernels cannot take: wrong shape or dtype, NaN or infinite scores, labels out of
     range, or a threshold outside (0, 1]."""
 
@@ -151,12 +153,18 @@ def check_cameras(cameras: Any) -> list[Camera]:
     Raises:
         VolumeError: an empty sequence or something that is not a :class:`fruxel.Camera`.
     """
-    cams = [cameras] if isinstance(cameras, Camera) else list(cameras)
+    if isinstance(cameras, Camera):
+        return [cameras]
+    # A mapping, a string or any other non-sequence is not a set of cameras (iterating a dict would report its
+    # keys' type instead of the dict's).
+    if isinstance(cameras, (str, bytes, Mapping)) or not isinstance(cameras, Iterable):
+        raise VolumeError(f"expected a fruxel.Camera or a sequence of them, got {type(cameras).__name__}")
+    cams = list(cameras)
     if not cams:
         raise VolumeError("at least one camera is needed")
-    for c in cams:
+    for n, c in enumerate(cams):
         if not isinstance(c, Camera):
-            raise VolumeError(f"expected fruxel.Camera, got {type(c).__name__}")
+            raise VolumeError(f"expected a fruxel.Camera or a sequence of them, got {type(c).__name__} at index {n}")
     return cams
 
 

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from fruxel.camera import Camera, CameraError, orbit_direction
+from fruxel.camera import Camera, CameraError, look_at_grid, orbit_direction
 from fruxel.grid import FruxelGrid
 
 
@@ -53,7 +53,6 @@ def orbit_cameras(
     if int(m) != m or m < 1:
         raise CameraError(f"m must be a positive integer, got {m}")
     box = grid.bounds()
-    centre = grid.centre()
     if radius is None:
         half_h = math.radians(hfov) / 2.0
         half_v = math.atan(math.tan(half_h) * height / width)
@@ -80,10 +79,4 @@ def orbit_cameras(
         dirs = np.stack([np.sin(polar) * np.sin(az), -np.cos(polar), -np.sin(polar) * np.cos(az)], axis=-1)
     else:
         raise CameraError(f"layout must be 'orbit' or 'sphere', got {layout!r}")
-    cams = []
-    for d in dirs:
-        eye = centre + r * d
-        # Straight above or below, the usual up (-y) is parallel to the view: fall back to +z as up.
-        up = (0.0, -1.0, 0.0) if abs(d[1]) < 0.999 else (0.0, 0.0, 1.0)
-        cams.append(Camera.look_at(eye, centre, up=up, width=width, height=height, hfov=hfov))
-    return cams
+    return [look_at_grid(grid, d, distance=r, width=width, height=height, hfov=hfov) for d in dirs]

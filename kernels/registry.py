@@ -15,6 +15,8 @@ from functools import cache
 from types import ModuleType
 from typing import Any
 
+from fruxel.errors import FruxelError
+
 OPERATIONS = ("first_hit", "shell", "soft_first_hit")
 """Functions every backend package exposes, with identical signatures (see ``fruxel.kernels``); each lives in the
 backend's submodule of the same name, beside its kernel source."""
@@ -46,11 +48,11 @@ def backend_package(name: str) -> None:
     sys.modules[name].__class__ = _BackendPackage
 
 
-class BackendUnavailable(RuntimeError):
+class BackendUnavailable(FruxelError, RuntimeError):
     """Raised when a chosen backend cannot be imported or has no usable device; the message has an install hint."""
 
 
-class BackendError(ValueError):
+class BackendError(FruxelError, ValueError):
     """Raised for an unknown backend or device name."""
 
 

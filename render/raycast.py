@@ -4,87 +4,23 @@ No mesh is built, so a volume that changes every frame (a network's live output)
 one shading pass per image. The volume may be labels ``(D, H, W)`` or logits ``(1, C, D, H, W)``, numpy or
 torch, on the CPU or CUDA; the kernel reads it where it is (no argmax on the host first).
 
-Shading is :func:`fruxel.shading.shade_hits`'s formula: class colour times ``ambient + (1 - ambient) *
-max(0, n . l)`` with ``n`` the entry-face normal and ``l`` a head light given in the camera frame, then optional
-linear depth fog into the background. :func:`shade` computes it in float32 on the hits' own device (numpy, or
-torch on CUDA), because shade_hits' float64 numpy pass alone takes about 50 ms for a 640 x 480 image on a
-2-core machine, longer than the kernel; tests pin the two to each other within one colour level.
+Shading is :func:`fruxel.render.shading.shade`: class colour times ``ambient + (1 - ambient) * max(0, n . l)``
+with ``n`` the entry-face normal and ``l`` a head light given in the camera frame, then optional linear depth fog
+into the background, in float32 on the hits' own device (numpy, or torch on CUDA).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
-from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_BACKGROUND, DEFAULT_LIGHT
 
-# With fog on, the farthest hit keeps 1 - 1 / FOG_SPAN of its colour: strong enough to read depth, never
-# fading a surface away.
-FOG_SPAN = 2.0
+from .shading import DEFAULT_STYLE, RaycastStyle, fog_range, shade, to_numpy
 
-SHADINGS = ("lit", "flat")
-"""``"lit"``: ambient + Lambert; ``"flat"``: class colours only (ambient 1)."""
-
-
-@dataclass(frozen=True)
-class RaycastStyle:
-    """How ray-cast hits become colours."""
-
-    shading: str = "lit"
-    """``"lit"`` (ambient + Lambert from the head light) or ``"flat"`` (the class colour, unshaded)."""
-    light: tuple[float, float, float] = DEFAULT_LIGHT
-    """Direction towards the light in the viewing camera's frame (OpenCV axes)."""
-    ambient: float = DEFAULT_AMBIENT
-    """Share of the colour lit regardless of orientation, in [0, 1] (``"lit"`` only)."""
-    fog: bool = False
-    """Blend hits into the background with depth, linearly from the nearest hit (no fog) to the farthest
-    (``1 / FOG_SPAN`` fog)."""
-    background: tuple[int, int, int] = DEFAULT_BACKGROUND
-    """RGB of pixels whose ray misses (and the fog colour)."""
-
-    def __post_init__(self) -> None:
-        if self.shading not in SHADINGS:
-            raise ValueError(f"shading must be one of {SHADINGS}, got {self.shading!r}")
-        if not 0.0 <= self.ambient <= 1.0:
-            raise ValueError(f"ambient must be in [0, 1], got {self.ambient}")
-
-    @property
-    def effective_ambient(self) -> float:
-        """The ambient share actually used: 1 for ``"flat"``."""
-        return 1.0 if self.shading == "flat" else self.ambient
-
-
-def lambert(normals: Any, light: Any, ambient: float) -> np.ndarray:
-    """Intensity ``ambient + (1 - ambient) * clip(n . l, 0, 1)`` per normal.
-
-    Args:
-        normals: ``(..., 3)`` float unit normals (grid frame).
-        light: ``(3,)`` direction towards the light in the same frame; normalised here.
-        ambient: in [0, 1].
-
-    Returns:
-        ``(...)`` float32 intensities in ``[ambient, 1]``.
-    """
-    ldir = np.asarray(light, dtype=np.float64).reshape(3)
-    ldir = (ldir / max(float(np.linalg.norm(ldir)), 1e-12)).astype(np.float32)
-    n = np.asarray(normals, dtype=np.float32)
-    lam = np.clip(n @ ldir, np.float32(0.0), np.float32(1.0))
-    return np.float32(ambient) + np.float32(1.0 - ambient) * lam
-
-
-def _is_torch(x: Any) -> bool:
-    return type(x).__module__.startswith("torch") and hasattr(x, "detach")
-
-
-def to_numpy(x: Any) -> np.ndarray:
-    """A numpy array of a numpy array or a torch tensor (copied to the host when on a GPU)."""
-    if _is_torch(x):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
+__all__ = ["RaycastStyle", "first_hits", "raycast_image", "shade", "to_numpy"]
 
 
 def first_hits(
@@ -115,71 +51,9 @@ def first_hits(
     return hits
 
 
-def fog_range(depth: Any, hit: Any) -> tuple[float, float] | None:
-    """``(near, far)`` of :attr:`RaycastStyle.fog` for hit depths ``(h, w)`` and mask ``(h, w)`` (numpy, or torch
-    on any device), None if none hit."""
-    if not bool(hit.any()):
-        return None
-    d = depth[hit]
-    near, last = float(d.min()), float(d.max())
-    return near, near + FOG_SPAN * max(last - near, 1e-6)
-
-
-def _shade_numpy(label: Any, normal: Any, depth: Any, palette: np.ndarray, light: np.ndarray, style: RaycastStyle
-                 ) -> np.ndarray:
-    label = np.asarray(label)
-    hit = label != 0
-    pal = palette.astype(np.float32)
-    colour = pal[label] * lambert(normal, light, style.effective_ambient)[..., None]
-    bg = np.asarray(style.background, dtype=np.float32)
-    if style.fog:
-        fr = fog_range(np.asarray(depth), hit)
-        if fr is not None:
-            f = np.clip((np.asarray(depth, dtype=np.float32) - fr[0]) / np.float32(fr[1] - fr[0]), 0.0, 1.0)[..., None]
-            colour = colour * (1.0 - f) + bg * f
-    colour[~hit] = bg
-    return np.clip(np.rint(colour), 0, 255).astype(np.uint8)
-
-
-def _shade_torch(label: Any, normal: Any, depth: Any, palette: np.ndarray, light: np.ndarray, style: RaycastStyle
-                 ) -> np.ndarray:
-    import torch
-
-    dev = label.device
-    hit = label != 0
-    pal = torch.as_tensor(palette, dtype=torch.float32, device=dev)
-    ldir = torch.as_tensor(light / max(float(np.linalg.norm(light)), 1e-12), dtype=torch.float32, device=dev)
-    a = style.effective_ambient
-    inten = a + (1.0 - a) * (normal.to(torch.float32) @ ldir).clamp(0.0, 1.0)
-    colour = pal[label.long()] * inten[..., None]
-    bg = torch.as_tensor(style.background, dtype=torch.float32, device=dev)
-    if style.fog:
-        d = depth.to(torch.float32)
-        fr = fog_range(d, hit)
-        if fr is not None:
-            f = ((d - fr[0]) / (fr[1] - fr[0])).clamp(0.0, 1.0)[..., None]
-            colour = colour * (1.0 - f) + bg * f
-    colour = torch.where(hit[..., None], colour, bg)
-    return colour.round().clamp(0, 255).to(torch.uint8).cpu().numpy()
-
-
-def shade(hits: Any, camera: Camera, palette: Any, style: RaycastStyle = RaycastStyle()) -> np.ndarray:
-    """The shaded image of one view's hits: ``(h, w, 3)`` uint8 RGB on the host.
-
-    Args:
-        hits: :class:`fruxel.kernels.Hits` of one image (no batch axis); numpy, or torch on any device (shaded
-            there; only the finished image is copied back).
-        camera: the camera the hits were cast from; the head light turns with it.
-        palette: ``(C, 3)`` uint8 class colours; every label must be below C.
-        style: shading, light, fog and background.
-    """
-    pal = np.asarray(palette, dtype=np.uint8)
-    if pal.ndim != 2 or pal.shape[1] != 3:
-        raise ValueError(f"palette must be (C, 3) uint8, got shape {pal.shape}")
-    light = camera.rotation @ np.asarray(style.light, dtype=np.float64)
-    if _is_torch(hits.label):
-        return _shade_torch(hits.label, hits.normal, hits.depth, pal, light, style)
-    return _shade_numpy(hits.label, hits.normal, hits.depth, pal, light, style)
+MAX_TILE_PIXELS = 1 << 22
+"""Most pixels ray cast at once; a larger image is cast in bands of rows (:func:`raycast_image`), so that the
+hits of one band (about 30 bytes a pixel) bound the memory, not the image's size."""
 
 
 def raycast_image(
@@ -191,9 +65,13 @@ def raycast_image(
     backend: str | None = None,
     device: str | None = None,
     threshold: float | None = None,
-    style: RaycastStyle = RaycastStyle(),
+    style: RaycastStyle = DEFAULT_STYLE,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast one image of a volume.
+
+    An image of more than :data:`MAX_TILE_PIXELS` pixels is cast in bands of rows, each with the principal point
+    moved to its place (the same rays), and shaded with the fog range of the whole image (found in a first pass
+    over the bands when fog is on). Memory is then the result, 7 bytes a pixel, plus one band's hits.
 
     Args:
         volume: labels ``(D, H, W)`` or scores ``(1, C, D, H, W)``, numpy or torch (see :func:`first_hits`).
@@ -207,5 +85,28 @@ def raycast_image(
         image: ``(h, w, 3)`` uint8 RGB.
         labels: ``(h, w)`` int32 label of each pixel's first hit, 0 on a miss.
     """
-    hits = first_hits(volume, grid, camera, backend=backend, device=device, threshold=threshold)
-    return shade(hits, camera, palette, style), to_numpy(hits.label).astype(np.int32, copy=False)
+    def cast(cam: Camera) -> Any:
+        return first_hits(volume, grid, cam, backend=backend, device=device, threshold=threshold)
+
+    if camera.width * camera.height <= MAX_TILE_PIXELS:
+        hits = cast(camera)
+        return shade(hits, camera, palette, style), to_numpy(hits.label).astype(np.int32, copy=False)
+    rows = max(1, MAX_TILE_PIXELS // camera.width)
+    bands = [Camera(camera.fx, camera.fy, camera.cx, camera.cy - y0, camera.width, min(rows, camera.height - y0),
+                    camera.pose) for y0 in range(0, camera.height, rows)]
+    fog = None
+    if style.fog:
+        near, far = np.inf, -np.inf
+        for band in bands:
+            hits = cast(band)
+            depth = to_numpy(hits.depth)[to_numpy(hits.label) != 0]
+            if depth.size:
+                near, far = min(near, float(depth.min())), max(far, float(depth.max()))
+        fog = fog_range(np.array([near, far]), np.array([True, True])) if near <= far else None
+    image = np.empty((camera.height, camera.width, 3), dtype=np.uint8)
+    labels = np.empty((camera.height, camera.width), dtype=np.int32)
+    for y0, band in zip(range(0, camera.height, rows), bands, strict=True):
+        hits = cast(band)
+        image[y0:y0 + band.height] = shade(hits, band, palette, style, fog=fog)
+        labels[y0:y0 + band.height] = to_numpy(hits.label)
+    return image, labels

@@ -9,15 +9,15 @@ Frames and conventions:
   at image row ``fy * y_c / z_c + cy`` (``(x_c, y_c, z_c)`` = ``p`` in the OpenCV camera frame), so a vertex
   lands exactly where :meth:`Camera.project` says, pixel ``(x, y)`` covering ``[x, x + 1) x [y, y + 1)``.
 * Shading: ``"flat"`` draws every face in its class colour; ``"lit"`` bakes the ray-cast shading
-  (:func:`fruxel.render.raycast.lambert` : ambient plus Lambert from a head light, the formula of
-  :func:`fruxel.shading.shade_hits`) into per-face colours and draws them unlit, so that mesh and ray-cast
+  (:func:`fruxel.render.shading.lambert`: ambient plus Lambert from a head light, the ray cast's formula)
+  into per-face colours and draws them unlit, so that mesh and ray-cast
   images of the same view look alike; ``"pbr"`` gives pyrender normals and linear colours for its own lights
   (the interactive Viewer, which has no unlit mode).
 
 ``"lit"`` and ``"pbr"`` need one colour or normal per face, so they give pyrender three vertices per triangle;
 ``"flat"`` uploads the indexed mesh.
 
-pyrender is imported inside the functions, after :func:`fruxel._compat.prepare_pyrender`, so importing this
+pyrender is imported inside the functions (:func:`fruxel.render.compat.import_pyrender`), so importing this
 module stays cheap.
 """
 
@@ -32,9 +32,9 @@ import numpy as np
 from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 from fruxel.mesh import TriMesh
-from fruxel.shading import DEFAULT_AMBIENT, DEFAULT_LIGHT
 
-from .raycast import lambert
+from .compat import import_pyrender
+from .shading import DEFAULT_AMBIENT, DEFAULT_BACKGROUND, DEFAULT_LIGHT, lambert
 
 if TYPE_CHECKING:
     import pyrender
@@ -42,26 +42,17 @@ if TYPE_CHECKING:
 SHADINGS = ("lit", "flat")
 """Shadings of offscreen mesh images (``"pbr"`` is for the interactive Viewer only)."""
 
+MAX_TILE = 4096
+"""Largest image side drawn at once; larger images are drawn in tiles (:meth:`MeshView.render`). pyrender's
+multisampled framebuffers for a 16000 x 16000 image would take 8 GB, and OpenGL refuses sides beyond its
+limits."""
+
 # Share of the view depth range kept in front of the nearest and behind the farthest frustum corner: keeps
 # the whole grid between the clip planes without wasting depth-buffer precision.
 _CLIP_MARGIN = 0.05
 # Nearest clip plane as a share of the farthest, for a camera inside or beside the frustum: 24-bit depth
 # still separates faces a millimetre apart at 10 m.
 _MIN_NEAR_RATIO = 1e-4
-
-
-def import_pyrender(headless: bool = True) -> Any:
-    """``pyrender``, imported after the NumPy 2 / EGL shim (:func:`fruxel._compat.prepare_pyrender`).
-
-    Args:
-        headless: select EGL unless the user set ``PYOPENGL_PLATFORM``; False for the interactive Viewer.
-    """
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=headless)
-    import pyrender
-
-    return pyrender
 
 
 @dataclass(frozen=True)
@@ -75,7 +66,7 @@ class MeshStyle:
     """Direction towards the light in the viewing camera's frame (OpenCV axes), for ``"lit"``."""
     ambient: float = DEFAULT_AMBIENT
     """Share of the colour lit regardless of orientation, in [0, 1], for ``"lit"``."""
-    background: tuple[int, int, int] = (255, 255, 255)
+    background: tuple[int, int, int] = DEFAULT_BACKGROUND
     """RGB of pixels that show no face."""
     frustum: bool = False
     """Also draw the grid frustum's 12 edges as grey lines."""
@@ -88,19 +79,12 @@ class MeshStyle:
 
 
 # ---------------------------------------------------------------------------------------------------- camera
-def frustum_corners(grid: FruxelGrid) -> np.ndarray:
-    """The 8 corners of the grid frustum: ``(8, 3)`` float64, grid frame, in :meth:`FruxelGrid.cell_corners`
-    order (bit 0: far u side, bit 1: far v side, bit 2: far slice)."""
-    c = np.arange(8)
-    return grid.corner_points((c >> 2) * grid.depth, ((c >> 1) & 1) * grid.height, (c & 1) * grid.width)
-
-
 def clip_range(camera: Camera, grid: FruxelGrid) -> tuple[float, float]:
     """Near and far clip distances (metres, along the viewing axis) that keep the whole grid in view.
 
     The frustum is convex, so its corners bound the depth of every face in it.
     """
-    depth = camera.project(frustum_corners(grid))[:, 2]
+    depth = camera.project(grid.frustum_corners())[:, 2]
     far = float(depth.max())
     if far <= 0.0:
         # The grid is behind the camera: nothing can be seen, any valid range will do.
@@ -194,7 +178,7 @@ def frustum_lines(grid: FruxelGrid) -> pyrender.Mesh:
     """The grid frustum's 12 edges as a grey line mesh (grid frame)."""
     pyrender = import_pyrender()
     edges = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
-    positions = frustum_corners(grid).astype(np.float32)[edges.reshape(-1)]
+    positions = grid.frustum_corners().astype(np.float32)[edges.reshape(-1)]
     prim = pyrender.Primitive(
         positions=positions, color_0=np.tile(np.float32([0.35, 0.35, 0.35, 1.0]), (len(positions), 1)),
         mode=pyrender.constants.GLTF.LINES,
@@ -214,6 +198,7 @@ class RendererPool:
 
     def __init__(self) -> None:
         self._renderer: Any = None
+        self._max_side: int | None = None
 
     def get(self, width: int, height: int) -> pyrender.OffscreenRenderer:
         """The renderer, set to draw ``width x height`` images."""
@@ -223,6 +208,20 @@ class RendererPool:
         self._renderer.viewport_width = int(width)
         self._renderer.viewport_height = int(height)
         return self._renderer
+
+    def max_side(self) -> int:
+        """The largest image side one draw may have: :data:`MAX_TILE`, or less where the OpenGL implementation
+        allows less (``GL_MAX_RENDERBUFFER_SIZE``, ``GL_MAX_VIEWPORT_DIMS``; 16384 on Mesa's llvmpipe)."""
+        if self._max_side is None:
+            r = self.get(16, 16)
+            # pyrender has no public call for this; its offscreen platform makes the context current.
+            r._platform.make_current()
+            from OpenGL.GL import GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS, glGetIntegerv
+
+            limits = [int(v) for v in np.ravel(glGetIntegerv(GL_MAX_VIEWPORT_DIMS))]
+            limits.append(int(np.ravel(glGetIntegerv(GL_MAX_RENDERBUFFER_SIZE))[0]))
+            self._max_side = max(1, min(MAX_TILE, *limits))
+        return self._max_side
 
     def close(self) -> None:
         """Delete the renderer (its GL context and buffers)."""
@@ -349,9 +348,33 @@ class MeshView:
             inner._update_context(self.scene, self.flags)
 
     def render(self) -> np.ndarray:
-        """Draw the scene and read it back: ``(height, width, 3)`` uint8 RGB, row 0 at the top."""
-        colour, _ = self.renderer().render(self.scene, flags=self.flags)
-        return np.ascontiguousarray(colour[..., :3])
+        """Draw the scene and read it back: ``(height, width, 3)`` uint8 RGB, row 0 at the top.
+
+        An image with a side above :meth:`RendererPool.max_side` is drawn in tiles of at most that size, each
+        with the principal point moved to its place (the same projection, cut into pieces), so any image the
+        camera allows (up to 2^28 pixels) can be drawn and the GPU memory of one draw stays bounded.
+        """
+        if self._camera is None:
+            raise ValueError("MeshView has no camera: call set_camera first")
+        cam = self._camera
+        tile = self._pool.max_side()
+        if cam.width <= tile and cam.height <= tile:
+            colour, _ = self.renderer().render(self.scene, flags=self.flags)
+            return np.ascontiguousarray(colour[..., :3])
+        tw, th = min(cam.width, tile), min(cam.height, tile)
+        renderer = self._pool.get(tw, th)
+        node = self._camera_node.camera
+        out = np.empty((cam.height, cam.width, 3), dtype=np.uint8)
+        try:
+            for y0 in range(0, cam.height, th):
+                for x0 in range(0, cam.width, tw):
+                    node.cx, node.cy = cam.cx - x0, cam.cy - y0
+                    colour, _ = renderer.render(self.scene, flags=self.flags)
+                    h, w = min(th, cam.height - y0), min(tw, cam.width - x0)
+                    out[y0:y0 + h, x0:x0 + w] = colour[:h, :w, :3]
+        finally:
+            node.cx, node.cy = cam.cx, cam.cy
+        return out
 
 
 def render_mesh(

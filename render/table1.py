@@ -30,7 +30,6 @@ Results: a printed table, ``table1.json`` (runs keyed by machine, so the CPU and
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import importlib.util
 import json
@@ -47,7 +46,10 @@ from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.data import rooms
 from fruxel.grid import FruxelGrid
-from fruxel.io import atomic_path, atomic_write, replace_markdown_section
+from fruxel.io import atomic_path, atomic_write
+
+from .frames import DEFAULT_SIZE
+from .markdown import replace_markdown_section
 
 SECTION = "## Visualisation (Table 1)"
 """Heading of this benchmark's section in BENCHMARKS.md."""
@@ -70,7 +72,7 @@ class Table1Config:
     """Share of occupied cells of the generated model."""
     seed: int = 0
     """Seed of the generated model."""
-    size: tuple[int, int] = (640, 480)
+    size: tuple[int, int] = DEFAULT_SIZE
     """Viewing image ``(width, height)`` in pixels, for every row."""
     frames: int = 30
     """Timed frames of each fast row."""
@@ -577,70 +579,3 @@ def record(result: Table1Result | dict[str, Table1Result], results_dir: Path, ma
 def update_markdown(path: Path, section: str) -> None:
     """Replace (or append) the Table 1 section of a markdown file, leaving every other section as it is."""
     replace_markdown_section(path, SECTION, section)
-
-
-# ---------------------------------------------------------------------------------------------------- entry
-def config_from_args(args: argparse.Namespace) -> Table1Config:
-    """A :class:`Table1Config` from ``fruxel-render``'s or ``benchmarks/table1.py``'s options."""
-    kw: dict[str, Any] = {}
-    if getattr(args, "size", None) is not None:
-        kw["size"] = tuple(args.size)
-    if getattr(args, "frames", None) is not None:
-        kw["frames"] = int(args.frames)
-    grid = getattr(args, "grid", None)
-    if grid is not None and len(grid) == 1:
-        kw["n"] = int(grid[0])
-    for name in ("backend", "device"):
-        if getattr(args, name, None) is not None:
-            kw[name] = getattr(args, name)
-    if getattr(args, "backends", None):
-        from fruxel.kernels.registry import split_name
-
-        names = tuple(b.strip() for b in args.backends.split(",") if b.strip())
-        # A misspelt name fails here, before minutes of measuring; an installed-but-unusable one still becomes an
-        # "unavailable" row (as OpenCL does on a GPU machine without it).
-        for b in names:
-            split_name(b)
-        kw["raycast_backends"] = names
-    return Table1Config(**kw)
-
-
-def given_model(args: argparse.Namespace) -> tuple[Any, FruxelGrid, ClassTable] | None:
-    """The MODEL argument as base labels for Table 1 (scores are turned into labels once, before timing)."""
-    if getattr(args, "model", None) is None:
-        return None
-    from fruxel import labels_from_scores
-
-    from .cli import load_input
-    from .raycast import to_numpy
-
-    grid = args.grid if args.grid is not None and len(args.grid) == 6 else None
-    inp = load_input(args.model, grid)
-    labels = labels_from_scores(to_numpy(inp.volume)[0], axis=0) if inp.is_scores else inp.volume
-    return labels, inp.grid, inp.classes
-
-
-def run_cli(args: argparse.Namespace, results_dir: Path | None = None, markdown: Path | None = None) -> list[Path]:
-    """``fruxel-render --benchmark``: run, print the table, record the results.
-
-    Args:
-        args: parsed options (``--size``, ``--frames``, ``--grid N``, ``--backend``, ``--device``, ``--backends``,
-            ``--out``, MODEL).
-        results_dir: where ``table1.json`` / ``table1.png`` go; default ``--out``.
-        markdown: BENCHMARKS.md to update, or None (``fruxel-render --benchmark`` writes ``table1.md`` into the
-            results folder instead).
-    """
-    cfg = config_from_args(args)
-    result = run(cfg, given_model(args))
-    print()
-    print(format_table(result))
-    for v in verdicts(result):
-        print(f"  {v}")
-    out = Path(results_dir if results_dir is not None else args.out)
-    written = record(result, out, markdown)
-    if markdown is None:
-        md = out / "table1.md"
-        with atomic_write(md, "w") as f:
-            f.write(markdown_section({machine_tag(result.machine): result}, "table1.png"))
-        written.append(md)
-    return written

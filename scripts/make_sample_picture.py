@@ -1,6 +1,6 @@
 """Draw the bundled sample room's picture (``fruxel/data/sample_room.png``, shown in the README).
 
-Run ``python scripts/make_sample_picture.py [--out PATH]`` after ``python -m fruxel.data.make_sample``. It lives
+Run ``python scripts/make_sample_picture.py [--out PATH]`` after ``python scripts/make_sample.py``. It lives
 outside the package because it needs pyrender, which the numpy-only core (``fruxel/``) never imports: the culled
 trapezoid mesh of the model, the frustum's edges, two directional lights, rendered offscreen from an oblique pose.
 """
@@ -39,15 +39,14 @@ def render_picture(
         eye: ``(3,)`` viewpoint, grid frame, metres.
         target: ``(3,)`` point looked at, grid frame, metres.
     """
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=True)
-    import pyrender
     from PIL import Image
 
     from fruxel.camera import Camera
     from fruxel.mesh import mesh_labels, to_trimesh
+    from fruxel.render.compat import import_pyrender
     from fruxel.render.scene import frustum_lines
+
+    pyrender = import_pyrender(headless=True)
 
     mesh = mesh_labels(model.labels, model.grid, model.classes.palette(), mode="culled")
     scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 1.0], ambient_light=[0.35, 0.35, 0.35])

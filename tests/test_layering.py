@@ -1,4 +1,10 @@
-"""The package layering of SPEC section 6, checked on the source and on what imports actually load."""
+"""The package layering of SPEC section 6, checked on the source and on what imports actually load.
+
+Libraries form one chain, ``fruxel -> kernels -> render -> train``: each imports only the layers before it. The
+application layer (``cli/``, installed as ``fruxel.cli``) sits on top and may import any library; no library
+imports it. Nothing of an application lives in a library: no argparse anywhere below ``cli/``, and the numpy-only
+core holds no fonts, images, reports or benchmark plumbing either.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +17,15 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "warp", "pyopencl", "pyrender", "trimesh", "OpenGL")
+CHAIN = ("fruxel", "kernels", "render", "train")
+"""The library folders in layer order."""
+PACKAGE = {"fruxel": "fruxel", "kernels": "fruxel.kernels", "render": "fruxel.render", "train": "fruxel.train",
+           "cli": "fruxel.cli"}
+"""Import name of each top-level folder (pyproject.toml's package-dir)."""
+APPLICATION = ("argparse", "fruxel.cli")
+"""What only the application layer may import."""
+CORE_EXTRA = ("torch", "warp", "pyopencl", "pyrender", "PIL", "matplotlib", "tqdm", "imageio")
+"""Third-party packages the numpy-only core never imports (trimesh is allowed, lazily, for mesh export)."""
 
 
 def _imported_modules(folder: str) -> set[tuple[str, str]]:
@@ -25,22 +40,31 @@ def _imported_modules(folder: str) -> set[tuple[str, str]]:
     return out
 
 
-@pytest.mark.parametrize(
-    ("folder", "forbidden"),
-    [
-        # trimesh is allowed in the core, lazily, for mesh export (PLY, GLB) only.
-        ("fruxel", ("fruxel.kernels", "fruxel.render", "fruxel.train", "torch", "warp", "pyopencl", "pyrender")),
-        ("kernels", ("fruxel.render", "fruxel.train", "pyrender", "trimesh")),
-        ("render", ("fruxel.train",)),
-        ("train", ("fruxel.render",)),
-    ],
-)
-def test_folder_imports_respect_layers(folder: str, forbidden: tuple[str, ...]) -> None:
+def _forbidden(folder: str) -> tuple[str, ...]:
+    if folder == "cli":
+        return ()
+    later = tuple(PACKAGE[f] for f in CHAIN[CHAIN.index(folder) + 1:])
+    extra = {"fruxel": CORE_EXTRA, "kernels": ("pyrender", "trimesh")}.get(folder, ())
+    return (*later, *APPLICATION, *extra)
+
+
+@pytest.mark.parametrize("folder", [*CHAIN, "cli"])
+def test_folder_imports_respect_layers(folder: str) -> None:
+    forbidden = _forbidden(folder)
+
     def banned(m: str) -> bool:
-        return any(m == x or m.startswith(x + ".") for x in forbidden)
+        # "fruxel" itself is the core, which every layer may import; its sub-packages are matched one by one.
+        return any(m == x or m.startswith(x + ".") for x in forbidden if x != "fruxel")
 
     bad = sorted((f, m) for f, m in _imported_modules(folder) if banned(m))
     assert not bad, f"{folder}/ imports what its layer may not: {bad}"
+
+
+def test_the_rules_forbid_what_they_should() -> None:
+    """The check itself: render may not import train or the CLIs, the core not PIL or argparse."""
+    assert "fruxel.train" in _forbidden("render") and "fruxel.cli" in _forbidden("train")
+    assert {"PIL", "argparse", "fruxel.kernels"} <= set(_forbidden("fruxel"))
+    assert "fruxel.render" not in _forbidden("train") and _forbidden("cli") == ()
 
 
 def test_importing_the_packages_loads_no_heavy_module() -> None:

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 import fruxel.kernels as fk
-from fruxel.camera import Camera, orbit_direction
+from fruxel.camera import Camera, look_at_grid, orbit_direction
 from fruxel.grid import FruxelGrid
 from fruxel.kernels.soft import SoftHits, soft_first_hit_groups
 
@@ -151,16 +151,13 @@ def random_poses(grid: FruxelGrid, k: int, generator: np.random.Generator, *, wi
         k cameras with ``(4, 4)`` camera-to-grid poses.
     """
     box = grid.bounds()
-    centre = grid.centre()
     radius = 1.2 * float(np.linalg.norm(box[1] - box[0]))
     cams = []
     for _ in range(k):
         az = math.radians(generator.uniform(*azimuth))
         el = math.radians(generator.uniform(*elevation))
         r = radius * generator.uniform(*distance)
-        d = orbit_direction(az, el)
-        cams.append(Camera.look_at(centre + r * d, centre, up=(0.0, -1.0, 0.0), width=width, height=height,
-                                   hfov=hfov))
+        cams.append(look_at_grid(grid, orbit_direction(az, el), distance=r, width=width, height=height, hfov=hfov))
     return cams
 
 

@@ -1,4 +1,4 @@
-"""Bundled data: the procedural sample room (``sample_room.npz``, built by :mod:`fruxel.data.make_sample`)."""
+"""Bundled data: the procedural sample room (``sample_room.npz``, described by :mod:`fruxel.data.make_sample`)."""
 
 from __future__ import annotations
 

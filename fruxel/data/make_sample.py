@@ -1,7 +1,7 @@
 """Build the bundled sample room: a small procedural fruxel model.
 
-Run as ``python -m fruxel.data.make_sample`` (optionally ``--out-dir DIR``). The result is
-deterministic: every cell is labelled by testing its centre against simple solids (boxes, cylinders, a
+``python scripts/make_sample.py`` writes it (a maintainer's command: the core holds no command-line code). The
+result is deterministic: every cell is labelled by testing its centre against simple solids (boxes, cylinders, a
 sphere) in the grid frame, with no randomness.
 
 The scene, in the grid camera's frame (OpenCV axes: x right, y down, z forward; metres). The camera stands
@@ -15,20 +15,16 @@ The scene, in the grid camera's frame (OpenCV axes: x right, y down, z forward; 
 - a table (top and four legs) and a cabinet by the left wall (``furniture``), a cylindrical pedestal
   (``furniture``) carrying a sphere (``sculpture``).
 
-Writes ``sample_room.npz`` (:func:`fruxel.save`). Its picture, ``sample_room.png``, needs pyrender, which the
-numpy-only core does not import: ``python scripts/make_sample_picture.py`` draws it.
+The bundled file is ``sample_room.npz`` (:func:`fruxel.save`). Its picture, ``sample_room.png``, needs pyrender,
+which the numpy-only core does not import: ``python scripts/make_sample_picture.py`` draws it.
 """
 
 from __future__ import annotations
-
-import argparse
-from pathlib import Path
 
 import numpy as np
 
 from fruxel.classes import DEFAULT_CLASSES
 from fruxel.grid import FruxelGrid
-from fruxel.io import save
 from fruxel.model import FruxelModel
 
 GRID = FruxelGrid(width=64, height=48, depth=64, z_near=0.5, z_far=6.0, hfov=60.0)
@@ -95,21 +91,3 @@ def room_labels(grid: FruxelGrid = GRID) -> np.ndarray:
 def sample_model() -> FruxelModel:
     """The sample room as a :class:`FruxelModel` on :data:`GRID` with :data:`DEFAULT_CLASSES`."""
     return FruxelModel(room_labels(GRID), GRID, DEFAULT_CLASSES)
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out-dir", type=Path, default=Path(__file__).resolve().parent)
-    args = parser.parse_args(argv)
-    model = sample_model()
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    npz = args.out_dir / "sample_room.npz"
-    save(npz, model)
-    counts = model.counts()
-    print(f"{npz}: {npz.stat().st_size} bytes, {model.n_occupied} occupied cells")
-    for name, n in zip(model.classes.names, counts.tolist(), strict=False):
-        print(f"  {name:10s} {n}")
-
-
-if __name__ == "__main__":
-    main()

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from fruxel.camera import Camera, orbit_direction
+from fruxel.camera import Camera, look_at_grid, orbit_direction
 from fruxel.classes import DEFAULT_CLASSES
 from fruxel.data.make_sample import room_labels
 from fruxel.grid import FruxelGrid
@@ -105,11 +105,9 @@ def oblique_camera(grid: FruxelGrid, size: int | tuple[int, int] = 512, hfov: fl
     """
     width, height = (size, size) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
     box = grid.bounds()
-    centre = grid.centre()
     r = 0.85 * float(np.linalg.norm(box[1] - box[0]))
     direction = orbit_direction(math.radians(35.0), math.radians(30.0))
-    return Camera.look_at(centre + r * direction, centre, up=(0.0, -1.0, 0.0), width=width, height=height,
-                          hfov=hfov)
+    return look_at_grid(grid, direction, distance=r, width=width, height=height, hfov=hfov)
 
 
 def describe(labels: np.ndarray) -> dict[str, Any]:

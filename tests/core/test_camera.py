@@ -10,6 +10,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fruxel.camera import OPENCV_TO_OPENGL, Camera, CameraError, check_pose
+from fruxel.grid import FruxelGrid
 
 FAST = settings(max_examples=60, deadline=None)
 
@@ -270,3 +271,58 @@ def test_orbit_direction_axes_and_broadcast() -> None:
     assert d.shape == (7, 3)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, rtol=1e-15)
     np.testing.assert_allclose(d[:, 1], -np.sin(0.4))
+
+
+# ---------------------------------------------------------------------------------------------------- look_at_grid
+FRAME_GRID = FruxelGrid(width=40, height=30, depth=50, z_near=0.3, z_far=7.0, hfov=75.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_look_at_grid_fits_the_points_tightly(seed: int) -> None:
+    """With no distance, every point lands inside the image less the margin, and one touches it (the fit is the
+    smallest distance); with centre=True the points' image is centred as well."""
+    from fruxel.camera import look_at_grid, orbit_direction
+
+    rng = np.random.default_rng(seed)
+    d = orbit_direction(rng.uniform(-np.pi, np.pi), rng.uniform(-1.2, 1.2))
+    points = FRAME_GRID.cell_corners(rng.integers(0, 50, 5), rng.integers(0, 30, 5), rng.integers(0, 40, 5))
+    points = points.reshape(-1, 3)
+    for pts, centre in ((None, False), (points, False), (points, True)):
+        cam = look_at_grid(FRAME_GRID, d, points=pts, width=64, height=48, hfov=55.0, margin=0.05, centre=centre)
+        p = cam.project(FRAME_GRID.frustum_corners() if pts is None else pts)
+        lo, hi = np.array([3.2, 2.4]), np.array([64 - 3.2, 48 - 2.4])
+        assert np.all(p[:, 2] > 0) and np.all(p[:, :2] >= lo - 1e-6) and np.all(p[:, :2] <= hi + 1e-6)
+        slack = np.minimum(p[:, :2] - lo, hi - p[:, :2]).min()
+        assert slack < 1e-6
+        if centre:
+            mid = 0.5 * (p[:, :2].min(axis=0) + p[:, :2].max(axis=0))
+            np.testing.assert_allclose(mid, [32.0, 24.0], atol=0.5)
+        else:
+            target = FRAME_GRID.centre()
+            np.testing.assert_allclose(cam.project(target)[:2], [32.0, 24.0], atol=1e-9)
+        # The view is along -direction whatever was fitted.
+        np.testing.assert_allclose(cam.rotation[:, 2], -d, atol=1e-12)
+
+
+def test_look_at_grid_at_a_distance_and_from_above() -> None:
+    from fruxel.camera import look_at_grid
+
+    target = np.array([0.5, 0.2, 3.0])
+    cam = look_at_grid(FRAME_GRID, [0.0, 0.0, -2.0], distance=4.0, target=target, width=20, height=10)
+    np.testing.assert_allclose(cam.position, target + [0.0, 0.0, -4.0], atol=1e-12)
+    np.testing.assert_allclose(cam.project(target), [10.0, 5.0, 4.0], atol=1e-9)
+    # Image up is the grid's up (-y): a point above the target is above the image centre.
+    assert cam.project(target + [0.0, -0.1, 0.0])[1] < 5.0
+    top = look_at_grid(FRAME_GRID, [0.0, -1.0, 0.0], distance=3.0)
+    np.testing.assert_allclose(top.rotation[:, 2], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("kwargs", [{"direction": [0.0, 0.0, 0.0]}, {"direction": [np.nan, 0.0, 1.0]},
+                                    {"distance": -1.0}, {"distance": np.inf}, {"margin": 0.5},
+                                    {"points": np.zeros((0, 3))}])
+def test_look_at_grid_refuses_impossible_input(kwargs: dict) -> None:
+    from fruxel.camera import look_at_grid
+
+    args = {"direction": [0.0, -0.5, -1.0], **kwargs}
+    with pytest.raises(CameraError):
+        look_at_grid(FRAME_GRID, args.pop("direction"), **args)

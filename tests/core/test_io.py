@@ -239,6 +239,62 @@ def test_atomic_write_names_its_temporary_and_writes_text(tmp_path: Path) -> Non
     assert os.listdir(tmp_path) == ["manifest.json"]
 
 
+def test_atomic_files_replace_all_or_none(tmp_path: Path) -> None:
+    a, b = tmp_path / "a.png", tmp_path / "sub" / "b.glb"
+    b.parent.mkdir()
+    a.write_text("old a")
+    with pytest.raises(RuntimeError), fio.atomic_files() as files:
+        files.path(a).write_text("new a")
+        files.path(b).write_text("new b")
+        raise RuntimeError("the second output failed")
+    assert a.read_text() == "old a" and not b.exists()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.png", "sub"], "no temporary file left"
+    with fio.atomic_files() as files:
+        ta, tb = files.path(a), files.path(b)
+        assert ta.suffix == ".png" and tb.suffix == ".glb" and ta.parent == a.parent and tb.parent == b.parent
+        ta.write_text("new a")
+        tb.write_text("new b")
+        assert a.read_text() == "old a", "nothing is replaced before the block ends"
+    assert a.read_text() == "new a" and b.read_text() == "new b"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.png", "b.glb", "sub"]
+
+
+def test_stale_temporaries_of_a_killed_writer_are_removed(tmp_path: Path) -> None:
+    """A writer killed with SIGKILL leaves its temporary file; remove_stale_temporaries removes it (and only
+    temporaries of that output), but never a live writer's."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    target = tmp_path / "orbit.mp4"
+    code = ("import sys, time\nfrom fruxel.io import atomic_path\n"
+            f"with atomic_path({str(target)!r}) as tmp:\n    print(tmp, flush=True)\n    time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    killed = Path(proc.stdout.readline().strip())
+    assert killed.is_file() and killed.name.startswith(".orbit.mp4.") and killed.suffix == ".mp4"
+    assert fio.remove_stale_temporaries(target, min_age=0.0) == [], "a live writer's file stays"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+    assert killed.is_file(), "SIGKILL leaves the temporary file behind"
+    other = tmp_path / ".orbit.gif.0123456789ab.tmp.gif"
+    other.write_bytes(b"another output's")
+    young = tmp_path / ".orbit.mp4.0123456789ab.tmp"
+    young.write_bytes(b"")
+    with fio.atomic_path(target) as live:
+        old = time.time() - 3600
+        for p in (killed, other, young, live):
+            os.utime(p, (old, old))
+        young_now = time.time()
+        os.utime(young, (young_now, young_now))
+        assert fio.remove_stale_temporaries(target) == [str(killed)]
+        live.write_bytes(b"done")
+    assert target.read_bytes() == b"done"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, young.name, target.name])
+    assert fio.remove_stale_temporaries(tmp_path / "missing" / "x.png") == []
+
+
 def test_read_npy_member_reads_exactly_the_expected_array(tmp_path: Path) -> None:
     pose = np.arange(16, dtype=np.float64).reshape(4, 4)
     path = _zip(tmp_path / "a.npz", {"pose.npy": _npy(pose), "obj.npy": _npy(np.array([{"evil": 1}], dtype=object)),
@@ -398,18 +454,3 @@ def test_every_corpus_file_is_refused_by_the_public_name(tmp_path: Path) -> None
     path = MALFORMED["garbage bytes"][0](tmp_path / "g.npz")
     with pytest.raises(fruxel.FruxelFileError):
         fruxel.load(path)
-
-
-def test_replace_markdown_section(tmp_path: Path) -> None:
-    """The section (with its ### subsections) is replaced up to the next ## heading; others stay; a new file gets
-    its title; a missing section is appended."""
-    from fruxel.io import replace_markdown_section
-
-    md = tmp_path / "B.md"
-    replace_markdown_section(md, "## A", "## A\n\nfirst\n", new_file="# T\n")
-    assert md.read_text() == "# T\n\n## A\n\nfirst\n"
-    md.write_text("# T\n\n## A\n\nold\n\n### sub\n\nold too\n\n## B\n\nkeep\n")
-    replace_markdown_section(md, "## A", "## A\n\nnew\n")
-    assert md.read_text() == "# T\n\n## A\n\nnew\n\n## B\n\nkeep\n"
-    replace_markdown_section(md, "## C", "## C\n\nlast")
-    assert md.read_text().endswith("## B\n\nkeep\n\n## C\n\nlast\n")

@@ -426,11 +426,29 @@ def test_export_round_trip(tmp_path, mode, suffix):
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"room{suffix}"], "no temporary file left behind"
     back = trimesh.load_mesh(path, process=False)
     assert back.vertices.shape == m.vertices.shape and back.faces.shape == m.faces.shape
-    np.testing.assert_array_equal(np.asarray(back.vertices, np.float32), m.vertices)
+    # PLY keeps the grid frame; glTF is +Y up: (x, y, z) -> (x, -y, -z), exactly.
+    flip = np.float32([1, -1, -1]) if suffix == ".glb" else np.float32([1, 1, 1])
+    np.testing.assert_array_equal(np.asarray(back.vertices, np.float32), m.vertices * flip)
     np.testing.assert_array_equal(back.faces, m.faces)
     np.testing.assert_array_equal(back.visual.vertex_colors, m.colors)
     if suffix == ".ply":
         np.testing.assert_array_equal(back.metadata["_ply_raw"]["face"]["data"]["label"], m.labels)
+
+
+def test_glb_export_stands_upright(tmp_path):
+    """glTF viewers take +Y as up: the sample room's floor is at the bottom and its walls rise above it, and the
+    faces still wind counter-clockwise seen from outside (positive signed volume)."""
+    from fruxel.data import SAMPLE_ROOM
+    from fruxel.io import load
+
+    model = load(SAMPLE_ROOM)
+    m = mesh_labels(model.labels, model.grid, model.classes.palette(), "greedy")
+    back = trimesh.load(export_mesh(m, tmp_path / "room.glb"), force="mesh", process=False)
+    floor = np.all(back.visual.vertex_colors[:, :3] == model.classes.colours[model.classes.index("floor")], axis=1)
+    wall = np.all(back.visual.vertex_colors[:, :3] == model.classes.colours[model.classes.index("wall")], axis=1)
+    y = np.asarray(back.vertices)[:, 1]
+    assert y[floor].max() < y[wall].mean() and y[wall].max() > y[floor].max() + 1.0
+    assert back.volume > 0
 
 
 def test_export_refuses_unknown_suffix_and_keeps_old_file(tmp_path):
@@ -448,7 +466,7 @@ def test_sample_room_is_regenerated_exactly_and_greedy_is_10x_smaller():
     from fruxel.io import load
 
     model = load(SAMPLE_ROOM)
-    assert model == sample_model(), "sample_room.npz is stale: run python -m fruxel.data.make_sample"
+    assert model == sample_model(), "sample_room.npz is stale: run python scripts/make_sample.py"
     assert set(np.unique(model.labels).tolist()) == set(range(len(model.classes.names)))
     palette = model.classes.palette()
     culled = mesh_labels(model.labels, model.grid, palette, "culled")

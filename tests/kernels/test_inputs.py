@@ -104,6 +104,10 @@ def test_bad_cameras_are_refused(backend: str) -> None:
         shell(backend, _labels(), GRID, [CAM, np.eye(4)])
     with pytest.raises((VolumeError, CameraError)):
         first_hit(backend, _labels(), GRID, "not a camera")
+    # A dict (e.g. a camera's to_dict()) is reported as a dict, not by the type of its keys.
+    for wrong in (CAM.to_dict(), CAM.to_json(), 3):
+        with pytest.raises(VolumeError, match=f"sequence of them, got {type(wrong).__name__}$"):
+            shell(backend, _labels(), GRID, wrong)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

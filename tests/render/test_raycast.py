@@ -1,5 +1,5 @@
-"""Tests of fruxel.render.raycast: shading matches fruxel.shading.shade_hits, on numpy and torch, and scores
-give the same image as their labels."""
+"""Tests of fruxel.render.raycast and fruxel.render.shading: shading matches a float64 numpy reference of its
+formula, torch gives numpy's bytes, and scores give the same image as their labels."""
 
 from __future__ import annotations
 
@@ -9,13 +9,27 @@ import pytest
 import fruxel
 from fruxel.data import SAMPLE_ROOM
 from fruxel.kernels import Hits
-from fruxel.render.cli import default_camera
-from fruxel.render.raycast import RaycastStyle, first_hits, fog_range, lambert, raycast_image, shade, to_numpy
-from fruxel.shading import shade_hits
+from fruxel.render.frames import default_camera
+from fruxel.render.raycast import first_hits, raycast_image
+from fruxel.render.shading import RaycastStyle, fog_range, lambert, shade, to_numpy
 
 MODEL = fruxel.load(SAMPLE_ROOM)
 PALETTE = MODEL.classes.palette()
 CAM = default_camera(MODEL.grid, 120, 90)
+
+
+def shade_hits(label: np.ndarray, normal: np.ndarray, depth: np.ndarray, palette: np.ndarray, rotation: np.ndarray,
+               light: tuple[float, float, float], ambient: float, fog: tuple[float, float] | None,
+               background: tuple[int, int, int]) -> np.ndarray:
+    """Reference: the shading formula of fruxel.render.shading in float64 numpy, written out plainly."""
+    ldir = rotation @ np.asarray(light, np.float64)
+    ldir /= np.linalg.norm(ldir)
+    colour = palette[label].astype(np.float64) * (ambient + (1 - ambient) * np.clip(normal @ ldir, 0, 1))[..., None]
+    bg = np.asarray(background, np.float64)
+    if fog is not None:
+        f = np.clip((depth - fog[0]) / (fog[1] - fog[0]), 0, 1)[..., None]
+        colour = colour * (1 - f) + bg * f
+    return np.clip(np.rint(np.where((label != 0)[..., None], colour, bg)), 0, 255).astype(np.uint8)
 
 
 @pytest.fixture(scope="module")
@@ -36,12 +50,11 @@ def test_shade_matches_shade_hits(hits: Hits, style: RaycastStyle) -> None:
 
 
 def test_torch_hits_shade_like_numpy(hits: Hits) -> None:
+    """One formula, the same float32 operations: torch tensors give numpy's bytes."""
     torch = pytest.importorskip("torch")
     th = Hits(*(torch.from_numpy(np.asarray(a)) for a in (hits.label, hits.cell, hits.depth, hits.normal)))
-    for style in (RaycastStyle(), RaycastStyle(fog=True)):
-        a = shade(th, CAM, PALETTE, style).astype(int)
-        b = shade(hits, CAM, PALETTE, style).astype(int)
-        assert np.abs(a - b).max() <= 1
+    for style in (RaycastStyle(), RaycastStyle(fog=True), RaycastStyle(shading="flat")):
+        np.testing.assert_array_equal(shade(th, CAM, PALETTE, style), shade(hits, CAM, PALETTE, style))
 
 
 def test_flat_shading_is_the_palette(hits: Hits) -> None:
@@ -71,3 +84,18 @@ def test_style_validation() -> None:
         RaycastStyle(shading="toon")
     with pytest.raises(ValueError):
         RaycastStyle(ambient=-0.1)
+
+
+@pytest.mark.parametrize("style", [RaycastStyle(shading="flat"), RaycastStyle(fog=True)])
+def test_large_images_are_cast_in_bands(style: RaycastStyle, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond MAX_TILE_PIXELS an image is cast in bands of rows; it equals the image cast at once (fog over the
+    whole image's depth range, not per band)."""
+    from fruxel.render import raycast
+
+    whole, lw = raycast_image(MODEL.labels, MODEL.grid, CAM, PALETTE, style=style)
+    monkeypatch.setattr(raycast, "MAX_TILE_PIXELS", 7 * CAM.width + 5)
+    banded, lb = raycast_image(MODEL.labels, MODEL.grid, CAM, PALETTE, style=style)
+    assert banded.shape == whole.shape and lb.dtype == np.int32
+    assert np.mean(lb != lw) < 1e-3
+    same = lb == lw
+    assert np.abs(banded.astype(int) - whole.astype(int))[same].max() <= 1

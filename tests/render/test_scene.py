@@ -10,7 +10,7 @@ import fruxel
 from fruxel import Camera, kernels
 from fruxel.data import SAMPLE_ROOM
 from fruxel.mesh import mesh_labels
-from fruxel.render.cli import default_camera
+from fruxel.render.frames import default_camera
 from fruxel.render.raycast import RaycastStyle, first_hits, shade
 from fruxel.render.scene import (
     MeshStyle,
@@ -166,3 +166,32 @@ def test_mesh_style_validation() -> None:
         MeshStyle(shading="glossy")
     with pytest.raises(ValueError):
         MeshStyle(ambient=1.5)
+
+
+@pytest.mark.parametrize("cam_index", [0, 2])
+def test_large_images_are_drawn_in_tiles_that_fit_together(cam_index: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An image larger than one draw is drawn in tiles with moved principal points: it equals the image drawn at
+    once but for rasterisation ties on a few edge pixels."""
+    cam = cameras(100, 75)[cam_index]
+    mesh = mesh_labels(MODEL.labels, MODEL.grid, PALETTE, "greedy")
+    view = MeshView(MODEL.grid, MeshStyle(shading="lit", frustum=True))
+    view.set_camera(cam)
+    view.set_mesh(mesh)
+    whole = view.render()
+    monkeypatch.setattr(renderers(), "_max_side", 32)
+    tiled = view.render()
+    assert tiled.shape == whole.shape == (75, 100, 3)
+    assert np.mean(np.any(tiled != whole, axis=-1)) < 0.005
+    # The pyrender camera is left as it was.
+    assert view._camera_node.camera.cx == cam.cx and view._camera_node.camera.cy == cam.cy
+    monkeypatch.setattr(renderers(), "_max_side", None)
+    assert renderers().max_side() >= 1024
+
+
+def test_an_image_wider_than_opengl_allows() -> None:
+    """17000 pixels is beyond GL_MAX_RENDERBUFFER_SIZE on Mesa (16384): drawn in tiles instead of a GLError."""
+    g = MODEL.grid
+    cam = Camera.look_at(g.centre() + np.array([0.0, -0.5, -9.0]), g.centre(), width=17000, height=24, hfov=120.0)
+    img = render_mesh(mesh_labels(MODEL.labels, g, PALETTE, "greedy"), g, cam, MeshStyle(shading="flat"))
+    assert img.shape == (24, 17000, 3)
+    assert np.any(img != 255)

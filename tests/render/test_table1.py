@@ -77,7 +77,7 @@ def test_room_volume_occupancy() -> None:
 
 
 def test_benchmark_cli_writes_results(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from fruxel.render.cli import main
+    from fruxel.cli.render import main
 
     rc = main([str(SAMPLE_ROOM), "--benchmark", "--frames", "1", "--size", "48x36", "--backends", "opencl",
                "--out", str(tmp_path)])
@@ -90,7 +90,7 @@ def test_benchmark_cli_writes_results(tmp_path: Path, capsys: pytest.CaptureFixt
 def test_benchmark_cli_rejects_unknown_backend_before_measuring(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from fruxel.render.cli import main
+    from fruxel.cli.render import main
 
     rc = main(["--benchmark", "--backends", "warp,vulkn", "--out", str(tmp_path)])
     err = capsys.readouterr().err

@@ -123,7 +123,7 @@ def test_resume_after_a_killed_run(reference: Path, tmp_path: Path) -> None:
     args = ["--split", "train=24,test=2", "--shard-size", "3", "--image", "64", "--grid", "16",
             "--samples-per-scene", "3", "--seed", str(SEED)]
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "fruxel.train.sim.cli", "generate", "--out", str(out), "-q", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "fruxel.cli.sim", "generate", "--out", str(out), "-q", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     recorded: list[str] = []
     try:

@@ -40,6 +40,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fruxel.errors import FruxelError
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -56,7 +58,7 @@ CATALOG_NAME = "PluginFurnitureCatalog.properties"
 """The catalog's file name inside a ``.sh3f`` zip."""
 
 
-class AssetError(ValueError):
+class AssetError(FruxelError, ValueError):
     """Raised for an unreadable asset folder, mesh file or furniture library; the message names the file."""
 
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
+from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid, GridError
 
 from .robot import CameraMount, RobotParams
@@ -53,7 +54,7 @@ MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
 
 
-class ConfigError(ValueError):
+class ConfigError(FruxelError, ValueError):
     """Raised for impossible generator settings, or a config dictionary that does not describe a
     :class:`SimConfig`."""
 

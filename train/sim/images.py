@@ -24,8 +24,8 @@ Determinism: the same scene, pose and generator give the same bytes on the same 
 (Mesa's llvmpipe is deterministic; the image bytes of one sample can differ between GL drivers, e.g. llvmpipe
 and NVIDIA, by rounding of the shading).
 
-One :class:`SceneRenderer` per process: it owns an OpenGL (EGL) context, which must not cross a ``fork``; the
-generator and the streaming data set start their workers with ``spawn``.
+One offscreen renderer per process (:func:`fruxel.render.scene.renderers`): its OpenGL (EGL) context must not
+cross a ``fork``; the generator and the streaming data set start their workers with ``spawn``.
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fruxel._compat import default_font
-from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose
+from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose, look_at_grid
+from fruxel.render.compat import default_font, import_pyrender
+from fruxel.render.scene import renderers
 
 from .config import SimConfig
 
@@ -46,15 +47,6 @@ if TYPE_CHECKING:
 
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 """Rec. 601 weights: the grey value that saturation changes blend with."""
-
-
-def _pyrender() -> Any:
-    from fruxel._compat import prepare_pyrender
-
-    prepare_pyrender(headless=True)
-    import pyrender
-
-    return pyrender
 
 
 _ORDERED_SCENE: list[type] = []
@@ -69,7 +61,7 @@ def _ordered_scene_class() -> type:
     """
     if _ORDERED_SCENE:
         return _ORDERED_SCENE[0]
-    pr = _pyrender()
+    pr = import_pyrender()
 
     class OrderedScene(pr.Scene):
         def add_node(self, node: Any, parent_node: Any = None) -> None:
@@ -133,14 +125,13 @@ class SceneRenderer:
             of view.
 
     Use :meth:`set_scene` once per room, then :meth:`render` per pose; :meth:`close` (or ``with``) frees the
-    OpenGL context.
+    room. Images are drawn by the process's one offscreen renderer (:func:`fruxel.render.scene.renderers`).
     """
 
     def __init__(self, config: SimConfig) -> None:
         self.config = config
         """The generator settings."""
-        self._pyrender = _pyrender()
-        self._renderer: Any = None
+        self._pyrender = import_pyrender()
         self._drawn: _Drawn | None = None
         self._scene: Scene | None = None
 
@@ -200,9 +191,8 @@ class SceneRenderer:
         aug = self.config.image.augment
         post = self._prepare(d, rng if aug.enabled else None)
         d.scene.set_pose(d.camera, check_pose(pose) @ OPENCV_TO_OPENGL)
-        if self._renderer is None:
-            self._renderer = self._pyrender.OffscreenRenderer(self.config.image_width, self.config.image_height)
-        colour, _ = self._renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
+        renderer = renderers().get(self.config.image_width, self.config.image_height)
+        colour, _ = renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
         return _camera_response(colour, post, rng if aug.enabled else None)
 
     def _prepare(self, d: _Drawn, rng: np.random.Generator | None) -> dict[str, Any]:
@@ -245,10 +235,9 @@ class SceneRenderer:
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
-        """Free the OpenGL context and the room (idempotent)."""
-        if self._renderer is not None:
-            self._renderer.delete()
-            self._renderer = None
+        """Free the room (idempotent). The OpenGL context is the process's one offscreen renderer
+        (:func:`fruxel.render.scene.renderers`), shared with fruxel.render's images and closed at exit: pyrender
+        ends the process-wide EGL display when any renderer is deleted, which would break the others."""
         self._drawn = None
         self._scene = None
 
@@ -307,7 +296,27 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
     grid = config.grid
     d = float(np.median(hit)) if hit.size else 0.5 * (grid.z_near + grid.z_far)
     height = max(1, round(size * grid.height / grid.width))
-    return Camera.look_at((0.5 * d, -0.35 * d, 0.0), (0.0, 0.0, d), width=size, height=height, hfov=grid.hfov)
+    # From the target (0, 0, d) to the eye (0.5 d, -0.35 d, 0).
+    offset = np.array([0.5, -0.35, -1.0])
+    return look_at_grid(grid, offset, distance=d * float(np.linalg.norm(offset)), target=(0.0, 0.0, d), width=size,
+                        height=height, hfov=grid.hfov)
+
+
+def _wrap(text: str, width: int, font: Any, measure: Any) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels, broken at spaces (a word wider than that is cut and
+    ends in an ellipsis)."""
+    lines: list[str] = []
+    for word in text.split():
+        joined = f"{lines[-1]} {word}" if lines else word
+        if lines and measure.textlength(joined, font=font) <= width:
+            lines[-1] = joined
+            continue
+        if measure.textlength(word, font=font) > width:
+            while len(word) > 1 and measure.textlength(word + "…", font=font) > width:
+                word = word[:-1]
+            word += "…"
+        lines.append(word)
+    return lines or [""]
 
 
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
@@ -338,23 +347,27 @@ def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], p
         scaled.append(out)
     font = default_font(13)
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    # Panel titles wrap to their panel's width (narrow panels got overlapping titles).
+    wrapped = [[_wrap(name, panel.shape[1], font, measure) for name, panel in row] for row in scaled]
+    title_lines = [max(len(lines) for lines in row) for row in wrapped]
     legend_w = pad + sum(30 + int(measure.textlength(n, font=font)) for n in names[1:])
     titles_w = pad + max(int(measure.textlength(t, font=font)) for t in titles) + pad
     width = max(pad + max(sum(p.shape[1] + pad for _, p in row) for row in scaled), legend_w, titles_w)
     legend_h = caption + 2 * pad
-    height = pad + len(scaled) * (2 * caption + panel_h + pad) + legend_h
+    height = pad + sum((1 + n) * caption + panel_h + pad for n in title_lines) + legend_h
     sheet = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     y = pad
-    for row, title in zip(scaled, titles, strict=True):
+    for row, lines, n_lines, title in zip(scaled, wrapped, title_lines, titles, strict=True):
         draw.text((pad, y), title, fill=(0, 0, 0), font=font)
         y += caption
         x = pad
-        for name, panel in row:
-            draw.text((x, y), name, fill=(60, 60, 60), font=font)
-            sheet.paste(Image.fromarray(panel), (x, y + caption))
+        for (_, panel), name_lines in zip(row, lines, strict=True):
+            for i, line in enumerate(name_lines):
+                draw.text((x, y + i * caption), line, fill=(60, 60, 60), font=font)
+            sheet.paste(Image.fromarray(panel), (x, y + n_lines * caption))
             x += panel.shape[1] + pad
-        y += caption + panel_h + pad
+        y += n_lines * caption + panel_h + pad
     pal = np.asarray(palette, dtype=np.uint8)
     x = pad
     for c, name in enumerate(names):

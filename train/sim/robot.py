@@ -30,11 +30,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fruxel.errors import FruxelError
+
 if TYPE_CHECKING:
     from .scene import Scene
 
 
-class TrajectoryError(RuntimeError):
+class TrajectoryError(FruxelError, RuntimeError):
     """Raised when no collision-free trajectory can be made (no free start, a scripted path that collides)."""
 
 

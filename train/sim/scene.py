@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fruxel.errors import FruxelError
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -42,7 +44,7 @@ FURNITURE_KINDS = ("table", "chair", "shelf", "cabinet", "sofa")
 """Procedural furniture types."""
 
 
-class SceneError(ValueError):
+class SceneError(FruxelError, ValueError):
     """Raised for an impossible room configuration."""
 
 

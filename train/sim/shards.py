@@ -60,6 +60,7 @@ from typing import IO, Any
 import numpy as np
 import numpy.lib.format as npy_format
 
+from fruxel.errors import FruxelError
 from fruxel.io import (
     ArchiveError,
     atomic_write,
@@ -103,7 +104,7 @@ SEED_RULE = (
 _SHARD_RE = re.compile(r"^\.([a-z0-9][a-z0-9_-]*-\d{5,}\.npz|manifest\.json)\.[0-9a-f]{12}\.tmp$")
 
 
-class DatasetError(ValueError):
+class DatasetError(FruxelError, ValueError):
     """A data set file that cannot be used: a corrupt or foreign shard, a bad manifest, a folder made with other
     settings, or an incomplete data set. The message names the file and the problem; :attr:`path` and
     :attr:`problem` hold them."""

@@ -13,19 +13,19 @@ import pytest
 from PIL import Image
 
 from fruxel.classes import DEFAULT_CLASSES
-from fruxel.train.sim.cli import main
+from fruxel.cli.sim import main
 
 TINY = ["--image", "32", "--grid", "16", "--samples-per-scene", "2"]
 
 
 def test_help_is_instant_and_lists_the_commands() -> None:
     t = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "fruxel.train.sim.cli", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "fruxel.cli.sim", "--help"], capture_output=True, text=True,
                          check=True)
     assert "generate" in out.stdout and "preview" in out.stdout
     # No torch, pyrender or warp behind --help (a loaded 2-core machine still starts Python in ~1 s).
     assert time.perf_counter() - t < 10
-    probe = ("import sys, fruxel.train.sim.cli; "
+    probe = ("import sys, fruxel.cli.sim; "
              "print(sorted(m for m in ('torch', 'pyrender', 'warp') if m in sys.modules))")
     mods = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert mods.stdout.strip() == "[]"
@@ -99,3 +99,37 @@ def test_preview_writes_a_contact_sheet(tmp_path: Path) -> None:
     # The ray-cast panel shades the same colours with light: darker versions of wall and floor appear as well.
     shaded = np.unique(flat, axis=0)
     assert len(shaded) > 200
+
+
+def test_preview_writes_the_format_its_name_asks_for(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--out x.jpg is a JPEG (it used to hold PNG bytes); a suffix that is no image format is refused before any
+    sample is made, in one line."""
+    jpg = tmp_path / "sub" / "sheet.jpg"
+    assert main(["preview", "--out", str(jpg), "--image", "32", "--grid", "16", "--samples-per-scene", "2"]) == 0
+    with Image.open(jpg) as im:
+        assert im.format == "JPEG"
+    assert sorted(p.name for p in jpg.parent.iterdir()) == ["sheet.jpg"]
+    capsys.readouterr()
+    t = time.perf_counter()
+    assert main(["preview", "--out", str(tmp_path / "sheet.xyz"), "--image", "32", "--grid", "16"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sheet.xyz" in err[0] and ".png" in err[0]
+    assert time.perf_counter() - t < 5 and not (tmp_path / "sheet.xyz").exists()
+
+
+def test_contact_sheet_titles_fit_their_panels() -> None:
+    """Panel titles wrap within their panel: at small sizes they used to run into the next panel's title."""
+    from fruxel.train.sim.images import contact_sheet
+
+    black = np.zeros((40, 40, 3), np.uint8)
+    panels = {"camera image": black, "ground truth, own view": black, "ground truth, second pose": black}
+    sheet = contact_sheet([panels], DEFAULT_CLASSES.names, DEFAULT_CLASSES.palette(), ["sample 0"])
+    pad = 8
+    # Rows from below the sample title to the top of the panels hold only the panel titles; the gaps between
+    # panel columns stay white there.
+    dark = np.all(sheet == 0, axis=-1)
+    top = int(np.flatnonzero(dark.sum(axis=1) >= 3 * 40)[0])
+    band = sheet[pad + 18:top]
+    assert band.shape[0] >= 2 * 18, "the long titles take more than one line"
+    for gap in (pad + 40, pad + 40 + pad + 40):
+        assert np.all(band[:, gap:gap + pad] == 255)

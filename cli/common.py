@@ -1,0 +1,430 @@
+"""What every fruxel command shares: the runner, argparse types, options made from config dataclasses, ``--grid``.
+
+Every command (``fruxel-render``, ``fruxel-sim``, and the training, evaluation and prediction commands) is a thin
+``main(argv=None) -> int`` written the same way::
+
+    import argparse
+    from fruxel.cli.common import OneLineParser, config_option, positive_int, run, write_outputs
+
+    def build_parser() -> argparse.ArgumentParser:          # standard library and fruxel's core only: --help is instant
+        p = OneLineParser(prog="fruxel-x", description="...")
+        config_option(p, XConfig, "steps", type=positive_int)   # --steps, default and help from XConfig.steps
+        return p
+
+    def _main(args: argparse.Namespace) -> int | None:      # the work; heavy imports inside
+        ...                                                 # raise a FruxelError subclass for bad input
+        write_outputs([(args.out, lambda tmp: save(tmp, result))])   # all outputs or none
+
+    def main(argv: list[str] | None = None) -> int:
+        return run(_main, build_parser(), argv)
+
+:func:`run` gives every command the same behaviour, so callers and scripts can rely on it:
+
+- exit status 0 on success (or what ``_main`` returns), 2 for bad input, 130 when interrupted (Ctrl-C);
+- bad input is one line on stderr, ``PROG: error: MESSAGE``, never a traceback: usage errors from the parser
+  (:class:`OneLineParser`), any :class:`fruxel.FruxelError` (every library error derives from it: malformed
+  files, impossible grids or cameras, unusable backends, ...; raise :class:`UsageError` for a wrong combination
+  of options), and ``OSError`` (a missing file, no permission, a full disk);
+- any other exception is a bug in fruxel and keeps its traceback.
+
+Argument vocabulary shared by the commands: :func:`positive_int`, :func:`non_negative_int`,
+:func:`unit_fraction`, :func:`device_name`, :func:`image_size` (``WxH``), and the grid options of
+:func:`add_grid_options`: ``--grid N|WxHxD`` (cells) with ``--z-near``, ``--z-far`` and ``--hfov``.
+
+Outputs: :func:`write_outputs` writes a command's files together (all or none), making their folders and removing
+what killed earlier runs left behind.
+
+Defaults are written once, in the config dataclasses: :func:`config_option` adds an option whose default,
+type and help text come from a dataclass field (its docstring), and :func:`config_values` collects the parsed
+values of one dataclass's fields for its constructor.
+
+At import time this module loads the standard library and fruxel's numpy-only core, nothing heavier: a
+command's ``--help`` stays instant as long as the command imports torch, Warp or pyrender inside ``_main``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import functools
+import inspect
+import re
+import sys
+import textwrap
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from fruxel.errors import FruxelError
+from fruxel.grid import FruxelGrid
+
+EXIT_OK = 0
+"""Exit status of a command that did what it was asked."""
+EXIT_USAGE = 2
+"""Exit status for bad input: a usage error, a malformed file, impossible parameters (argparse's own status)."""
+EXIT_INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
+
+
+# ---------------------------------------------------------------------------------------------------- runner
+class UsageError(FruxelError, ValueError):
+    """A wrong combination of options, found after parsing (e.g. ``--orbit`` with ``--out x.png``). :func:`run`
+    prints it as one line, like the parser's own usage errors."""
+
+
+def describe_os_error(e: OSError) -> str:
+    """One line for an ``OSError``: ``"FILE: what"`` (e.g. ``"out/x.png: Permission denied"``), else its text."""
+    what = e.strerror or str(e) or type(e).__name__
+    if e.filename is not None:
+        target = f"{e.filename} -> {e.filename2}" if e.filename2 is not None else str(e.filename)
+        return f"{target}: {what}"
+    return what
+
+
+def one_line(message: object) -> str:
+    """``message`` as one line: runs of whitespace, newlines included, become one space."""
+    return " ".join(str(message).split())
+
+
+def run(main_impl: Callable[[argparse.Namespace], int | None], parser: argparse.ArgumentParser,
+        argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` with ``parser``, call ``main_impl(args)`` and turn its outcome into an exit status.
+
+    Args:
+        main_impl: the command's work. It returns None or 0 for success (or another status to exit with) and
+            raises for bad input: any :class:`fruxel.FruxelError` (:class:`UsageError` for options that do not
+            go together) or ``OSError``.
+        parser: the command's parser; a :class:`OneLineParser` makes usage errors one line too. ``parser.prog``
+            starts every error line.
+        argv: the arguments, without the program name; None reads ``sys.argv[1:]``.
+
+    Returns:
+        The exit status: ``main_impl``'s (0 for None), :data:`EXIT_USAGE` (2) after printing
+        ``PROG: error: MESSAGE`` on stderr for a known error, :data:`EXIT_INTERRUPTED` (130) after Ctrl-C.
+
+    Raises:
+        SystemExit: from the parser, for ``--help`` (status 0) and usage errors (status 2), as argparse does.
+        Exception: anything else ``main_impl`` raises: a bug, shown with its traceback.
+    """
+    args = parser.parse_args(argv)
+    prog = parser.prog
+    try:
+        status = main_impl(args)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (FruxelError, OSError) as e:
+        msg = one_line(e) if isinstance(e, FruxelError) else describe_os_error(e)
+        hint = " (see --help)" if isinstance(e, UsageError) else ""
+        print(f"{prog}: error: {msg}{hint}", file=sys.stderr)
+        return EXIT_USAGE
+    return EXIT_OK if status is None else int(status)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose usage errors are one line, ``PROG: error: MESSAGE (see --help)``, exit 2.
+
+    Its sub-command parsers (``add_subparsers``) are made with the same class, so they behave alike.
+    """
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see --help)\n")
+
+
+# ---------------------------------------------------------------------------------------------------- types
+def _integer(text: str, low: int, what: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
+    if v < low:
+        raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    return _integer(text, 1, "positive")
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _integer(text, 0, "non-negative")
+
+
+def unit_fraction(text: str) -> float:
+    """argparse type: a number in (0, 1], such as an occupancy threshold."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
+    if not 0.0 < v <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+    return v
+
+
+def device_name(text: str) -> str:
+    """argparse type: a Warp device, ``cpu``, ``cuda`` or ``cuda:N``."""
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", text):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    return text
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """argparse type: an image size ``WxH`` in pixels, e.g. ``640x480``: ``(width, height)``."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise argparse.ArgumentTypeError(f"expected WxH with positive integers, e.g. 640x480, got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def grid_size(text: str) -> tuple[int, int, int]:
+    """argparse type: a grid size in cells, ``N`` (N x N x N) or ``WxHxD``: ``(width, height, depth)``."""
+    parts = text.strip().lower().split("x")
+    try:
+        values = [int(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) == 1:
+        values *= 3
+    if len(values) != 3 or min(values) < 1:
+        hint = ""
+        if len(re.split(r"[,\s]+", text.strip())) == 6:
+            # The older W,H,D,z_near,z_far,hfov form of fruxel-render.
+            hint = "; the depth range and field of view are --z-near, --z-far and --hfov"
+        raise argparse.ArgumentTypeError(f"expected N or WxHxD with positive integers, e.g. 128 or 160x120x128, "
+                                         f"got {text!r}{hint}")
+    return values[0], values[1], values[2]
+
+
+# ---------------------------------------------------------------------------------------------------- dataclasses
+def _tidy(doc: str) -> str:
+    """A field docstring as plain help text: reST roles and literals unwrapped, whitespace collapsed, ``%``
+    escaped for argparse."""
+    # Sphinx semantics: :role:`~a.b.c` shows "c", :role:`a.b.c` shows it whole.
+    text = re.sub(r":[a-z]+:`(~?)([^`<]*?)\s*(?:<[^>]*>)?`",
+                  lambda m: m.group(2).split(".")[-1] if m.group(1) else m.group(2), doc)
+    text = text.replace("``", "")
+    return one_line(text).replace("%", "%%")
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstrings of a dataclass's fields (the string literal written under each field), by field name.
+
+    Read from the class's source with :mod:`ast`; fields without one are left out (inherited fields are not
+    read).
+    """
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    body = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef)).body
+    docs = {}
+    for node, nxt in zip(body, body[1:], strict=False):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
+            docs[node.target.id] = inspect.cleandoc(nxt.value.value)
+    return docs
+
+
+def _field(config: Any, name: str) -> dataclasses.Field[Any]:
+    cls = config if isinstance(config, type) else type(config)
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return f
+    raise AttributeError(f"{cls.__name__} has no field {name!r}")
+
+
+def field_default(config: Any, name: str) -> Any:
+    """The value of field ``name``: the instance's when ``config`` is a dataclass instance, else the class's
+    default (made by its default factory where it has one)."""
+    if not isinstance(config, type):
+        return getattr(config, name)
+    f = _field(config, name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    raise AttributeError(f"{config.__name__}.{name} has no default")
+
+
+_SCALARS: dict[str, Callable[[str], Any]] = {"int": int, "float": float, "str": str}
+
+
+def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: Any) -> argparse.Action:
+    """Add the option for field ``name`` of a config dataclass: its default, type and help come from the field.
+
+    Args:
+        parser: an ``ArgumentParser`` or argument group.
+        config: the dataclass, or an instance of it whose values are the defaults (a command that wants another
+            default than the class's passes an instance, e.g. ``ImageConfig(size=256)``).
+        name: the field; it is also the option's ``dest``, which :func:`config_values` reads.
+        flags: the option strings; default ``--NAME`` with ``_`` as ``-`` (``--no-NAME`` for a bool field whose
+            default is True).
+        kwargs: anything else for ``add_argument`` (``type``, ``choices``, ``metavar``), overriding what is
+            derived: the type from the annotation (``int``, ``float``, ``str``, optionally ``| None``; a bool
+            field becomes a flag that stores the opposite of its default); the help from the field's docstring
+            followed by the default.
+
+    Returns:
+        The argparse action.
+    """
+    cls = config if isinstance(config, type) else type(config)
+    default = field_default(config, name)
+    annotation = str(_field(cls, name).type).replace(" ", "")
+    kind = annotation.removesuffix("|None")
+    option = name.replace("_", "-")
+    kwargs.setdefault("dest", name)
+    kwargs.setdefault("default", default)
+    help_text = _tidy(field_docs(cls).get(name, ""))
+    if kind == "bool" and "action" not in kwargs and "type" not in kwargs:
+        flags = flags or ((f"--no-{option}",) if default else (f"--{option}",))
+        kwargs.setdefault("action", "store_false" if default else "store_true")
+        # The docstring describes the setting; the flag turns it on, or (--no-...) off.
+        help_text += f" (default: {'on; this flag turns it off' if default else 'off'})"
+    else:
+        flags = flags or (f"--{option}",)
+        if "type" not in kwargs and "choices" not in kwargs and kind in _SCALARS:
+            kwargs["type"] = _SCALARS[kind]
+        if kwargs["default"] is not None:
+            help_text += f" (default: {kwargs['default']})"
+    kwargs.setdefault("help", help_text)
+    return parser.add_argument(*flags, **kwargs)
+
+
+def config_values(args: argparse.Namespace, cls: type, **given: Any) -> dict[str, Any]:
+    """The parsed values of ``cls``'s fields that have options (``dest`` = field name), plus ``given``: keyword
+    arguments for ``cls(...)``."""
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+    values.update(given)
+    return values
+
+
+# ---------------------------------------------------------------------------------------------------- grid
+def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = True, what: str = "") -> None:
+    """Add ``--grid N|WxHxD``, ``--z-near``, ``--z-far`` and ``--hfov``: a :class:`fruxel.FruxelGrid`.
+
+    Args:
+        parser: an ``ArgumentParser`` or argument group.
+        default: the grid whose values are the defaults (a config dataclass's default grid); help texts come
+            from :class:`fruxel.FruxelGrid`'s field docstrings.
+        size_default: False when the grid has no default size (``--grid`` given or no grid at all, see
+            :func:`grid_from_args`).
+        what: words appended to ``--grid``'s help, e.g. ``"of a bare logits tensor"``.
+    """
+    docs = field_docs(FruxelGrid)
+    size = f"{default.width}x{default.height}x{default.depth}"
+    parser.add_argument("--grid", type=grid_size, default=None, metavar="N|WxHxD",
+                        help=f"grid size in cells, N for N x N x N or W x H x D{' ' + what if what else ''}"
+                        + (f" (default: {size})" if size_default else ""))
+    for name, metavar in (("z_near", "M"), ("z_far", "M"), ("hfov", "DEG")):
+        parser.add_argument(f"--{name.replace('_', '-')}", dest=name, type=float, default=None, metavar=metavar,
+                            help=f"grid: {_tidy(docs.get(name, name))} (default: {getattr(default, name):g})")
+
+
+def grid_options_given(args: argparse.Namespace) -> list[str]:
+    """The grid options given on the command line (of those :func:`add_grid_options` adds)."""
+    names = {"grid": "--grid", "z_near": "--z-near", "z_far": "--z-far", "hfov": "--hfov"}
+    return [flag for dest, flag in names.items() if getattr(args, dest, None) is not None]
+
+
+def grid_from_args(args: argparse.Namespace, default: FruxelGrid, *, size_default: bool = True
+                   ) -> FruxelGrid | None:
+    """The grid of :func:`add_grid_options`: each value given, else ``default``'s.
+
+    Returns:
+        The grid; None when ``size_default`` is False and no grid option was given.
+
+    Raises:
+        UsageError: ``--z-near``, ``--z-far`` or ``--hfov`` without ``--grid`` when the size has no default.
+        GridError: impossible values (``z_far <= z_near``, ...).
+    """
+    if args.grid is None and not size_default:
+        given = grid_options_given(args)
+        if given:
+            raise UsageError(f"{', '.join(given)} describe the grid of --grid; give --grid WxHxD as well")
+        return None
+    w, h, d = args.grid if args.grid is not None else (default.width, default.height, default.depth)
+    z = {n: getattr(args, n) if getattr(args, n) is not None else getattr(default, n)
+         for n in ("z_near", "z_far", "hfov")}
+    return FruxelGrid(width=w, height=h, depth=d, **z)
+
+
+# ---------------------------------------------------------------------------------------------------- outputs
+class OutputError(FruxelError, OSError):
+    """An output file that could not be written; the message names the file (never a temporary name)."""
+
+
+def _make_folder(folder: Path, target: Path, made: list[Path]) -> None:
+    """Make ``folder`` and its missing parents, recording the topmost one made in ``made``."""
+    missing = [f for f in (folder, *folder.parents) if not f.exists()]
+    if not missing:
+        if not folder.is_dir():
+            raise OutputError(f"cannot write {target}: {folder} is not a folder")
+        return
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot write {target}: cannot make the folder {folder} ({e.strerror or e})") from None
+    made.append(missing[-1])
+
+
+def _remove_made_folders(made: list[Path], targets: Sequence[Path]) -> None:
+    """Remove the folders :func:`_make_folder` made, as far as they are empty again."""
+    for target in targets:
+        for folder in (target.parent, *target.parent.parents):
+            if not any(folder == m or m in folder.parents for m in made):
+                break
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def write_outputs(outputs: Sequence[tuple[str | Path, Callable[[Path], None]]]) -> list[Path]:
+    """Write a command's output files together: all of them or, when anything fails, none.
+
+    For every ``(target, write)``: the target's folder is made where missing, temporary files that killed
+    earlier runs left beside the target are removed (:func:`fruxel.io.remove_stale_temporaries`), and
+    ``write(tmp)`` writes the file to a temporary name beside it with the target's suffix. Once every file is
+    written, they replace their targets (:func:`fruxel.io.atomic_files`). When any step fails, no target
+    changes, the temporary files are removed, and so are the folders this call made (where empty again).
+
+    Args:
+        outputs: the targets and their writers; a writer writes its file to the path it is given (the format
+            follows the target's suffix, which the temporary name ends with too).
+
+    Returns:
+        The targets, in order.
+
+    Raises:
+        OutputError: a target that cannot be written (no permission, a file where a folder should be, a full
+            disk); the message names the target.
+    """
+    from fruxel.io import atomic_files, remove_stale_temporaries
+
+    targets = [Path(t) for t, _ in outputs]
+    made: list[Path] = []
+    try:
+        for target in targets:
+            _make_folder(target.parent, target, made)
+            remove_stale_temporaries(target)
+        try:
+            with atomic_files() as files:
+                for target, (_, write) in zip(targets, outputs, strict=True):
+                    try:
+                        write(files.path(target))
+                    except OSError as e:
+                        raise OutputError(f"cannot write {target}: {e.strerror or one_line(e)}") from None
+        except OutputError:
+            raise
+        except OSError as e:
+            # A sync or rename at the end: os.replace names the target second.
+            name = e.filename2 if e.filename2 is not None else ", ".join(map(str, targets))
+            raise OutputError(f"cannot write {name}: {e.strerror or one_line(e)}") from None
+    except BaseException:
+        _remove_made_folders(made, targets)
+        raise
+    return targets
