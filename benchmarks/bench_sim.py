@@ -6,7 +6,7 @@ and writes the shards and the manifest.
 
 Modes (``--mode``, comma-separated):
 
-* ``generate``  — ``fruxel.train.sim.shards.generate`` into a temporary folder with ``--workers`` processes;
+* ``generate``  — ``fruxel.train.sim.writer.generate`` into a temporary folder with ``--workers`` processes;
 * ``streaming`` — a ``StreamingDataset`` through ``streaming_loader`` (spawned DataLoader workers), batches of 8;
 * ``profile``   — one process, seconds per stage (no files), plus shard encoding.
 
@@ -75,7 +75,7 @@ def make_config(image: int, grid: int, samples: int, shard_size: int, augment: b
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
                    device: str | None) -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
-    from fruxel.train.sim.shards import generate
+    from fruxel.train.sim.writer import generate
 
     cfg = make_config(image, grid, samples, shard_size)
     marks: list[tuple[float, int]] = []
@@ -121,7 +121,8 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
 
 def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None) -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
-    from fruxel.train.sim.shards import STAGES, SampleMaker, ShardSpec, encode_shard
+    from fruxel.train.sim.sample import STAGES, SampleMaker
+    from fruxel.train.sim.shards import ShardSpec, encode_shard
 
     cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps())
     sps = cfg.samples_per_scene

@@ -28,16 +28,10 @@ from fruxel.train.sim.config import (
     scale_splits,
     scene_seed,
 )
-from fruxel.train.sim.shards import (
-    MANIFEST,
-    DatasetError,
-    Manifest,
-    SampleMaker,
-    ShardReader,
-    encode_shard,
-    generate,
-    shard_specs,
-)
+from fruxel.train.sim.manifest import MANIFEST, Manifest
+from fruxel.train.sim.sample import SampleMaker
+from fruxel.train.sim.shards import DatasetError, ShardReader, encode_shard, shard_specs
+from fruxel.train.sim.writer import generate
 
 torch = pytest.importorskip("torch")
 from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch

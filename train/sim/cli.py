@@ -4,7 +4,7 @@
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp]
     fruxel-sim preview --out sheet.png [--seed S] [--split train] [--index I] [--count N] [--image 256]
 
-``generate`` writes shards and a manifest (:mod:`.shards`); it resumes an interrupted run in the same folder and
+``generate`` writes shards and a manifest (:mod:`.writer`); it resumes an interrupted run in the same folder and
 refuses a folder made with other settings. ``preview`` writes a contact sheet: per sample the robot camera's
 image, the own-view ground-truth labels in the class colours, and a ray-cast render of the ground-truth volume
 from a second camera beside the robot's, with a class legend.
@@ -103,7 +103,7 @@ def _config(args: argparse.Namespace, splits: Any, shard_size: int = 64) -> Any:
 
 def _generate(args: argparse.Namespace) -> int:
     from .config import PAPER_SPLITS, ConfigError, parse_splits, scale_splits
-    from .shards import generate
+    from .writer import generate
 
     splits = parse_splits(args.split) if args.split is not None else PAPER_SPLITS
     if args.samples is not None:
@@ -136,7 +136,7 @@ def _preview(args: argparse.Namespace) -> int:
     from fruxel.shading import shade_hits
 
     from .images import contact_sheet, second_camera
-    from .shards import SampleMaker
+    from .sample import SampleMaker
 
     config = _config(args, ((args.split, args.index + args.count),))
     classes = config.classes

@@ -29,7 +29,9 @@ import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from .config import ConfigError, SimConfig
-from .shards import MANIFEST, DatasetError, Manifest, Sample, SampleMaker, ShardReader
+from .manifest import MANIFEST, Manifest
+from .sample import Sample, SampleMaker
+from .shards import DatasetError, ShardReader
 
 
 def sample_tensors(sample: Sample, config: SimConfig) -> dict[str, torch.Tensor]:
