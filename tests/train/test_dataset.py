@@ -268,8 +268,10 @@ def test_shard_dataset_items(reference: Path) -> None:
     item = ds[5]
     assert item["image"].shape == (3, 64, 64) and item["image"].dtype == torch.float32
     assert 0.0 <= float(item["image"].min()) and float(item["image"].max()) <= 1.0
-    assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.int64
-    assert item["view_label"].shape == (16, 16) and item["view_depth"].dtype == torch.float32
+    # Labels stay uint8 until the device (an int64 128^3 volume would take 16 MiB per sample instead of 2).
+    assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.uint8
+    assert item["view_label"].shape == (16, 16) and item["view_label"].dtype == torch.uint8
+    assert item["view_depth"].dtype == torch.float32
     assert item["pose"].shape == (4, 4) and int(item["index"]) == 5
     np.testing.assert_allclose(item["K"].numpy(), CONFIG.image_camera().K)
     # Own-view truth is the first occupied cell of each column.
@@ -322,6 +324,11 @@ def test_sample_tensors_keep_bytes(reference: Path) -> None:
     s = ShardDataset(reference, "test").sample(1)
     t = sample_tensors(s, CONFIG)
     np.testing.assert_array_equal(np.rint(t["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8), s.image)
+    # The labels are the sample's own bytes, not a copy; a read-only array is copied rather than shared.
+    assert t["labels"].dtype == torch.uint8 and np.shares_memory(t["labels"].numpy(), s.labels)
+    s.labels.flags.writeable = False
+    again = sample_tensors(s, CONFIG)["labels"]
+    assert not np.shares_memory(again.numpy(), s.labels) and torch.equal(again, t["labels"])
 
 
 # ---------------------------------------------------------------------------------------------- settings
