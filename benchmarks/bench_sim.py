@@ -1,8 +1,8 @@
 """Simulator benchmark: samples per second of the data set generator and of the streaming data set.
 
 A sample is made end to end: room (``make_scene``), robot trajectory, mesh upload for ``fruxelize`` (once per
-room), pyrender image with augmentation, ``fruxelize`` of the grid, own-view truth; ``generate`` also compresses
-and writes the shards and the manifest.
+room), pyrender image with augmentation, ``fruxelize`` of the grid; ``generate`` also compresses and writes the
+shards and the manifest.
 
 Modes (``--mode``, comma-separated):
 
@@ -191,7 +191,7 @@ def section(runs: list[dict[str, Any]]) -> str:
     lines = [SECTION, ""]
     lines.append("`python benchmarks/bench_sim.py` (see its docstring for the H100 command). A sample is made end "
                  "to end: room, robot trajectory, mesh upload (once per room of 16 samples), pyrender image with "
-                 "augmentation, `fruxelize`, own-view truth; `generate` also compresses and writes the shards. "
+                 "augmentation, `fruxelize`; `generate` also compresses and writes the shards. "
                  "*Steady* excludes start-up (process spawn, imports, EGL and Warp initialisation); *end to end* "
                  "includes it.")
     lines.append("")
@@ -217,12 +217,14 @@ def section(runs: list[dict[str, Any]]) -> str:
     if profiles:
         stages = ["scene", "trajectory", "upload", "render", "fruxelize", "own_view", "encode"]
         lines += ["", "Milliseconds per sample and stage, one process (`--mode profile`; scene, trajectory and "
-                  "upload are per room, shared by its 16 samples):", "",
+                  "upload are per room, shared by its 16 samples; own_view: the own-view images that samples made "
+                  "before format version 2 carried, - where a run had no such stage):", "",
                   "| machine | image | grid | " + " | ".join(stages) + " | samples/s | KiB/sample |",
                   "| --- | ---: | ---: | " + " | ".join("---:" for _ in stages) + " | ---: | ---: |"]
         for tag, r in profiles:
             ms = r["ms_per_sample"]
-            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | " + " | ".join(f"{ms[s]:.1f}" for s in stages)
+            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | "
+                         + " | ".join(f"{ms[s]:.1f}" if s in ms else "-" for s in stages)
                          + f" | {r['sps_one_process']:.1f} | {r['bytes_per_sample'] / 1024:.0f} |")
     notes = [n for run in runs for n in run.get("notes", [])]
     if notes:

@@ -13,6 +13,11 @@ Every loss takes the network's output as plain tensors, so any training loop can
 
 Frames: volumes are NCDHW in the grid frame (SPEC sections 1-2); images are ``(B, N, h, w)`` per camera; depths
 are metres along each viewing camera's z.
+
+Ground truth has one source, the label volume: what any camera sees of it, the grid's own camera included, is
+``first_hit`` of the labels (the own view's is each column's first occupied cell, its depth the cell's near plane
+``z_k``). :meth:`ShellLoss.targets` computes it on the labels' device and hands the own view's out as
+:attr:`ShellTargets.own_view`, for metrics that need it; the simulator's samples do not store a copy.
 """
 
 from __future__ import annotations
@@ -249,6 +254,10 @@ class ShellTargets:
     concatenated in group order."""
     hit_flat: torch.Tensor
     """``(sum of B * N * h * w over the groups,)`` bool: every group's ground-truth hit mask, like ``depth_flat``."""
+    own_view: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    """The grid's own camera (when it is among the cameras): its ``first_hit`` labels ``(B, H, W)`` int64, depths
+    ``(B, H, W)`` float32 (the near plane ``z_k`` of each column's first occupied cell, 0 on a miss) and hit mask
+    ``(B, H, W)`` bool, views of the group tensors above: the own-view truth, from the labels like every view's."""
 
     @property
     def pixels(self) -> int:
@@ -299,7 +308,11 @@ class ShellLoss:
             weight = weight / weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
             depth_flat = torch.cat([t[1].reshape(-1) for t in out])
             hit_flat = torch.cat([t[2].reshape(-1) for t in out])
-        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat)
+        own = self.grid.camera()
+        own_view = next(((lab[:, n], depth[:, n], hit[:, n]) for group, (lab, depth, hit) in
+                         zip(group_by_size(cameras), out, strict=True) for n, cam in enumerate(group) if cam == own),
+                        None)
+        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_view)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:

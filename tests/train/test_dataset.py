@@ -86,7 +86,7 @@ def test_same_seed_same_bytes_across_runs_and_workers(reference: Path, tmp_path:
 
 def test_manifest_records_the_data_set(reference: Path) -> None:
     m = json.loads((reference / MANIFEST).read_text())
-    assert m["format"] == "fruxel-sim" and m["version"] == 1 and m["complete"] is True and m["seed"] == SEED
+    assert m["format"] == "fruxel-sim" and m["version"] == 2 and m["complete"] is True and m["seed"] == SEED
     assert m["grid"] == CONFIG.grid.to_dict() and m["classes"] == CONFIG.classes.to_dict()
     assert m["intrinsics"]["image"]["fx"] == pytest.approx(m["intrinsics"]["grid"]["fx"] * 64 / 16)
     assert [s["count"] for s in m["splits"]["train"]["shards"]] == [2, 2, 2]
@@ -235,6 +235,20 @@ def test_object_arrays_are_refused_without_unpickling(reference: Path, tmp_path:
     reader.close()
 
 
+def test_impossible_values_are_refused(tmp_path: Path) -> None:
+    # Well-formed members with values no generator writes: a label outside the class table, a NaN pose.
+    spec = shard_specs(CONFIG)[0]
+    with SampleMaker(CONFIG, SEED) as maker:
+        samples = [maker.make("train", i) for i in spec.indices]
+    samples[0].labels[0, 0, 0] = len(CONFIG.classes)
+    samples[1].pose[0, 3] = np.nan
+    path = tmp_path / spec.file
+    path.write_bytes(encode_shard(spec, CONFIG, SEED, samples))
+    with ShardReader(str(path), spec, CONFIG, SEED) as reader:
+        _assert_refused(lambda: reader.sample(0), path, "labels outside the 7 classes")
+        _assert_refused(lambda: reader.sample(1), path, "non-finite pose")
+
+
 def test_folder_of_other_settings_is_refused(reference: Path, tmp_path: Path) -> None:
     out = _copy(reference, tmp_path)
     other = CONFIG.replace(grid=FruxelGrid(width=16, height=16, depth=8, z_near=0.5, z_far=8.0, hfov=60.0))
@@ -247,6 +261,10 @@ def test_folder_of_other_settings_is_refused(reference: Path, tmp_path: Path) ->
     m["version"] = 99
     (out / MANIFEST).write_text(json.dumps(m))
     _assert_refused(lambda: ShardDataset(out, "train"), out / MANIFEST, "version 99")
+    # A folder of format version 1 (own-view images stored with every sample) is refused with what to do.
+    m["version"] = 1
+    (out / MANIFEST).write_text(json.dumps(m))
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), out / MANIFEST, "make the data set again")
 
 
 def test_incomplete_data_set_is_refused_by_the_reader(reference: Path, tmp_path: Path) -> None:
@@ -270,14 +288,10 @@ def test_shard_dataset_items(reference: Path) -> None:
     assert 0.0 <= float(item["image"].min()) and float(item["image"].max()) <= 1.0
     # Labels stay uint8 until the device (an int64 128^3 volume would take 16 MiB per sample instead of 2).
     assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.uint8
-    assert item["view_label"].shape == (16, 16) and item["view_label"].dtype == torch.uint8
-    assert item["view_depth"].dtype == torch.float32
     assert item["pose"].shape == (4, 4) and int(item["index"]) == 5
     np.testing.assert_allclose(item["K"].numpy(), CONFIG.image_camera().K)
-    # Own-view truth is the first occupied cell of each column.
-    lab = item["labels"].numpy()
-    first = np.where(lab.any(axis=0), np.take_along_axis(lab, (lab != 0).argmax(axis=0)[None], 0)[0], 0)
-    np.testing.assert_array_equal(item["view_label"].numpy(), first)
+    # One source of truth: own-view images are first_hit of the labels on the device, not items of their own.
+    assert sorted(item) == ["K", "image", "index", "labels", "pose"]
     with pytest.raises(IndexError):
         ds[6]
 

@@ -187,3 +187,31 @@ def test_loss_arguments_are_checked() -> None:
                                mask=torch.tensor([[[[False, True]]]]))
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(p.grad).all() and torch.all(p.grad[..., 0] == 0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_own_view_truth_is_the_first_occupied_cell(backend: str) -> None:
+    # The one source of own-view truth (labels -> first_hit) is what the data sets' users get from ShellTargets:
+    # per column the label of its first occupied cell and that cell's near plane z_k, 0 for an empty column.
+    grid = FruxelGrid(width=7, height=5, depth=9, z_near=0.5, z_far=5.0, hfov=60.0)
+    rng = np.random.default_rng(0)
+    labels = ((rng.uniform(size=(2, *grid.shape)) < 0.15) * rng.integers(1, C, size=(2, *grid.shape))).astype(np.uint8)
+    labels[0, :, 0, 0] = 0
+    loss = ShellLoss(grid, ShellLossConfig(novel_views=1, novel_size=(16, 12), backend=backend))
+    novel, own = loss.cameras()[1], grid.camera()
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.1
+    beside = own.with_pose(shifted)
+    # The own view is found wherever it is among the cameras, also behind another camera of its size.
+    for cams in ([own, novel], [novel, own], [novel, beside, own]):
+        lab, depth, hit = loss.targets(torch.from_numpy(labels), cams).own_view
+        assert lab.shape == depth.shape == hit.shape == (2, 5, 7) and depth.dtype == torch.float32
+        zb = grid.z_bounds()
+        for b, j, i in np.ndindex(2, 5, 7):
+            ks = np.flatnonzero(labels[b, :, j, i])
+            if len(ks) == 0:
+                assert lab[b, j, i] == 0 and depth[b, j, i] == 0 and not hit[b, j, i]
+            else:
+                assert lab[b, j, i] == labels[b, ks[0], j, i] and hit[b, j, i]
+                assert float(depth[b, j, i]) == pytest.approx(zb[ks[0]], rel=1e-6)
+    assert loss.targets(torch.from_numpy(labels), [novel]).own_view is None

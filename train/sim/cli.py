@@ -146,13 +146,14 @@ def _preview(args: argparse.Namespace) -> int:
     with SampleMaker(config, args.seed, backend=args.backend) as maker:
         for i in range(args.index, args.index + args.count):
             s = maker.make(args.split, i)
-            cam = second_camera(s.view_depth, config, config.image_width)
+            own = first_hit(s.labels, grid, grid.camera(), backend=args.raycast_backend)
+            cam = second_camera(own.depth, config, config.image_width)
             hits = first_hit(s.labels, grid, cam, backend=args.raycast_backend)
             shaded = shade_hits(np.asarray(hits.label), np.asarray(hits.normal), np.asarray(hits.depth), palette,
                                 cam.rotation, fog=(grid.z_near, 2.0 * grid.z_far))
             rows.append({
                 "camera image": s.image,
-                "ground truth, own view": classes.colour_of(s.view_label),
+                "ground truth, own view": classes.colour_of(np.asarray(own.label)),
                 "ground truth, second pose": shaded,
             })
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "

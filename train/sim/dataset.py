@@ -5,8 +5,6 @@ Items are dictionaries of tensors (:func:`sample_tensors`):
 
     ``image``       ``(3, S * H / W, S)`` float32 RGB in [0, 1] (the stored uint8 divided by 255), CHW
     ``labels``      ``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``
-    ``view_depth``  ``(H, W)`` float32 own-view depth, metres along the camera's z, 0 = empty column
-    ``view_label``  ``(H, W)`` uint8 own-view label, 0 = empty column
     ``pose``        ``(4, 4)`` float64 camera-to-world of the robot camera (world frame z up, OpenCV axes)
     ``K``           ``(3, 3)`` float64 image intrinsics (the grid's own camera is ``K`` scaled by ``W / S``)
     ``index``       ``()`` int64 sample index in the split
@@ -14,6 +12,10 @@ Items are dictionaries of tensors (:func:`sample_tensors`):
 Labels stay uint8, as stored, until the device: an int64 copy would cost eight times the memory and bandwidth in
 the workers, the DataLoader's queues and pinned memory (16 MiB instead of 2 MiB per 128^3 sample). The kernels
 take uint8 volumes as they are; a training step converts with ``.long()`` on the device where a loss needs it.
+
+Own-view truth (the label and depth of each column's first occupied cell) is not an item: it is
+``fruxel.kernels.first_hit(labels, grid, grid.camera())`` on the device, which :class:`fruxel.train.losses.ShellLoss`
+computes with the other views' truth and returns as ``ShellTargets.own_view`` (see :mod:`.sample`).
 
 Streaming is for machines where a data set cannot be copied in: each DataLoader worker builds its own
 :class:`SampleMaker` (renderer, Warp meshes) and makes a contiguous, room-aligned part of the split's index range.
@@ -39,14 +41,12 @@ from .shards import DatasetError, ShardReader
 
 
 def sample_tensors(sample: Sample, config: SimConfig) -> dict[str, torch.Tensor]:
-    """The tensors of one sample (layout in the module docstring). The uint8 label tensors share memory with the
-    sample's arrays where these are contiguous and writable (no copy)."""
+    """The tensors of one sample (layout in the module docstring). The uint8 labels share memory with the sample's
+    array where it is contiguous and writable (no copy)."""
     img = torch.from_numpy(np.ascontiguousarray(sample.image.transpose(2, 0, 1)))
     return {
         "image": img.to(torch.float32).div_(255.0),
         "labels": torch.from_numpy(np.require(sample.labels, np.uint8, "CW")),
-        "view_depth": torch.from_numpy(np.ascontiguousarray(sample.view_depth, dtype=np.float32)),
-        "view_label": torch.from_numpy(np.require(sample.view_label, np.uint8, "CW")),
         "pose": torch.from_numpy(np.array(sample.pose, dtype=np.float64)),
         "K": torch.from_numpy(config.image_camera().K),
         "index": torch.tensor(sample.index, dtype=torch.int64),

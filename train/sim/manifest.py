@@ -1,11 +1,11 @@
 """The manifest of a simulator data set folder: what the folder holds, how it was made, and which shards are done.
 
-Data set folder (format version 1)
+Data set folder (format version 2)
     ``manifest.json``, and per split ``ceil(samples / shard_size)`` shards ``{split}-{n:05d}.npz`` (format in
     :mod:`.shards`); shard ``n`` holds samples ``n * shard_size ..`` of its split (the last one fewer). The manifest
     is a JSON object::
 
-        {"format": "fruxel-sim", "version": 1, "complete": bool, "seed": int, "config_sha256": hex,
+        {"format": "fruxel-sim", "version": 2, "complete": bool, "seed": int, "config_sha256": hex,
          "grid": FruxelGrid.to_dict(), "classes": ClassTable.to_dict(),
          "image": {"width": S, "height": S * H / W},
          "intrinsics": {"image": {fx, fy, cx, cy, width, height}, "grid": {...the grid's own camera...}},
@@ -132,7 +132,8 @@ class Manifest:
             fmt = d.get("format") if isinstance(d, dict) else None
             raise DatasetError(path, f"not a fruxel-sim manifest (format {fmt!r})")
         if d.get("version") != VERSION:
-            raise DatasetError(path, f"manifest version {d.get('version')!r}; this fruxel reads version {VERSION}")
+            raise DatasetError(path, f"manifest version {d.get('version')!r}; this fruxel reads version {VERSION} "
+                                     "(make the data set again with this fruxel, into a new folder)")
         try:
             config = SimConfig.from_dict(d.get("config"))
         except ConfigError as e:

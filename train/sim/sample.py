@@ -2,10 +2,18 @@
 
 Sample
     One robot camera view (:class:`Sample`): the RGB image, the ground-truth labels of the grid aligned with that
-    camera, the grid's own-view depth and label images, the camera pose and where the sample came from. Sample
+    camera, the camera pose and where the sample came from. Sample
     ``i`` of a split is a pure function of the config, the base seed, the split and ``i`` (seed rule in
     :mod:`.config`); :class:`SampleMaker` computes it, reusing the room, its robot trajectory, its uploaded
     meshes and the renderer for consecutive samples of one room.
+
+Own-view truth
+    The labels are the one source of ground truth. What the grid's own camera sees of them (per pixel the label
+    and depth of its column's first occupied cell) is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``,
+    computed where it is needed, on the training device (:class:`fruxel.train.losses.ShellLoss` does, and hands
+    it out as ``ShellTargets.own_view``), like the first hits of every other view. Samples do not carry a second
+    copy of it: a stored image could disagree with the kernel's (by a float32 rounding of the depth, or a bug),
+    and computing it in numpy took longer per sample than ``fruxelize`` on a GPU machine.
 
 Samples are written to shard files by :mod:`.shards` and :mod:`.writer`, and read or streamed as torch items by
 :mod:`.dataset`.
@@ -24,7 +32,7 @@ from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_
 MAX_ROOM_ATTEMPTS = 16
 """Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
 
-FIELDS = ("image", "labels", "view_depth", "view_label", "pose")
+FIELDS = ("image", "labels", "pose")
 """The arrays of a sample (attributes of :class:`Sample`), in the order shards store them."""
 
 
@@ -45,17 +53,14 @@ class Sample:
     image: np.ndarray
     """``(S * H / W, S, 3)`` uint8 RGB image of the robot camera."""
     labels: np.ndarray
-    """``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``."""
-    view_depth: np.ndarray
-    """``(H, W)`` float32 depth (metres along the camera's z) of each column's first occupied cell, 0 = none."""
-    view_label: np.ndarray
-    """``(H, W)`` uint8 label of each column's first occupied cell, 0 = none."""
+    """``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``; the one source of
+    truth, own view included (see the module docstring)."""
     pose: np.ndarray
     """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
     OpenCV camera axes."""
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The five arrays keyed by :data:`FIELDS`."""
+        """The arrays keyed by :data:`FIELDS`."""
         return {name: getattr(self, name) for name in FIELDS}
 
 
@@ -65,8 +70,6 @@ def field_specs(config: SimConfig) -> dict[str, tuple[np.dtype, tuple[int, ...]]
     return {
         "image": (np.dtype(np.uint8), (config.image_height, config.image_width, 3)),
         "labels": (np.dtype(np.uint8), g.shape),
-        "view_depth": (np.dtype(np.float32), (g.height, g.width)),
-        "view_label": (np.dtype(np.uint8), (g.height, g.width)),
         "pose": (np.dtype(np.float64), (4, 4)),
     }
 
@@ -88,7 +91,7 @@ class _Room:
     """The seed the room was made from."""
 
 
-STAGES = ("scene", "trajectory", "upload", "render", "fruxelize", "own_view")
+STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
 """Stages :class:`SampleMaker` times (seconds accumulate in ``SampleMaker.timings``)."""
 
 
@@ -156,7 +159,7 @@ class SampleMaker:
         Raises:
             ConfigError: an unknown split or an index outside it.
         """
-        from fruxel.kernels.fruxelize import fruxelize, own_view_truth
+        from fruxel.kernels.fruxelize import fruxelize
 
         n = self.config.split_samples(split)
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
@@ -176,13 +179,9 @@ class SampleMaker:
         labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
                                       dtype=np.uint8)
         t2 = time.perf_counter()
-        depth, label = own_view_truth(labels, self.config.grid)
-        t3 = time.perf_counter()
         self.timings["render"] += t1 - t0
         self.timings["fruxelize"] += t2 - t1
-        self.timings["own_view"] += t3 - t2
-        return Sample(split, index, scene, frame, room.seed, image, labels, depth.astype(np.float32),
-                      label.astype(np.uint8), pose.copy())
+        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
 
     def close(self) -> None:
         """Free the renderer's OpenGL context and the current room (idempotent)."""

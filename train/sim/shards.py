@@ -2,11 +2,10 @@
 
 Shard file
     An ``.npz`` (zip) read without pickle. Member ``meta`` is a 0-d unicode JSON string
-    ``{"format": "fruxel-sim-shard", "version": 1, "config_sha256", "seed", "split", "shard", "start", "count",
+    ``{"format": "fruxel-sim-shard", "version": 2, "config_sha256", "seed", "split", "shard", "start", "count",
     "samples": [{"index", "scene", "frame", "scene_seed"}, ...]}``; sample ``j`` (``0 <= j < count``, index
     ``start + j``) is stored as the members ``image_{j:05d}`` ``(S * H / W, S, 3)`` uint8 RGB,
-    ``labels_{j:05d}`` ``(D, H, W)`` uint8, ``view_depth_{j:05d}`` ``(H, W)`` float32 metres,
-    ``view_label_{j:05d}`` ``(H, W)`` uint8 and ``pose_{j:05d}`` ``(4, 4)`` float64 camera-to-world (world frame
+    ``labels_{j:05d}`` ``(D, H, W)`` uint8 and ``pose_{j:05d}`` ``(4, 4)`` float64 camera-to-world (world frame
     z up, OpenCV camera axes). One member per sample and field lets a map-style data set read one sample without
     inflating the whole shard. Members are deflate-compressed with fixed zip timestamps, so the same samples
     give the same file bytes (with the same zlib). The samples themselves are bit-identical for the same config
@@ -43,8 +42,9 @@ from .sample import FIELDS, Sample, field_specs
 
 SHARD_FORMAT = "fruxel-sim-shard"
 """``format`` in a shard's meta."""
-VERSION = 1
-"""Version of the manifest and shard layout."""
+VERSION = 2
+"""Version of the manifest and shard layout. Version 1 also stored each sample's own-view depth and label images
+(``view_depth_*``, ``view_label_*``), which are now ``first_hit`` of the labels (see :mod:`.sample`)."""
 COMPRESS_LEVEL = 1
 """zlib level of the shard members: label volumes are mostly runs that level 1 already packs tightly, and images
 barely compress at any level, while higher levels cost several times the time (measured in bench_sim.py)."""
@@ -275,11 +275,10 @@ class ShardReader:
                 dtype, shape = self._specs[name]
                 arrays[name] = read_npy_member(self._zip, f"{name}_{j:05d}.npy", dtype, shape)
             n_classes = len(self.config.classes)
-            for name in ("labels", "view_label"):
-                if arrays[name].size and int(arrays[name].max()) >= n_classes:
-                    raise ArchiveError(f"member '{name}_{j:05d}' has labels outside the {n_classes} classes")
-            if not np.all(np.isfinite(arrays["view_depth"])) or not np.all(np.isfinite(arrays["pose"])):
-                raise ArchiveError(f"sample {j} has non-finite depth or pose values")
+            if arrays["labels"].size and int(arrays["labels"].max()) >= n_classes:
+                raise ArchiveError(f"member 'labels_{j:05d}' has labels outside the {n_classes} classes")
+            if not np.all(np.isfinite(arrays["pose"])):
+                raise ArchiveError(f"sample {j} has non-finite pose values")
         e = self.meta["samples"][j]
         return Sample(self.spec.split, e["index"], e["scene"], e["frame"], e["scene_seed"], **arrays)
 
