@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fruxel.classes import ClassTable
 from fruxel.grid import FruxelGrid
 from fruxel.train.sim.config import (
     AugmentConfig,
@@ -109,6 +110,22 @@ def test_samples_are_a_function_of_seed_and_index() -> None:
             np.testing.assert_array_equal(arr, y.arrays()[name], err_msg=name)
     assert (s4.scene, s4.frame) == (1, 1) and s4.scene_seed == scene_seed(SEED, "train", 1)
     assert s0.labels.shape == (16, 16, 16) and s0.image.shape == (64, 64, 3) and s0.labels.any()
+
+
+def test_samples_take_their_label_ids_from_the_class_table() -> None:
+    # The same samples with the classes reordered and extended: images and poses bit-identical, labels mapped.
+    table = ClassTable.from_names(("sculpture", "door", "floor", "extra", "furniture", "window", "wall"))
+    made = []
+    for cfg in (CONFIG, CONFIG.replace(classes=table)):
+        with SampleMaker(cfg, SEED) as maker:  # one OpenGL context at a time
+            made.append([maker.make("train", i) for i in (0, 4)])
+    lut = np.array([table.index(n) for n in CONFIG.classes.names], np.uint8)
+    for x, y in zip(*made, strict=True):
+        assert len(np.unique(x.labels)) >= 3
+        np.testing.assert_array_equal(y.labels, lut[x.labels])
+        assert y.image.tobytes() == x.image.tobytes() and y.pose.tobytes() == x.pose.tobytes()
+    with pytest.raises(ConfigError, match="lacks the simulator's classes"):
+        CONFIG.replace(classes=ClassTable.from_names(("wall", "floor")))
 
 
 # ---------------------------------------------------------------------------------------------- resume

@@ -1,7 +1,7 @@
 """The environment simulator: procedural rooms, the paper's mobile robot, and ground truth by ray casting.
 
 * :mod:`.scene` — rooms with walls (with real openings), floor, windows, doors, furniture and sculptures,
-  lights and a free-space map, from a seed (:func:`make_scene`);
+  lights and a free-space map, from a seed (:func:`make_scene`), labelled with the ids of a class table;
 * :mod:`.assets` — optional real meshes: a folder per class, and Sweet Home 3D ``.sh3f`` libraries;
 * :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
@@ -35,12 +35,7 @@ from .robot import (
     trajectory_from_commands,
 )
 from .scene import (
-    DOOR,
-    FLOOR,
-    FURNITURE,
-    SCULPTURE,
-    WALL,
-    WINDOW,
+    CLASS_NAMES,
     FreeSpace,
     Light,
     RoomConfig,
@@ -51,12 +46,7 @@ from .scene import (
 )
 
 __all__ = [
-    "DOOR",
-    "FLOOR",
-    "FURNITURE",
-    "SCULPTURE",
-    "WALL",
-    "WINDOW",
+    "CLASS_NAMES",
     "Asset",
     "AssetError",
     "AssetLibrary",

@@ -134,7 +134,7 @@ class SampleMaker:
         for attempt in range(MAX_ROOM_ATTEMPTS):
             t0 = time.perf_counter()
             s_seed = scene_seed(self.seed, split, scene, attempt)
-            room = make_scene(s_seed, cfg.room)
+            room = make_scene(s_seed, cfg.room, cfg.classes)
             t1 = time.perf_counter()
             self.timings["scene"] += t1 - t0
             try:
