@@ -38,6 +38,7 @@ torch = pytest.importorskip("torch")
 from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch
     ShardDataset,
     StreamingDataset,
+    rank_range,
     sample_tensors,
     streaming_loader,
     worker_range,
@@ -330,9 +331,11 @@ def test_streaming_equals_shards(reference: Path) -> None:
 
 def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
     ds = ShardDataset(reference, "train")
-    loader = streaming_loader(StreamingDataset(CONFIG, "train", SEED), batch_size=2, workers=2)
-    seen = []
+    stream = StreamingDataset(CONFIG, "train", SEED)
+    loader = streaming_loader(stream, batch_size=2, workers=2)
+    seen, batches = [], 0
     for batch in loader:
+        batches += 1
         for b in range(batch["index"].shape[0]):
             i = int(batch["index"][b])
             seen.append(i)
@@ -340,6 +343,31 @@ def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
             for name, t in ref.items():
                 assert torch.equal(batch[name][b], t), (i, name)
     assert sorted(seen) == list(range(6))
+    # Each worker batches its own room (3 samples): 2 + 2 batches, one more than the DataLoader's len.
+    assert batches == stream.batches(2, 2) == 4 and len(loader) == 3
+    assert stream.batches(2, 2, drop_last=True) == 2 and stream.batches(4, 0) == 2
+
+
+def test_ranks_stream_equal_disjoint_shares(reference: Path) -> None:
+    for start, samples, world in ((0, 10, 3), (5, 17, 4), (0, 3, 3), (2, 2, 3), (0, 0, 1)):
+        parts = [rank_range(start, samples, r, world) for r in range(world)]
+        assert len({len(p) for p in parts}) == 1
+        assert [i for p in parts for i in p] == list(range(start, start + samples // world * world))
+    for bad in ((0, 10, 3, 3), (0, 10, -1, 3), (0, 10, 0, 0), (-1, 10, 0, 1)):
+        with pytest.raises(ValueError):
+            rank_range(*bad)
+    # Rank 1 of 2 streams samples 3..5, the same bytes as the shards; ranks 0..3 of 4 take one sample each.
+    ds = ShardDataset(reference, "train")
+    half = StreamingDataset(CONFIG, "train", SEED, rank=1, world_size=2)
+    got = list(half.samples_numpy())
+    half.close()
+    assert [s.index for s in got] == [3, 4, 5]
+    for s in got:
+        assert all(a.tobytes() == ds.sample(s.index).arrays()[k].tobytes() for k, a in s.arrays().items())
+    quarters = [StreamingDataset(CONFIG, "train", SEED, start=1, rank=r, world_size=4) for r in range(4)]
+    assert [(q.start, len(q)) for q in quarters] == [(1, 1), (2, 1), (3, 1), (4, 1)]
+    with pytest.raises(ValueError, match="rank"):
+        StreamingDataset(CONFIG, "train", SEED, rank=2, world_size=2)
 
 
 def test_worker_range_splits_whole_rooms() -> None:

@@ -21,6 +21,11 @@ Streaming is for machines where a data set cannot be copied in: each DataLoader 
 :class:`SampleMaker` (renderer, Warp meshes) and makes a contiguous, room-aligned part of the split's index range.
 Workers must be started with ``spawn`` (an OpenGL or CUDA context does not survive ``fork``);
 :func:`streaming_loader` sets that up.
+
+Distributed training: every rank streams its own equal, disjoint share of the indices,
+``StreamingDataset(config, split, seed, rank=rank, world_size=world_size)`` (:func:`rank_range`), and
+``StreamingDataset.batches`` says how many batches each rank's loader yields. A :class:`ShardDataset` is map-style:
+give its DataLoader a ``torch.utils.data.DistributedSampler``.
 """
 
 from __future__ import annotations
@@ -161,33 +166,60 @@ def worker_range(start: int, stop: int, samples_per_scene: int, worker: int, wor
     return range(lo, max(lo, min(stop, b * samples_per_scene)))
 
 
+def rank_range(start: int, samples: int, rank: int, world_size: int) -> range:
+    """The indices of ``start .. start + samples - 1`` that distributed rank ``rank`` of ``world_size`` takes: the
+    rank-th of ``world_size`` contiguous runs of ``samples // world_size`` indices each.
+
+    Every rank gets as many samples as every other, so that ranks run the same number of steps (a rank with one
+    batch more would wait forever in its gradient all-reduce); the last ``samples % world_size`` indices are left
+    out, as ``DistributedSampler(drop_last=True)`` does. Runs are not room-aligned: a room that straddles two
+    ranks is built by both (a few milliseconds), which keeps the shares equal.
+
+    Raises:
+        ValueError: a rank outside ``0 .. world_size - 1``, or a negative start or count.
+    """
+    if not 0 <= rank < world_size:
+        raise ValueError(f"rank must be in 0 .. world_size - 1, got rank {rank!r} of world_size {world_size!r}")
+    if start < 0 or samples < 0:
+        raise ValueError(f"start and samples must be >= 0, got {start!r} and {samples!r}")
+    n = samples // world_size
+    return range(start + rank * n, start + (rank + 1) * n)
+
+
 class StreamingDataset(IterableDataset):
     """Samples of one split made on the fly, identical to the shards the generator writes for the same seed.
 
-    Each DataLoader worker (or the main process, without workers) makes a contiguous, room-aligned part of the
-    indices ``start .. start + samples - 1`` in order (:func:`worker_range`), with its own :class:`SampleMaker`.
-    Use ``spawn`` workers (:func:`streaming_loader`).
+    The data set makes the indices ``start .. start + samples - 1``, or with ``world_size`` > 1 this rank's equal
+    share of them (:func:`rank_range`; the shares of all ranks are disjoint). Each DataLoader worker (or the main
+    process, without workers) makes a contiguous, room-aligned part of those in order (:func:`worker_range`), with
+    its own :class:`SampleMaker`, and batches its part on its own: see :meth:`batches` for how many batches that
+    gives. Use ``spawn`` workers (:func:`streaming_loader`).
 
     Args:
         config: the generator settings.
         split: the split's name.
         seed: the base seed.
-        samples: how many samples to make; None: the split's size in ``config.splits``.
+        samples: how many samples to make (all ranks together); None: the split's size in ``config.splits``.
         start: index of the first sample.
+        rank, world_size: this process's distributed rank and the number of ranks
+            (``torch.distributed.get_rank()``, ``get_world_size()``); 0 and 1 without distribution.
         backend, device: ``fruxelize`` backend and Warp device (see :class:`SampleMaker`); None for the device
             takes CUDA when present.
 
     Raises:
-        ConfigError: an unknown split or a range outside it.
+        ConfigError: an unknown split or a range outside it. ValueError: a rank outside the world.
     """
 
     def __init__(self, config: SimConfig, split: str = "train", seed: int = 0, *, samples: int | None = None,
-                 start: int = 0, backend: str | None = "warp", device: str | None = None) -> None:
+                 start: int = 0, rank: int = 0, world_size: int = 1, backend: str | None = "warp",
+                 device: str | None = None) -> None:
         super().__init__()
         n = config.split_samples(split)
         samples = n - start if samples is None else samples
         if start < 0 or samples < 0 or start + samples > n:
             raise ConfigError(f"samples {start}..{start + samples - 1} are outside split {split!r} of {n} samples")
+        part = rank_range(start, samples, rank, world_size)
+        start, samples = part.start, len(part)
         self.config = config
         """The generator settings."""
         self.split = split
@@ -195,9 +227,9 @@ class StreamingDataset(IterableDataset):
         self.seed = int(seed)
         """The base seed."""
         self.start = int(start)
-        """Index of the first sample."""
+        """Index of the first sample (of this rank's share)."""
         self.samples = int(samples)
-        """Number of samples."""
+        """Number of samples (of this rank's share)."""
         self.backend = backend
         """``fruxelize`` backend."""
         self.device = device
@@ -217,7 +249,24 @@ class StreamingDataset(IterableDataset):
         """The indices this process makes: all of them, or this DataLoader worker's part."""
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        return self.worker_indices(worker, workers)
+
+    def worker_indices(self, worker: int, workers: int) -> range:
+        """The indices DataLoader worker ``worker`` of ``workers`` makes (:func:`worker_range`)."""
         return worker_range(self.start, self.start + self.samples, self.config.samples_per_scene, worker, workers)
+
+    def batches(self, batch_size: int, workers: int, drop_last: bool = False) -> int:
+        """The number of batches a DataLoader with ``workers`` workers (0: none) yields per epoch.
+
+        Each worker batches its own part, so up to one partial batch per worker: the number can exceed
+        ``ceil(len(self) / batch_size)`` (the DataLoader's ``len``), and differ between ranks whose shares are split
+        differently by room boundaries. It depends only on the arguments, so every rank can compute every rank's
+        count and a training loop can run the smallest of them in every rank.
+        """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        parts = [len(self.worker_indices(w, max(1, workers))) for w in range(max(1, workers))]
+        return sum(n // batch_size if drop_last else -(-n // batch_size) for n in parts)
 
     def samples_numpy(self) -> Iterator[Sample]:
         """This process's samples as numpy :class:`Sample` objects, in index order."""
