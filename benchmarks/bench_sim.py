@@ -1,12 +1,12 @@
 """Simulator benchmark: samples per second of the data set generator and of the streaming data set.
 
 A sample is made end to end: room (``make_scene``), robot trajectory, mesh upload for ``fruxelize`` (once per
-room), pyrender image with augmentation, ``fruxelize`` of the grid, own-view truth; ``generate`` also compresses
-and writes the shards and the manifest.
+room), pyrender image with augmentation, ``fruxelize`` of the grid; ``generate`` also compresses and writes the
+shards and the manifest.
 
 Modes (``--mode``, comma-separated):
 
-* ``generate``  — ``fruxel.train.sim.shards.generate`` into a temporary folder with ``--workers`` processes;
+* ``generate``  — ``fruxel.train.sim.writer.generate`` into a temporary folder with ``--workers`` processes;
 * ``streaming`` — a ``StreamingDataset`` through ``streaming_loader`` (spawned DataLoader workers), batches of 8;
 * ``profile``   — one process, seconds per stage (no files), plus shard encoding.
 
@@ -75,7 +75,7 @@ def make_config(image: int, grid: int, samples: int, shard_size: int, augment: b
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
                    device: str | None) -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
-    from fruxel.train.sim.shards import generate
+    from fruxel.train.sim.writer import generate
 
     cfg = make_config(image, grid, samples, shard_size)
     marks: list[tuple[float, int]] = []
@@ -121,7 +121,8 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
 
 def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None) -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
-    from fruxel.train.sim.shards import STAGES, SampleMaker, ShardSpec, encode_shard
+    from fruxel.train.sim.sample import STAGES, SampleMaker
+    from fruxel.train.sim.shards import ShardSpec, encode_shard
 
     cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps())
     sps = cfg.samples_per_scene
@@ -190,7 +191,7 @@ def section(runs: list[dict[str, Any]]) -> str:
     lines = [SECTION, ""]
     lines.append("`python benchmarks/bench_sim.py` (see its docstring for the H100 command). A sample is made end "
                  "to end: room, robot trajectory, mesh upload (once per room of 16 samples), pyrender image with "
-                 "augmentation, `fruxelize`, own-view truth; `generate` also compresses and writes the shards. "
+                 "augmentation, `fruxelize`; `generate` also compresses and writes the shards. "
                  "*Steady* excludes start-up (process spawn, imports, EGL and Warp initialisation); *end to end* "
                  "includes it.")
     lines.append("")
@@ -216,12 +217,14 @@ def section(runs: list[dict[str, Any]]) -> str:
     if profiles:
         stages = ["scene", "trajectory", "upload", "render", "fruxelize", "own_view", "encode"]
         lines += ["", "Milliseconds per sample and stage, one process (`--mode profile`; scene, trajectory and "
-                  "upload are per room, shared by its 16 samples):", "",
+                  "upload are per room, shared by its 16 samples; own_view: the own-view images that samples made "
+                  "before format version 2 carried, - where a run had no such stage):", "",
                   "| machine | image | grid | " + " | ".join(stages) + " | samples/s | KiB/sample |",
                   "| --- | ---: | ---: | " + " | ".join("---:" for _ in stages) + " | ---: | ---: |"]
         for tag, r in profiles:
             ms = r["ms_per_sample"]
-            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | " + " | ".join(f"{ms[s]:.1f}" for s in stages)
+            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | "
+                         + " | ".join(f"{ms[s]:.1f}" if s in ms else "-" for s in stages)
                          + f" | {r['sps_one_process']:.1f} | {r['bytes_per_sample'] / 1024:.0f} |")
     notes = [n for run in runs for n in run.get("notes", [])]
     if notes:

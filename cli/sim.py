@@ -4,7 +4,7 @@
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
 
-``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.shards`); it resumes an interrupted run in the
+``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
 same folder and refuses a folder made with other settings. ``preview`` writes a contact sheet: per sample the
 robot camera's image, the own-view ground-truth labels in the class colours, and a ray-cast render of the
 ground-truth volume from a second camera beside the robot's, with a class legend.
@@ -94,7 +94,7 @@ def _config(args: argparse.Namespace, splits: Any) -> SimConfig:
 
 def _generate(args: argparse.Namespace) -> int:
     from fruxel.train.sim.config import PAPER_SPLITS, ConfigError, parse_splits, scale_splits
-    from fruxel.train.sim.shards import generate
+    from fruxel.train.sim.writer import generate
 
     splits = parse_splits(args.split) if args.split is not None else PAPER_SPLITS
     if args.samples is not None:
@@ -119,10 +119,13 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from fruxel.kernels import first_hit
     from fruxel.render.images import image_format, save_image
     from fruxel.render.raycast import RaycastStyle, raycast_image
     from fruxel.train.sim.images import contact_sheet, second_camera
-    from fruxel.train.sim.shards import SampleMaker
+    from fruxel.train.sim.sample import SampleMaker
 
     # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
     fmt = image_format(args.out)
@@ -134,12 +137,13 @@ def _preview(args: argparse.Namespace) -> int:
     with SampleMaker(config, args.seed, backend=args.backend) as maker:
         for i in range(args.index, args.index + args.count):
             s = maker.make(args.split, i)
-            cam = second_camera(s.view_depth, config, config.image_width)
+            own = first_hit(s.labels, grid, grid.camera(), backend=args.raycast_backend)
+            cam = second_camera(own.depth, config, config.image_width)
             shaded, _ = raycast_image(s.labels, grid, cam, palette, backend=args.raycast_backend,
                                       style=RaycastStyle(fog=True))
             rows.append({
                 "camera image": s.image,
-                "ground truth, own view": classes.colour_of(s.view_label),
+                "ground truth, own view": classes.colour_of(np.asarray(own.label)),
                 "ground truth, second pose": shaded,
             })
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "

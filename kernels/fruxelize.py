@@ -1,4 +1,4 @@
-"""Ground truth from labelled solids: ``fruxelize`` (SPEC section 4) and the own-view truth images.
+"""Ground truth from labelled solids: ``fruxelize`` (SPEC section 4).
 
 Frames
     Meshes are given in the world frame (any right-handed frame in metres; the simulator's is z up). ``pose`` is
@@ -404,30 +404,3 @@ def fruxelize(
         mesh_set = MeshSet(meshes, backend=backend, device=device)
     labels, fallbacks = _warp_module().fruxelize(mesh_set.native, grid, pose)
     return (labels, fallbacks) if return_fallbacks else labels
-
-
-def own_view_truth(labels: Any, grid: FruxelGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Depth and label images of the grid's own camera: the first occupied cell of every column.
-
-    Exact for the own view (each pixel's ray is its column's centre ray, and the cells along it are met in order
-    of k), and the same as ``first_hit(labels, grid, grid.camera())``: the depth is the entry depth of that cell,
-    its near plane ``z_k``.
-
-    Args:
-        labels: ``(D, H, W)`` integer label volume (numpy or anything ``np.asarray`` takes), 0 = empty.
-        grid: its grid.
-
-    Returns:
-        depth ``(H, W)`` float32 metres along the camera's z axis (0 where the column is empty), and label
-        ``(H, W)`` int32 (0 where empty).
-    """
-    lab = np.asarray(labels)
-    if lab.shape != grid.shape or lab.dtype.kind not in "iub":
-        raise VolumeError(f"labels must be integer with shape {grid.shape}, got {lab.shape} {lab.dtype}")
-    occ = lab != 0
-    k = occ.argmax(axis=0)
-    hit = occ.any(axis=0)
-    first = np.take_along_axis(lab, k[None], axis=0)[0]
-    depth = np.where(hit, grid.z_near + k * grid.dz, 0.0).astype(np.float32)
-    label = np.where(hit, first, 0).astype(np.int32)
-    return depth, label

@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from fruxel.errors import FruxelError
 from fruxel.io import atomic_path
 
 from .config import ConfigError, ModelConfig, TrainConfig, override
@@ -31,7 +32,7 @@ MAX_TENSORS = 10_000
 """Most tensors a shipped model may hold (a sanity bound against hostile files)."""
 
 
-class ModelFileError(ValueError):
+class ModelFileError(FruxelError, ValueError):
     """A model file that cannot be used; the message names the file and the problem."""
 
     def __init__(self, path: str, problem: str) -> None:

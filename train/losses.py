@@ -13,6 +13,11 @@ Every loss takes the network's output as plain tensors, so any training loop can
 
 Frames: volumes are NCDHW in the grid frame (SPEC sections 1-2); images are ``(B, N, h, w)`` per camera; depths
 are metres along each viewing camera's z.
+
+Ground truth has one source, the label volume: what any camera sees of it, the grid's own camera included, is
+``first_hit`` of the labels (the own view's is each column's first occupied cell, its depth the cell's near plane
+``z_k``). :meth:`ShellLoss.targets` computes it on the labels' device and hands the own view's out as
+:attr:`ShellTargets.own_view`, for metrics that need it; the simulator's samples do not store a copy.
 """
 
 from __future__ import annotations
@@ -69,6 +74,11 @@ def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: flo
 def _check_reduction(reduction: str) -> None:
     if reduction not in ("mean", "sum"):
         raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
+
+
+def _check_count(value: object, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
 
 
 def _check_mask(mask: torch.Tensor, name: str) -> None:
@@ -201,7 +211,8 @@ class ShellLossConfig:
     eps: float = 1e-6
     """Added to the expected class probability in :func:`shell_cross_entropy`."""
     seed: int = 0
-    """Seed of the novel poses' generator (a :class:`ShellLoss` draws new poses at every call)."""
+    """Base seed (>= 0) of the novel poses: draw n of distributed rank r is a pure function of ``(seed, r, n)``
+    (see :class:`ShellLoss`)."""
     backend: str | None = None
     """Kernel backend (``"warp"``, ``"opencl"``, an ``available_backends`` name, or None for the best)."""
     device: str | None = None
@@ -246,6 +257,10 @@ class ShellTargets:
     concatenated in group order."""
     hit_flat: torch.Tensor
     """``(sum of B * N * h * w over the groups,)`` bool: every group's ground-truth hit mask, like ``depth_flat``."""
+    own_view: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    """The grid's own camera (when it is among the cameras): its ``first_hit`` labels ``(B, H, W)`` int64, depths
+    ``(B, H, W)`` float32 (the near plane ``z_k`` of each column's first occupied cell, 0 on a miss) and hit mask
+    ``(B, H, W)`` bool, views of the group tensors above: the own-view truth, from the labels like every view's."""
 
     @property
     def pixels(self) -> int:
@@ -257,26 +272,72 @@ class ShellLoss:
     """Shell-aware losses of predicted logits against a ground-truth label volume, from the grid's own view plus
     K random novel poses per call (seeded; new poses at every call).
 
+    Novel poses: draw ``n`` (the n-th call of :meth:`cameras`, counted from 0 in :attr:`draws`) of rank ``r``
+    takes its poses from ``numpy.random.default_rng(SeedSequence(config.seed, spawn_key=(r, n)))``, so they
+    differ between distributed ranks and between draws, and depend on nothing else: the generator's whole state
+    is the counter. :meth:`state_dict` / :meth:`load_state_dict` checkpoint it; restoring gives the same next
+    poses. The rank is not part of the state: ranks that draw equally often (one call per training step) share
+    it, so a checkpoint written by rank 0 restores every rank to its own stream.
+
     Args:
         grid: the volumes' grid.
         config: settings; defaults of :class:`ShellLossConfig` when None.
+        rank: this process's distributed rank (``torch.distributed.get_rank()``), >= 0; 0 without distribution.
+
+    Raises:
+        ValueError: a negative or non-integer seed or rank.
     """
 
-    def __init__(self, grid: FruxelGrid, config: ShellLossConfig | None = None) -> None:
+    def __init__(self, grid: FruxelGrid, config: ShellLossConfig | None = None, *, rank: int = 0) -> None:
         self.grid = grid
+        """The volumes' grid."""
         self.config = config or ShellLossConfig()
-        self.generator = np.random.default_rng(self.config.seed)
+        """The settings."""
+        _check_count(self.config.seed, "ShellLossConfig.seed")
+        _check_count(rank, "rank")
+        self.rank = int(rank)
+        """The distributed rank mixed into the novel poses' seed."""
+        self.draws = 0
+        """Novel-pose draws made so far (calls of :meth:`cameras`): the generator's state."""
+
+    def pose_generator(self, draw: int) -> np.random.Generator:
+        """The numpy generator of novel-pose draw ``draw`` on this rank (see the class docstring)."""
+        return np.random.default_rng(np.random.SeedSequence(self.config.seed, spawn_key=(self.rank, draw)))
 
     def cameras(self) -> list[Camera]:
-        """The cameras of the next batch: the own view (if configured) and K newly drawn novel poses."""
+        """The cameras of the next batch: the own view (if configured) and K newly drawn novel poses; advances
+        :attr:`draws`."""
         c = self.config
         cams = [self.grid.camera()] if c.own_view else []
         w, h = c.novel_size
-        cams += random_poses(self.grid, c.novel_views, self.generator, width=w, height=h, hfov=c.novel_hfov,
-                             azimuth=c.azimuth, elevation=c.elevation, distance=c.distance)
+        cams += random_poses(self.grid, c.novel_views, self.pose_generator(self.draws), width=w, height=h,
+                             hfov=c.novel_hfov, azimuth=c.azimuth, elevation=c.elevation, distance=c.distance)
         if not cams:
             raise ValueError("ShellLoss needs the own view or at least one novel view")
+        self.draws += 1
         return cams
+
+    def state_dict(self) -> dict[str, int]:
+        """The novel poses' generator state, ``{"seed": int, "draws": int}``: plain ints, for a training checkpoint
+        (``torch.save``, read back with ``torch.load(weights_only=True)``) or JSON."""
+        return {"seed": int(self.config.seed), "draws": int(self.draws)}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        """Restore :meth:`state_dict`'s state: the next :meth:`cameras` gives what it gave after the state was taken
+        (on this rank).
+
+        Raises:
+            ValueError: not such a state, or one taken with another seed (the run's config changed).
+        """
+        if not isinstance(state, dict) or sorted(state) != ["draws", "seed"]:
+            keys = sorted(map(str, state)) if isinstance(state, dict) else type(state).__name__
+            raise ValueError(f"ShellLoss state must be a dict with keys 'draws' and 'seed', got {keys}")
+        _check_count(state["seed"], "ShellLoss state 'seed'")
+        _check_count(state["draws"], "ShellLoss state 'draws'")
+        if state["seed"] != self.config.seed:
+            raise ValueError(f"ShellLoss state was taken with seed {state['seed']}, this ShellLoss has seed "
+                             f"{self.config.seed}")
+        self.draws = int(state["draws"])
 
     def targets(self, labels: torch.Tensor, cameras: list[Camera]) -> ShellTargets:
         """The ground-truth side (no gradient): ``first_hit`` of the labels per camera group and their ``shell``
@@ -296,7 +357,11 @@ class ShellLoss:
             weight = weight / weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
             depth_flat = torch.cat([t[1].reshape(-1) for t in out])
             hit_flat = torch.cat([t[2].reshape(-1) for t in out])
-        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat)
+        own = self.grid.camera()
+        own_view = next(((lab[:, n], depth[:, n], hit[:, n]) for group, (lab, depth, hit) in
+                         zip(group_by_size(cameras), out, strict=True) for n, cam in enumerate(group) if cam == own),
+                        None)
+        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_view)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:

@@ -14,7 +14,7 @@ import pytest
 from fruxel.camera import Camera, CameraError
 from fruxel.grid import FruxelGrid
 from fruxel.kernels import BackendError, fruxelize
-from fruxel.kernels.fruxelize import MAX_CROSSINGS, MeshError, MeshSet, own_view_truth, prepare_meshes
+from fruxel.kernels.fruxelize import MAX_CROSSINGS, MeshError, MeshSet, prepare_meshes
 
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("warp")
@@ -234,39 +234,6 @@ def test_scene_ground_truth_matches_contains() -> None:
             ref[_contains(o.mesh, centres[idx])] = o.label
         assert len(np.unique(ref)) >= 3
         _check(labels[idx], ref, [o.mesh for o in scene.objects], centres[idx])
-
-
-def test_own_view_truth_is_the_first_occupied_cell() -> None:
-    grid = FruxelGrid(width=7, height=5, depth=9, z_near=0.5, z_far=5.0, hfov=60.0)
-    rng = np.random.default_rng(0)
-    labels = (rng.uniform(size=grid.shape) < 0.15) * rng.integers(1, 7, size=grid.shape)
-    labels[:, 0, 0] = 0
-    depth, label = own_view_truth(labels.astype(np.uint8), grid)
-    assert depth.dtype == np.float32 and label.dtype == np.int32 and depth.shape == (5, 7)
-    zb = grid.z_bounds()
-    for j in range(5):
-        for i in range(7):
-            ks = np.flatnonzero(labels[:, j, i])
-            if len(ks) == 0:
-                assert depth[j, i] == 0 and label[j, i] == 0
-            else:
-                assert label[j, i] == labels[ks[0], j, i]
-                assert depth[j, i] == pytest.approx(zb[ks[0]], rel=1e-6)
-
-
-def test_own_view_truth_agrees_with_first_hit() -> None:
-    from fruxel import kernels
-
-    grid = FruxelGrid(width=16, height=12, depth=20, z_near=0.5, z_far=5.0, hfov=60.0)
-    rng = np.random.default_rng(1)
-    labels = ((rng.uniform(size=grid.shape) < 0.05) * rng.integers(1, 7, size=grid.shape)).astype(np.uint8)
-    try:
-        hits = kernels.first_hit(labels, grid, grid.camera(), backend="warp", device="cpu")
-    except (ImportError, AttributeError, NotImplementedError, kernels.BackendUnavailable) as e:
-        pytest.skip(f"Warp first_hit unavailable: {e}")
-    depth, label = own_view_truth(labels, grid)
-    np.testing.assert_array_equal(label, np.asarray(hits.label))
-    np.testing.assert_allclose(depth, np.asarray(hits.depth), rtol=1e-5, atol=1e-6)
 
 
 def test_bad_input_is_refused(grid: FruxelGrid) -> None:

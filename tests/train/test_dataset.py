@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fruxel.classes import ClassTable
 from fruxel.grid import FruxelGrid
 from fruxel.train.sim.config import (
     AugmentConfig,
@@ -28,21 +29,16 @@ from fruxel.train.sim.config import (
     scale_splits,
     scene_seed,
 )
-from fruxel.train.sim.shards import (
-    MANIFEST,
-    DatasetError,
-    Manifest,
-    SampleMaker,
-    ShardReader,
-    encode_shard,
-    generate,
-    shard_specs,
-)
+from fruxel.train.sim.manifest import MANIFEST, Manifest
+from fruxel.train.sim.sample import SampleMaker
+from fruxel.train.sim.shards import DatasetError, ShardReader, encode_shard, shard_specs
+from fruxel.train.sim.writer import generate
 
 torch = pytest.importorskip("torch")
 from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch
     ShardDataset,
     StreamingDataset,
+    rank_range,
     sample_tensors,
     streaming_loader,
     worker_range,
@@ -92,7 +88,7 @@ def test_same_seed_same_bytes_across_runs_and_workers(reference: Path, tmp_path:
 
 def test_manifest_records_the_data_set(reference: Path) -> None:
     m = json.loads((reference / MANIFEST).read_text())
-    assert m["format"] == "fruxel-sim" and m["version"] == 1 and m["complete"] is True and m["seed"] == SEED
+    assert m["format"] == "fruxel-sim" and m["version"] == 2 and m["complete"] is True and m["seed"] == SEED
     assert m["grid"] == CONFIG.grid.to_dict() and m["classes"] == CONFIG.classes.to_dict()
     assert m["intrinsics"]["image"]["fx"] == pytest.approx(m["intrinsics"]["grid"]["fx"] * 64 / 16)
     assert [s["count"] for s in m["splits"]["train"]["shards"]] == [2, 2, 2]
@@ -115,6 +111,22 @@ def test_samples_are_a_function_of_seed_and_index() -> None:
             np.testing.assert_array_equal(arr, y.arrays()[name], err_msg=name)
     assert (s4.scene, s4.frame) == (1, 1) and s4.scene_seed == scene_seed(SEED, "train", 1)
     assert s0.labels.shape == (16, 16, 16) and s0.image.shape == (64, 64, 3) and s0.labels.any()
+
+
+def test_samples_take_their_label_ids_from_the_class_table() -> None:
+    # The same samples with the classes reordered and extended: images and poses bit-identical, labels mapped.
+    table = ClassTable.from_names(("sculpture", "door", "floor", "extra", "furniture", "window", "wall"))
+    made = []
+    for cfg in (CONFIG, CONFIG.replace(classes=table)):
+        with SampleMaker(cfg, SEED) as maker:  # one OpenGL context at a time
+            made.append([maker.make("train", i) for i in (0, 4)])
+    lut = np.array([table.index(n) for n in CONFIG.classes.names], np.uint8)
+    for x, y in zip(*made, strict=True):
+        assert len(np.unique(x.labels)) >= 3
+        np.testing.assert_array_equal(y.labels, lut[x.labels])
+        assert y.image.tobytes() == x.image.tobytes() and y.pose.tobytes() == x.pose.tobytes()
+    with pytest.raises(ConfigError, match="lacks the simulator's classes"):
+        CONFIG.replace(classes=ClassTable.from_names(("wall", "floor")))
 
 
 # ---------------------------------------------------------------------------------------------- resume
@@ -241,6 +253,20 @@ def test_object_arrays_are_refused_without_unpickling(reference: Path, tmp_path:
     reader.close()
 
 
+def test_impossible_values_are_refused(tmp_path: Path) -> None:
+    # Well-formed members with values no generator writes: a label outside the class table, a NaN pose.
+    spec = shard_specs(CONFIG)[0]
+    with SampleMaker(CONFIG, SEED) as maker:
+        samples = [maker.make("train", i) for i in spec.indices]
+    samples[0].labels[0, 0, 0] = len(CONFIG.classes)
+    samples[1].pose[0, 3] = np.nan
+    path = tmp_path / spec.file
+    path.write_bytes(encode_shard(spec, CONFIG, SEED, samples))
+    with ShardReader(str(path), spec, CONFIG, SEED) as reader:
+        _assert_refused(lambda: reader.sample(0), path, "labels outside the 7 classes")
+        _assert_refused(lambda: reader.sample(1), path, "non-finite pose")
+
+
 def test_folder_of_other_settings_is_refused(reference: Path, tmp_path: Path) -> None:
     out = _copy(reference, tmp_path)
     other = CONFIG.replace(grid=FruxelGrid(width=16, height=16, depth=8, z_near=0.5, z_far=8.0, hfov=60.0))
@@ -253,6 +279,10 @@ def test_folder_of_other_settings_is_refused(reference: Path, tmp_path: Path) ->
     m["version"] = 99
     (out / MANIFEST).write_text(json.dumps(m))
     _assert_refused(lambda: ShardDataset(out, "train"), out / MANIFEST, "version 99")
+    # A folder of format version 1 (own-view images stored with every sample) is refused with what to do.
+    m["version"] = 1
+    (out / MANIFEST).write_text(json.dumps(m))
+    _assert_refused(lambda: generate(str(out), CONFIG, SEED, progress=False), out / MANIFEST, "make the data set again")
 
 
 def test_incomplete_data_set_is_refused_by_the_reader(reference: Path, tmp_path: Path) -> None:
@@ -274,14 +304,12 @@ def test_shard_dataset_items(reference: Path) -> None:
     item = ds[5]
     assert item["image"].shape == (3, 64, 64) and item["image"].dtype == torch.float32
     assert 0.0 <= float(item["image"].min()) and float(item["image"].max()) <= 1.0
-    assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.int64
-    assert item["view_label"].shape == (16, 16) and item["view_depth"].dtype == torch.float32
+    # Labels stay uint8 until the device (an int64 128^3 volume would take 16 MiB per sample instead of 2).
+    assert item["labels"].shape == (16, 16, 16) and item["labels"].dtype == torch.uint8
     assert item["pose"].shape == (4, 4) and int(item["index"]) == 5
     np.testing.assert_allclose(item["K"].numpy(), CONFIG.image_camera().K)
-    # Own-view truth is the first occupied cell of each column.
-    lab = item["labels"].numpy()
-    first = np.where(lab.any(axis=0), np.take_along_axis(lab, (lab != 0).argmax(axis=0)[None], 0)[0], 0)
-    np.testing.assert_array_equal(item["view_label"].numpy(), first)
+    # One source of truth: own-view images are first_hit of the labels on the device, not items of their own.
+    assert sorted(item) == ["K", "image", "index", "labels", "pose"]
     with pytest.raises(IndexError):
         ds[6]
 
@@ -303,9 +331,11 @@ def test_streaming_equals_shards(reference: Path) -> None:
 
 def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
     ds = ShardDataset(reference, "train")
-    loader = streaming_loader(StreamingDataset(CONFIG, "train", SEED), batch_size=2, workers=2)
-    seen = []
+    stream = StreamingDataset(CONFIG, "train", SEED)
+    loader = streaming_loader(stream, batch_size=2, workers=2)
+    seen, batches = [], 0
     for batch in loader:
+        batches += 1
         for b in range(batch["index"].shape[0]):
             i = int(batch["index"][b])
             seen.append(i)
@@ -313,6 +343,31 @@ def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
             for name, t in ref.items():
                 assert torch.equal(batch[name][b], t), (i, name)
     assert sorted(seen) == list(range(6))
+    # Each worker batches its own room (3 samples): 2 + 2 batches, one more than the DataLoader's len.
+    assert batches == stream.batches(2, 2) == 4 and len(loader) == 3
+    assert stream.batches(2, 2, drop_last=True) == 2 and stream.batches(4, 0) == 2
+
+
+def test_ranks_stream_equal_disjoint_shares(reference: Path) -> None:
+    for start, samples, world in ((0, 10, 3), (5, 17, 4), (0, 3, 3), (2, 2, 3), (0, 0, 1)):
+        parts = [rank_range(start, samples, r, world) for r in range(world)]
+        assert len({len(p) for p in parts}) == 1
+        assert [i for p in parts for i in p] == list(range(start, start + samples // world * world))
+    for bad in ((0, 10, 3, 3), (0, 10, -1, 3), (0, 10, 0, 0), (-1, 10, 0, 1)):
+        with pytest.raises(ValueError):
+            rank_range(*bad)
+    # Rank 1 of 2 streams samples 3..5, the same bytes as the shards; ranks 0..3 of 4 take one sample each.
+    ds = ShardDataset(reference, "train")
+    half = StreamingDataset(CONFIG, "train", SEED, rank=1, world_size=2)
+    got = list(half.samples_numpy())
+    half.close()
+    assert [s.index for s in got] == [3, 4, 5]
+    for s in got:
+        assert all(a.tobytes() == ds.sample(s.index).arrays()[k].tobytes() for k, a in s.arrays().items())
+    quarters = [StreamingDataset(CONFIG, "train", SEED, start=1, rank=r, world_size=4) for r in range(4)]
+    assert [(q.start, len(q)) for q in quarters] == [(1, 1), (2, 1), (3, 1), (4, 1)]
+    with pytest.raises(ValueError, match="rank"):
+        StreamingDataset(CONFIG, "train", SEED, rank=2, world_size=2)
 
 
 def test_worker_range_splits_whole_rooms() -> None:
@@ -328,6 +383,11 @@ def test_sample_tensors_keep_bytes(reference: Path) -> None:
     s = ShardDataset(reference, "test").sample(1)
     t = sample_tensors(s, CONFIG)
     np.testing.assert_array_equal(np.rint(t["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8), s.image)
+    # The labels are the sample's own bytes, not a copy; a read-only array is copied rather than shared.
+    assert t["labels"].dtype == torch.uint8 and np.shares_memory(t["labels"].numpy(), s.labels)
+    s.labels.flags.writeable = False
+    again = sample_tensors(s, CONFIG)["labels"]
+    assert not np.shares_memory(again.numpy(), s.labels) and torch.equal(again, t["labels"])
 
 
 # ---------------------------------------------------------------------------------------------- settings

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fruxel.grid import FruxelGrid
-from fruxel.kernels.fruxelize import fruxelize, own_view_truth
+from fruxel.kernels import first_hit
+from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig, augment_rng
 from fruxel.train.sim.images import SceneRenderer, _camera_response, contact_sheet, second_camera
 from fruxel.train.sim.scene import FreeSpace, Scene, SceneObject, boxes, make_scene
@@ -53,7 +54,7 @@ def test_image_lines_up_with_the_grid() -> None:
         r.set_scene(scene)
         img = r.render(POSE)
     assert img.shape == (24, 32, 3) and img.dtype == np.uint8
-    _, view = own_view_truth(fruxelize(scene.objects, grid, POSE), grid)
+    view = np.asarray(first_hit(fruxelize(scene.objects, grid, POSE), grid, grid.camera()).label)
     # pyrender writes its linear shading through a 1/2.2 gamma.
     refs = 255.0 * np.array([[1.0, 1.0, 1.0]] + [COLOURS[k][:3] for k in (1, 2, 4)]) ** (1 / 2.2)
     dist = np.linalg.norm(img[:, :, None, :].astype(float) - refs[None, None], axis=-1)

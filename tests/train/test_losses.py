@@ -1,8 +1,10 @@
-"""Shell-aware losses: their values on hand-built inputs, the voxel cross-entropy's weighting, seeded novel poses,
-and a real optimisation of free logits towards a ground-truth volume that must bring every term down."""
+"""Shell-aware losses: their values on hand-built inputs, the voxel cross-entropy's weighting, seeded novel poses
+(checkpointed, per rank), the own-view truth, and a real optimisation of free logits towards a ground-truth volume
+that must bring every term down."""
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
 import numpy as np
@@ -187,3 +189,76 @@ def test_loss_arguments_are_checked() -> None:
                                mask=torch.tensor([[[[False, True]]]]))
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(p.grad).all() and torch.all(p.grad[..., 0] == 0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_own_view_truth_is_the_first_occupied_cell(backend: str) -> None:
+    # The one source of own-view truth (labels -> first_hit) is what the data sets' users get from ShellTargets:
+    # per column the label of its first occupied cell and that cell's near plane z_k, 0 for an empty column.
+    grid = FruxelGrid(width=7, height=5, depth=9, z_near=0.5, z_far=5.0, hfov=60.0)
+    rng = np.random.default_rng(0)
+    labels = ((rng.uniform(size=(2, *grid.shape)) < 0.15) * rng.integers(1, C, size=(2, *grid.shape))).astype(np.uint8)
+    labels[0, :, 0, 0] = 0
+    loss = ShellLoss(grid, ShellLossConfig(novel_views=1, novel_size=(16, 12), backend=backend))
+    novel, own = loss.cameras()[1], grid.camera()
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.1
+    beside = own.with_pose(shifted)
+    # The own view is found wherever it is among the cameras, also behind another camera of its size.
+    for cams in ([own, novel], [novel, own], [novel, beside, own]):
+        lab, depth, hit = loss.targets(torch.from_numpy(labels), cams).own_view
+        assert lab.shape == depth.shape == hit.shape == (2, 5, 7) and depth.dtype == torch.float32
+        zb = grid.z_bounds()
+        for b, j, i in np.ndindex(2, 5, 7):
+            ks = np.flatnonzero(labels[b, :, j, i])
+            if len(ks) == 0:
+                assert lab[b, j, i] == 0 and depth[b, j, i] == 0 and not hit[b, j, i]
+            else:
+                assert lab[b, j, i] == labels[b, ks[0], j, i] and hit[b, j, i]
+                assert float(depth[b, j, i]) == pytest.approx(zb[ks[0]], rel=1e-6)
+    assert loss.targets(torch.from_numpy(labels), [novel]).own_view is None
+
+
+def test_novel_poses_are_checkpointed_and_differ_per_rank() -> None:
+    grid = FruxelGrid(width=8, height=6, depth=7, z_near=0.5, z_far=4.0, hfov=60.0)
+    config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=11)
+
+    def poses(loss: ShellLoss, n: int) -> list[str]:
+        return [c.to_json() for _ in range(n) for c in loss.cameras()[1:]]
+
+    a = ShellLoss(grid, config)
+    first = poses(a, 2)
+    assert len(set(first)) == 4, "every draw must give new poses"
+    state = a.state_dict()
+    following = poses(a, 3)
+    # Through a checkpoint as a training loop writes it: torch.save, torch.load(weights_only=True).
+    buf = io.BytesIO()
+    torch.save({"shell_loss": state}, buf)
+    buf.seek(0)
+    loaded = torch.load(buf, weights_only=True)["shell_loss"]
+    b = ShellLoss(grid, config)
+    b.load_state_dict(loaded)
+    assert poses(b, 3) == following
+    # Other ranks draw other poses from the same state, each rank its own stream; the own view stays first.
+    r1 = ShellLoss(grid, config, rank=1)
+    assert r1.cameras()[0] == grid.camera()
+    r1.load_state_dict(loaded)
+    on_rank_1 = poses(r1, 3)
+    assert set(on_rank_1).isdisjoint(following)
+    fresh = ShellLoss(grid, config, rank=1)
+    poses(fresh, 2)
+    assert poses(fresh, 3) == on_rank_1 and fresh.state_dict() == r1.state_dict() == a.state_dict()
+    assert set(poses(ShellLoss(grid, config, rank=2), 2)).isdisjoint(poses(ShellLoss(grid, config, rank=1), 2))
+    # Another seed, another stream; a state of another seed is refused.
+    other = ShellLoss(grid, ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=12))
+    assert set(poses(other, 2)).isdisjoint(first)
+    with pytest.raises(ValueError, match="seed 11"):
+        other.load_state_dict(state)
+    with pytest.raises(ValueError, match="keys"):
+        b.load_state_dict({"draws": 1})
+    with pytest.raises(ValueError, match="'draws' must be a non-negative integer"):
+        b.load_state_dict({"draws": -1, "seed": 11})
+    with pytest.raises(ValueError, match="rank"):
+        ShellLoss(grid, config, rank=-1)
+    with pytest.raises(ValueError, match="seed"):
+        ShellLoss(grid, ShellLossConfig(seed=-3))

@@ -8,13 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.train.sim import (
-    DOOR,
-    FLOOR,
-    FURNITURE,
-    SCULPTURE,
-    WALL,
-    WINDOW,
+    CLASS_NAMES,
     AssetError,
     RoomConfig,
     SceneError,
@@ -26,6 +22,8 @@ from fruxel.train.sim.assets import parse_properties
 from fruxel.train.sim.scene import slab_with_holes
 
 trimesh = pytest.importorskip("trimesh")
+
+WALL, FLOOR, WINDOW, FURNITURE, DOOR, SCULPTURE = (DEFAULT_CLASSES.index(n) for n in CLASS_NAMES)
 
 
 def _same(a, b) -> None:
@@ -107,6 +105,25 @@ def test_slab_with_holes_is_a_closed_manifold() -> None:
     expect = 0.2 * (3.0 * 2.5 - 0.9 * 2.1 - 0.9 * 1.1)
     assert m.volume == pytest.approx(expect, rel=1e-9)
     assert m.euler_number == 2 - 2 * 1  # one through-hole (the door notch reaches the border and is none)
+
+
+def test_labels_are_the_class_tables_ids() -> None:
+    # Another order, an extra class and a ceiling class of its own: the same solids, labelled by class name.
+    table = ClassTable.from_names(("floor", "ceiling", "door", "wall", "sculpture", "window", "plant", "furniture"))
+    cfg = RoomConfig(ceiling=True, sculptures=(1, 2))
+    default = make_scene(5, cfg)
+    other = make_scene(5, RoomConfig(ceiling=True, sculptures=(1, 2), ceiling_class="ceiling"), table)
+    assert default.classes == DEFAULT_CLASSES and other.classes == table
+    assert [o.name for o in other.objects] == [o.name for o in default.objects]
+    for a, b in zip(default.objects, other.objects, strict=True):
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+        want = "ceiling" if a.name == "ceiling" else DEFAULT_CLASSES.names[a.label]
+        assert table.names[b.label] == want, a.name
+    assert {table.names[o.label] for o in other.objects} >= {*CLASS_NAMES, "ceiling"}
+    with pytest.raises(SceneError, match=r"lacks the simulator's classes \['window', 'furniture', 'door'"):
+        make_scene(1, classes=ClassTable.from_names(("wall", "floor", "sculpture")))
+    with pytest.raises(SceneError, match="'ceiling'"):
+        make_scene(1, RoomConfig(ceiling=True, ceiling_class="ceiling"))
 
 
 def test_config_counts_and_validation() -> None:

@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 
+from fruxel.errors import FruxelError
 from fruxel.io import atomic_path
 
 from ..config import ConfigError, TrainConfig
@@ -32,7 +33,7 @@ LATEST = "last.pt"
 """File name of the newest checkpoint in a run folder."""
 
 
-class CheckpointError(ValueError):
+class CheckpointError(FruxelError, ValueError):
     """A checkpoint that cannot be used; the message names the file and the problem."""
 
     def __init__(self, path: str, problem: str) -> None:

@@ -112,7 +112,7 @@ class BlockStream(IterableDataset):
 
     def _reader(self) -> Any:
         if self.source == "stream":
-            from fruxel.train.sim.shards import SampleMaker
+            from fruxel.train.sim.sample import SampleMaker
 
             maker = SampleMaker(self.sim_config, self.seed, backend="warp", device=self.device)
             return lambda i: maker.make(self.split, i)

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from fruxel.errors import FruxelError
 from fruxel.io import atomic_write
 
 from ..config import TrainConfig
@@ -49,7 +50,7 @@ CONFIG = "config.json"
 """File name of the config in a run folder."""
 
 
-class TrainingError(RuntimeError):
+class TrainingError(FruxelError, RuntimeError):
     """A run that cannot start or continue (bad data folder, nothing to resume, a config that does not fit)."""
 
 

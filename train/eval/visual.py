@@ -32,7 +32,7 @@ def example_sheet(samples: list[dict[str, Any]], grid: FruxelGrid, classes: Clas
     import torch
     from PIL import Image, ImageDraw
 
-    from fruxel._compat import default_font
+    from fruxel.render.compat import default_font
     from fruxel.render.legend import draw_legend
     from fruxel.render.raycast import raycast_image
 

@@ -1,12 +1,14 @@
 """The environment simulator: procedural rooms, the paper's mobile robot, and ground truth by ray casting.
 
 * :mod:`.scene` — rooms with walls (with real openings), floor, windows, doors, furniture and sculptures,
-  lights and a free-space map, from a seed (:func:`make_scene`);
+  lights and a free-space map, from a seed (:func:`make_scene`), labelled with the ids of a class table;
 * :mod:`.assets` — optional real meshes: a folder per class, and Sweet Home 3D ``.sh3f`` libraries;
 * :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
-* ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids, and
-  :func:`own_view_truth` gives the grid camera's depth and label images.
+* ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids; what the grid's own
+  camera sees of them is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``;
+* data sets: :mod:`.sample` (a sample and its maker), :mod:`.shards` (shard files), :mod:`.manifest` (the data
+  set folder), :mod:`.writer` (``generate``), :mod:`.dataset` (torch data sets; needs torch).
 
 World frame: right-handed, metres, z up, the floor's top at z = 0 and the room's interior in
 ``[0, Lx] x [0, Ly] x [0, Lz]``. Camera poses are camera-to-world 4x4 matrices with OpenCV camera axes
@@ -16,7 +18,7 @@ coordinates directly.
 
 from __future__ import annotations
 
-from fruxel.kernels.fruxelize import MeshSet, own_view_truth
+from fruxel.kernels.fruxelize import MeshSet
 
 from .assets import Asset, AssetError, AssetLibrary, load_asset_folder, load_sh3f
 from .robot import (
@@ -33,12 +35,7 @@ from .robot import (
     trajectory_from_commands,
 )
 from .scene import (
-    DOOR,
-    FLOOR,
-    FURNITURE,
-    SCULPTURE,
-    WALL,
-    WINDOW,
+    CLASS_NAMES,
     FreeSpace,
     Light,
     RoomConfig,
@@ -49,12 +46,7 @@ from .scene import (
 )
 
 __all__ = [
-    "DOOR",
-    "FLOOR",
-    "FURNITURE",
-    "SCULPTURE",
-    "WALL",
-    "WINDOW",
+    "CLASS_NAMES",
     "Asset",
     "AssetError",
     "AssetLibrary",
@@ -75,7 +67,6 @@ __all__ = [
     "load_asset_folder",
     "load_sh3f",
     "make_scene",
-    "own_view_truth",
     "random_trajectory",
     "segment_commands",
     "simulate",

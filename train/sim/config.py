@@ -195,7 +195,8 @@ class SimConfig:
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     """Robot and camera mount."""
     classes: ClassTable = DEFAULT_CLASSES
-    """Class table of the labels (stored with the data set)."""
+    """Class table of the labels (stored with the data set); it must name the simulator's classes
+    (:data:`.scene.CLASS_NAMES`, and ``room.ceiling_class`` with a ceiling), whose ids it gives."""
     samples_per_scene: int = 16
     """n: consecutive samples that share one room and one robot trajectory (frames 0..n-1)."""
     shard_size: int = 64
@@ -211,6 +212,10 @@ class SimConfig:
                 f"image size {self.image.size} times grid height {self.grid.height} must be a multiple of the grid "
                 f"width {self.grid.width}, so that the image covers exactly the grid's frustum"
             )
+        try:
+            self.room.class_ids(self.classes)
+        except SceneError as e:
+            raise ConfigError(str(e)) from None
         if self.room.assets is not None:
             raise ConfigError("room.assets (a loaded library) cannot be recorded in a manifest; use room.asset_dir "
                               "or room.sh3f_files")

@@ -4,17 +4,28 @@ DataLoader's workers (:class:`StreamingDataset`). The same config and seed give 
 Items are dictionaries of tensors (:func:`sample_tensors`):
 
     ``image``       ``(3, S * H / W, S)`` float32 RGB in [0, 1] (the stored uint8 divided by 255), CHW
-    ``labels``      ``(D, H, W)`` int64 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``
-    ``view_depth``  ``(H, W)`` float32 own-view depth, metres along the camera's z, 0 = empty column
-    ``view_label``  ``(H, W)`` int64 own-view label, 0 = empty column
+    ``labels``      ``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``
     ``pose``        ``(4, 4)`` float64 camera-to-world of the robot camera (world frame z up, OpenCV axes)
     ``K``           ``(3, 3)`` float64 image intrinsics (the grid's own camera is ``K`` scaled by ``W / S``)
     ``index``       ``()`` int64 sample index in the split
+
+Labels stay uint8, as stored, until the device: an int64 copy would cost eight times the memory and bandwidth in
+the workers, the DataLoader's queues and pinned memory (16 MiB instead of 2 MiB per 128^3 sample). The kernels
+take uint8 volumes as they are; a training step converts with ``.long()`` on the device where a loss needs it.
+
+Own-view truth (the label and depth of each column's first occupied cell) is not an item: it is
+``fruxel.kernels.first_hit(labels, grid, grid.camera())`` on the device, which :class:`fruxel.train.losses.ShellLoss`
+computes with the other views' truth and returns as ``ShellTargets.own_view`` (see :mod:`.sample`).
 
 Streaming is for machines where a data set cannot be copied in: each DataLoader worker builds its own
 :class:`SampleMaker` (renderer, Warp meshes) and makes a contiguous, room-aligned part of the split's index range.
 Workers must be started with ``spawn`` (an OpenGL or CUDA context does not survive ``fork``);
 :func:`streaming_loader` sets that up.
+
+Distributed training: every rank streams its own equal, disjoint share of the indices,
+``StreamingDataset(config, split, seed, rank=rank, world_size=world_size)`` (:func:`rank_range`), and
+``StreamingDataset.batches`` says how many batches each rank's loader yields. A :class:`ShardDataset` is map-style:
+give its DataLoader a ``torch.utils.data.DistributedSampler``.
 """
 
 from __future__ import annotations
@@ -29,17 +40,18 @@ import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from .config import ConfigError, SimConfig
-from .shards import MANIFEST, DatasetError, Manifest, Sample, SampleMaker, ShardReader
+from .manifest import MANIFEST, Manifest
+from .sample import Sample, SampleMaker
+from .shards import DatasetError, ShardReader
 
 
 def sample_tensors(sample: Sample, config: SimConfig) -> dict[str, torch.Tensor]:
-    """The tensors of one sample (layout in the module docstring)."""
+    """The tensors of one sample (layout in the module docstring). The uint8 labels share memory with the sample's
+    array where it is contiguous and writable (no copy)."""
     img = torch.from_numpy(np.ascontiguousarray(sample.image.transpose(2, 0, 1)))
     return {
         "image": img.to(torch.float32).div_(255.0),
-        "labels": torch.from_numpy(sample.labels.astype(np.int64)),
-        "view_depth": torch.from_numpy(np.ascontiguousarray(sample.view_depth, dtype=np.float32)),
-        "view_label": torch.from_numpy(sample.view_label.astype(np.int64)),
+        "labels": torch.from_numpy(np.require(sample.labels, np.uint8, "CW")),
         "pose": torch.from_numpy(np.array(sample.pose, dtype=np.float64)),
         "K": torch.from_numpy(config.image_camera().K),
         "index": torch.tensor(sample.index, dtype=torch.int64),
@@ -154,33 +166,60 @@ def worker_range(start: int, stop: int, samples_per_scene: int, worker: int, wor
     return range(lo, max(lo, min(stop, b * samples_per_scene)))
 
 
+def rank_range(start: int, samples: int, rank: int, world_size: int) -> range:
+    """The indices of ``start .. start + samples - 1`` that distributed rank ``rank`` of ``world_size`` takes: the
+    rank-th of ``world_size`` contiguous runs of ``samples // world_size`` indices each.
+
+    Every rank gets as many samples as every other, so that ranks run the same number of steps (a rank with one
+    batch more would wait forever in its gradient all-reduce); the last ``samples % world_size`` indices are left
+    out, as ``DistributedSampler(drop_last=True)`` does. Runs are not room-aligned: a room that straddles two
+    ranks is built by both (a few milliseconds), which keeps the shares equal.
+
+    Raises:
+        ValueError: a rank outside ``0 .. world_size - 1``, or a negative start or count.
+    """
+    if not 0 <= rank < world_size:
+        raise ValueError(f"rank must be in 0 .. world_size - 1, got rank {rank!r} of world_size {world_size!r}")
+    if start < 0 or samples < 0:
+        raise ValueError(f"start and samples must be >= 0, got {start!r} and {samples!r}")
+    n = samples // world_size
+    return range(start + rank * n, start + (rank + 1) * n)
+
+
 class StreamingDataset(IterableDataset):
     """Samples of one split made on the fly, identical to the shards the generator writes for the same seed.
 
-    Each DataLoader worker (or the main process, without workers) makes a contiguous, room-aligned part of the
-    indices ``start .. start + samples - 1`` in order (:func:`worker_range`), with its own :class:`SampleMaker`.
-    Use ``spawn`` workers (:func:`streaming_loader`).
+    The data set makes the indices ``start .. start + samples - 1``, or with ``world_size`` > 1 this rank's equal
+    share of them (:func:`rank_range`; the shares of all ranks are disjoint). Each DataLoader worker (or the main
+    process, without workers) makes a contiguous, room-aligned part of those in order (:func:`worker_range`), with
+    its own :class:`SampleMaker`, and batches its part on its own: see :meth:`batches` for how many batches that
+    gives. Use ``spawn`` workers (:func:`streaming_loader`).
 
     Args:
         config: the generator settings.
         split: the split's name.
         seed: the base seed.
-        samples: how many samples to make; None: the split's size in ``config.splits``.
+        samples: how many samples to make (all ranks together); None: the split's size in ``config.splits``.
         start: index of the first sample.
+        rank, world_size: this process's distributed rank and the number of ranks
+            (``torch.distributed.get_rank()``, ``get_world_size()``); 0 and 1 without distribution.
         backend, device: ``fruxelize`` backend and Warp device (see :class:`SampleMaker`); None for the device
             takes CUDA when present.
 
     Raises:
-        ConfigError: an unknown split or a range outside it.
+        ConfigError: an unknown split or a range outside it. ValueError: a rank outside the world.
     """
 
     def __init__(self, config: SimConfig, split: str = "train", seed: int = 0, *, samples: int | None = None,
-                 start: int = 0, backend: str | None = "warp", device: str | None = None) -> None:
+                 start: int = 0, rank: int = 0, world_size: int = 1, backend: str | None = "warp",
+                 device: str | None = None) -> None:
         super().__init__()
         n = config.split_samples(split)
         samples = n - start if samples is None else samples
         if start < 0 or samples < 0 or start + samples > n:
             raise ConfigError(f"samples {start}..{start + samples - 1} are outside split {split!r} of {n} samples")
+        part = rank_range(start, samples, rank, world_size)
+        start, samples = part.start, len(part)
         self.config = config
         """The generator settings."""
         self.split = split
@@ -188,9 +227,9 @@ class StreamingDataset(IterableDataset):
         self.seed = int(seed)
         """The base seed."""
         self.start = int(start)
-        """Index of the first sample."""
+        """Index of the first sample (of this rank's share)."""
         self.samples = int(samples)
-        """Number of samples."""
+        """Number of samples (of this rank's share)."""
         self.backend = backend
         """``fruxelize`` backend."""
         self.device = device
@@ -210,7 +249,24 @@ class StreamingDataset(IterableDataset):
         """The indices this process makes: all of them, or this DataLoader worker's part."""
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        return self.worker_indices(worker, workers)
+
+    def worker_indices(self, worker: int, workers: int) -> range:
+        """The indices DataLoader worker ``worker`` of ``workers`` makes (:func:`worker_range`)."""
         return worker_range(self.start, self.start + self.samples, self.config.samples_per_scene, worker, workers)
+
+    def batches(self, batch_size: int, workers: int, drop_last: bool = False) -> int:
+        """The number of batches a DataLoader with ``workers`` workers (0: none) yields per epoch.
+
+        Each worker batches its own part, so up to one partial batch per worker: the number can exceed
+        ``ceil(len(self) / batch_size)`` (the DataLoader's ``len``), and differ between ranks whose shares are split
+        differently by room boundaries. It depends only on the arguments, so every rank can compute every rank's
+        count and a training loop can run the smallest of them in every rank.
+        """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        parts = [len(self.worker_indices(w, max(1, workers))) for w in range(max(1, workers))]
+        return sum(n // batch_size if drop_last else -(-n // batch_size) for n in parts)
 
     def samples_numpy(self) -> Iterator[Sample]:
         """This process's samples as numpy :class:`Sample` objects, in index order."""

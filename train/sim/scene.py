@@ -17,6 +17,12 @@ Order
     ``Scene.objects`` lists floor, (ceiling,) walls, windows, doors, furniture, sculptures. ``fruxelize`` lets
     later meshes win where solids overlap, so openings' fillers take precedence over walls.
 
+Labels
+    Every solid is labelled by class *name* (:data:`CLASS_NAMES`, and ``RoomConfig.ceiling_class``); its id is
+    that name's index in the class table ``make_scene`` is given (the data set's ``SimConfig.classes``), so a
+    table with other ids or more classes labels the same solids accordingly. Nothing here assumes the default
+    table's ids.
+
 Everything random comes from ``numpy.random.default_rng(seed)``: the same seed and config give the same scene,
 bit for bit. Nothing is cached between calls.
 """
@@ -30,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fruxel.classes import DEFAULT_CLASSES, ClassTable
 from fruxel.errors import FruxelError
 
 if TYPE_CHECKING:
@@ -37,8 +44,8 @@ if TYPE_CHECKING:
 
     from .assets import AssetLibrary
 
-WALL, FLOOR, WINDOW, FURNITURE, DOOR, SCULPTURE = 1, 2, 3, 4, 5, 6
-"""Class ids of the default class table (SPEC section 2)."""
+CLASS_NAMES = ("wall", "floor", "window", "furniture", "door", "sculpture")
+"""The classes the generator labels its solids with, by name; a scene's class table must hold each of them."""
 
 FURNITURE_KINDS = ("table", "chair", "shelf", "cabinet", "sofa")
 """Procedural furniture types."""
@@ -56,7 +63,7 @@ class SceneObject:
     name: str
     """Unique name within the scene, e.g. ``"wall_2"``, ``"window_0_glass"``, ``"chair_3"``."""
     label: int
-    """Class id: 1 wall, 2 floor, 3 window, 4 furniture, 5 door, 6 sculpture (SPEC defaults)."""
+    """Class id in the scene's class table (:attr:`Scene.classes`) of the solid's class (module docstring)."""
     mesh: trimesh.Trimesh
     """Triangle mesh in the world frame, metres; closed with outward normals unless it came from an asset."""
     color: tuple[float, float, float, float]
@@ -175,6 +182,8 @@ class Scene:
     """Floor occupancy map for the robot."""
     seed: int
     """The seed the scene was made from."""
+    classes: ClassTable = DEFAULT_CLASSES
+    """The class table the objects' labels index."""
 
     def labelled_meshes(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per object, world frame, in priority order:
@@ -216,9 +225,10 @@ class RoomConfig:
     point_lights: tuple[int, int] = (1, 3)
     """Number of point lights below the ceiling."""
     ceiling: bool = False
-    """Add a ceiling slab on the walls. The six classes have no ceiling; it is labelled ``ceiling_label``."""
-    ceiling_label: int = WALL
-    """Class id of the ceiling, when there is one."""
+    """Add a ceiling slab on the walls, labelled ``ceiling_class``."""
+    ceiling_class: str = "wall"
+    """Class name (in the scene's class table) of the ceiling, when there is one; the default classes have no
+    ceiling, so it counts as wall."""
     min_gap: float = 0.1
     """Smallest distance kept between the footprints of objects standing in the room, metres."""
     door_clearance: float = 1.0
@@ -252,6 +262,22 @@ class RoomConfig:
             raise SceneError(f"furniture_kinds must be a non-empty subset of {FURNITURE_KINDS}, got {unknown}")
         if self.free_space_resolution <= 0 or self.floor_thickness <= 0:
             raise SceneError("free_space_resolution and floor_thickness must be > 0")
+        if not isinstance(self.ceiling_class, str) or not self.ceiling_class:
+            raise SceneError(f"ceiling_class must be a class name, got {self.ceiling_class!r}")
+
+    def class_ids(self, classes: ClassTable) -> dict[str, int]:
+        """The label of each class the generator draws (:data:`CLASS_NAMES`, and the ceiling's class when there is
+        a ceiling): its index in ``classes``.
+
+        Raises:
+            SceneError: ``classes`` lacks one of them.
+        """
+        names = (*CLASS_NAMES, self.ceiling_class) if self.ceiling else CLASS_NAMES
+        missing = [n for n in dict.fromkeys(names) if n not in classes.names]
+        if missing:
+            raise SceneError(f"the class table lacks the simulator's classes {missing} (it has "
+                             f"{list(classes.names)}); add them, e.g. with ClassTable.extended")
+        return {n: classes.index(n) for n in names}
 
 
 # ---------------------------------------------------------------------------------------------- mesh helpers
@@ -627,20 +653,24 @@ def _place_opening(rng: np.random.Generator, walls: list[_Wall], kind: str, w: f
 
 
 # ---------------------------------------------------------------------------------------------- the generator
-def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
+def make_scene(seed: int, config: RoomConfig | None = None, classes: ClassTable = DEFAULT_CLASSES) -> Scene:
     """Generate a room from a seed.
 
     Args:
         seed: any integer; the only source of randomness (``numpy.random.default_rng(seed)``).
         config: the ranges to draw from; None uses ``RoomConfig()``.
+        classes: the class table whose ids label the solids (see the module docstring); the same seed and config
+            give the same solids with any table.
 
     Returns:
-        The :class:`Scene`; see the module docstring for the world frame and the object order.
+        The :class:`Scene`; see the module docstring for the world frame, the object order and the labels.
 
     Raises:
-        SceneError: an impossible configuration. assets.AssetError: an unreadable asset folder or library.
+        SceneError: an impossible configuration, or a class table without the simulator's classes.
+        assets.AssetError: an unreadable asset folder or library.
     """
     cfg = config if config is not None else RoomConfig()
+    ids = cfg.class_ids(classes)
     rng = np.random.default_rng(seed)
     library = _load_library(cfg)
     lx, ly, lz = (rng.uniform(*r) for r in (cfg.length_range, cfg.width_range, cfg.height_range))
@@ -653,10 +683,10 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
         objects.append(SceneObject(name, label, _make_mesh(v, f), tuple(float(c) for c in color), float(metallic),
                                    float(roughness)))
 
-    add("floor", FLOOR, *boxes([[-tw, -tw, -ft]], [[lx + tw, ly + tw, 0.0]]), _floor_colour(rng),
+    add("floor", ids["floor"], *boxes([[-tw, -tw, -ft]], [[lx + tw, ly + tw, 0.0]]), _floor_colour(rng),
         0.0, rng.uniform(0.4, 0.9))
     if cfg.ceiling:
-        add("ceiling", cfg.ceiling_label, *boxes([[-tw, -tw, lz]], [[lx + tw, ly + tw, lz + ft]]),
+        add("ceiling", ids[cfg.ceiling_class], *boxes([[-tw, -tw, lz]], [[lx + tw, ly + tw, lz + ft]]),
             _hsv(0.0, 0.0, rng.uniform(0.85, 0.98)), 0.0, 0.9)
 
     walls = _walls(lx, ly, tw)
@@ -679,7 +709,7 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
     for n, wall in enumerate(walls):
         holes = [(a, z0, b, z1) for _, a, z0, b, z1 in wall.openings]
         v, f = slab_with_holes(wall.length, lz, tw, holes)
-        add(f"wall_{n}", WALL, wall.to_world(v), f, wall_colour, 0.0, rng.uniform(0.6, 0.95))
+        add(f"wall_{n}", ids["wall"], wall.to_world(v), f, wall_colour, 0.0, rng.uniform(0.6, 0.95))
 
     frame_colour = _hsv(rng.uniform(), rng.uniform(0.0, 0.2), rng.uniform(0.3, 0.95))
     for n, (wall, x0, w, z0, z1) in enumerate(windows):
@@ -688,14 +718,14 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
         asset = _pick(rng, library, "window", cfg.asset_probability)
         if asset is not None:
             v, f = _fit_asset(asset, [x0, y0, z0], [x0 + w, y0 + depth, z1])
-            add(f"window_{n}", WINDOW, wall.to_world(v), f, frame_colour, 0.0, 0.5)
+            add(f"window_{n}", ids["window"], wall.to_world(v), f, frame_colour, 0.0, 0.5)
             continue
         v, f = slab_with_holes(w, z1 - z0, depth, [(fw, fw, w - fw, z1 - z0 - fw)])
-        add(f"window_{n}_frame", WINDOW, wall.to_world(v + [x0, y0, z0]), f, frame_colour, 0.0, 0.5)
+        add(f"window_{n}_frame", ids["window"], wall.to_world(v + [x0, y0, z0]), f, frame_colour, 0.0, 0.5)
         # The glass fills nearly the frame's depth (double glazing): a pane a few millimetres thin would hold
         # almost no cell centre, and the ground truth of the opening would be stripes of window in empty space.
         gv, gf = boxes([[x0 + fw, y0 + 0.005, z0 + fw]], [[x0 + w - fw, y0 + depth - 0.005, z1 - fw]])
-        add(f"window_{n}_glass", WINDOW, wall.to_world(gv), gf, (0.75, 0.87, 0.95, 0.3), 0.0, 0.05)
+        add(f"window_{n}_glass", ids["window"], wall.to_world(gv), gf, (0.75, 0.87, 0.95, 0.3), 0.0, 0.05)
 
     handles: list[_Footprint] = []
     for n, (wall, x0, w, h) in enumerate(doors):
@@ -705,16 +735,16 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
         asset = _pick(rng, library, "door", cfg.asset_probability)
         if asset is not None:
             v, f = _fit_asset(asset, [x0, y0, 0.0], [x0 + w, y0 + depth, h])
-            add(f"door_{n}", DOOR, wall.to_world(v), f, wood, 0.0, 0.6)
+            add(f"door_{n}", ids["door"], wall.to_world(v), f, wood, 0.0, 0.6)
             continue
         v, f = slab_with_holes(w, h, depth, [(fw, 0.0, w - fw, h - fw)])
-        add(f"door_{n}_frame", DOOR, wall.to_world(v + [x0, y0, 0.0]), f, frame_colour, 0.0, 0.5)
+        add(f"door_{n}_frame", ids["door"], wall.to_world(v + [x0, y0, 0.0]), f, frame_colour, 0.0, 0.5)
         lt = max(depth * rng.uniform(0.5, 0.8), 0.04)
         lv, lf = boxes([[x0 + fw, tw / 2 - lt / 2, 0.0]], [[x0 + w - fw, tw / 2 + lt / 2, h - fw]])
-        add(f"door_{n}_leaf", DOOR, wall.to_world(lv), lf, wood, 0.0, rng.uniform(0.4, 0.8))
+        add(f"door_{n}_leaf", ids["door"], wall.to_world(lv), lf, wood, 0.0, rng.uniform(0.4, 0.8))
         hx = x0 + w - fw - 0.1 if rng.uniform() < 0.5 else x0 + fw + 0.06
         hv, hf = boxes([[hx, tw / 2 - lt / 2 - 0.06, 0.95]], [[hx + 0.04, tw / 2 + lt / 2 + 0.06, 1.05]])
-        add(f"door_{n}_handle", DOOR, wall.to_world(hv), hf, (0.8, 0.8, 0.78, 1.0), 1.0, 0.3)
+        add(f"door_{n}_handle", ids["door"], wall.to_world(hv), hf, (0.8, 0.8, 0.78, 1.0), 1.0, 0.3)
         # A handle may stick out of a thin wall into the room: the robot must not drive into it.
         hw = wall.to_world(hv)
         hlo, hhi = hw[:, :2].min(axis=0), hw[:, :2].max(axis=0)
@@ -767,7 +797,7 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
             0.0, rng.uniform(0.4, 0.95))
         placed = place(v, wall_p)
         if placed is not None:
-            add(f"{kind}_{n}", FURNITURE, placed[0], f, colour, metallic, roughness)
+            add(f"{kind}_{n}", ids["furniture"], placed[0], f, colour, metallic, roughness)
 
     for n in range(int(rng.integers(cfg.sculptures[0], cfg.sculptures[1] + 1))):
         asset = _pick(rng, library, "sculpture", cfg.asset_probability)
@@ -781,11 +811,11 @@ def make_scene(seed: int, config: RoomConfig | None = None) -> Scene:
             colour, metallic, roughness = _hsv(rng.uniform(), rng.uniform(0, 0.1), rng.uniform(0.55, 0.95)), 0.0, 0.8
         placed = place(v, 0.2)
         if placed is not None:
-            add(f"sculpture_{n}", SCULPTURE, placed[0], f, colour, metallic, roughness)
+            add(f"sculpture_{n}", ids["sculpture"], placed[0], f, colour, metallic, roughness)
 
     lights = _lights(rng, lx, ly, lz, cfg)
     free = _free_space(lx, ly, footprints + handles, cfg.free_space_resolution)
-    return Scene(tuple(objects), np.array([lx, ly, lz]), tuple(lights), free, int(seed))
+    return Scene(tuple(objects), np.array([lx, ly, lz]), tuple(lights), free, int(seed), classes)
 
 
 def _lights(rng: np.random.Generator, lx: float, ly: float, lz: float, cfg: RoomConfig) -> list[Light]:

@@ -1,0 +1,197 @@
+"""One sample of the simulator and the code that makes it.
+
+Sample
+    One robot camera view (:class:`Sample`): the RGB image, the ground-truth labels of the grid aligned with that
+    camera, the camera pose and where the sample came from. Sample
+    ``i`` of a split is a pure function of the config, the base seed, the split and ``i`` (seed rule in
+    :mod:`.config`); :class:`SampleMaker` computes it, reusing the room, its robot trajectory, its uploaded
+    meshes and the renderer for consecutive samples of one room.
+
+Own-view truth
+    The labels are the one source of ground truth. What the grid's own camera sees of them (per pixel the label
+    and depth of its column's first occupied cell) is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``,
+    computed where it is needed, on the training device (:class:`fruxel.train.losses.ShellLoss` does, and hands
+    it out as ``ShellTargets.own_view``), like the first hits of every other view. Samples do not carry a second
+    copy of it: a stored image could disagree with the kernel's (by a float32 rounding of the depth, or a bug),
+    and computing it in numpy took longer per sample than ``fruxelize`` on a GPU machine.
+
+Samples are written to shard files by :mod:`.shards` and :mod:`.writer`, and read or streamed as torch items by
+:mod:`.dataset`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
+
+MAX_ROOM_ATTEMPTS = 16
+"""Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
+
+FIELDS = ("image", "labels", "pose")
+"""The arrays of a sample (attributes of :class:`Sample`), in the order shards store them."""
+
+
+@dataclass(frozen=True, eq=False)
+class Sample:
+    """One training sample: a robot camera image and the ground truth of the grid aligned with it."""
+
+    split: str
+    """Name of the split the sample belongs to."""
+    index: int
+    """Index of the sample in its split."""
+    scene: int
+    """Room index in the split, ``index // samples_per_scene``."""
+    frame: int
+    """Frame of the room's robot trajectory, ``index % samples_per_scene``."""
+    scene_seed: int
+    """The seed the room was made from (``make_scene(scene_seed, config.room)``)."""
+    image: np.ndarray
+    """``(S * H / W, S, 3)`` uint8 RGB image of the robot camera."""
+    labels: np.ndarray
+    """``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``; the one source of
+    truth, own view included (see the module docstring)."""
+    pose: np.ndarray
+    """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
+    OpenCV camera axes."""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays keyed by :data:`FIELDS`."""
+        return {name: getattr(self, name) for name in FIELDS}
+
+
+def field_specs(config: SimConfig) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """dtype and shape of every per-sample member for ``config``."""
+    g = config.grid
+    return {
+        "image": (np.dtype(np.uint8), (config.image_height, config.image_width, 3)),
+        "labels": (np.dtype(np.uint8), g.shape),
+        "pose": (np.dtype(np.float64), (4, 4)),
+    }
+
+
+@dataclass
+class _Room:
+    """One room with its trajectory and uploaded meshes, kept while consecutive samples use it."""
+
+    key: tuple[str, int]
+    """``(split, scene index)``."""
+    scene: Any
+    """The :class:`fruxel.train.sim.scene.Scene`."""
+    poses: np.ndarray
+    """``(samples_per_scene, 4, 4)`` float64 camera-to-world poses of the robot trajectory, world frame z up,
+    OpenCV camera axes."""
+    mesh_set: Any
+    """The room's solids uploaded for ``fruxelize`` (:class:`fruxel.kernels.fruxelize.MeshSet`)."""
+    seed: int
+    """The seed the room was made from."""
+
+
+STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
+"""Stages :class:`SampleMaker` times (seconds accumulate in ``SampleMaker.timings``)."""
+
+
+class SampleMaker:
+    """Computes samples from ``(config, seed, split, index)``; one per process (it owns an OpenGL context).
+
+    Consecutive indices of one room reuse the room, its trajectory, the meshes uploaded for ``fruxelize`` and the
+    renderer's scene, so asking for samples in index order is fastest.
+
+    Args:
+        config: the generator settings.
+        seed: the base seed, >= 0.
+        backend: ``fruxelize`` backend (``"warp"``, ``"warp-cpu"``, ``"warp-cuda"``); results do not depend on it.
+        device: Warp device, or None (CUDA when present, else the CPU).
+    """
+
+    def __init__(self, config: SimConfig, seed: int, *, backend: str | None = "warp",
+                 device: str | None = None) -> None:
+        self.config = config
+        """The generator settings."""
+        self.seed = int(seed)
+        """The base seed."""
+        self.backend = backend
+        """The ``fruxelize`` backend."""
+        self.device = device
+        """The Warp device, or None."""
+        self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        """Seconds spent per stage of :data:`STAGES` since construction (for profiling)."""
+        self._room: _Room | None = None
+        self._renderer: Any = None
+
+    def _load_room(self, split: str, scene: int) -> _Room:
+        if self._room is not None and self._room.key == (split, scene):
+            return self._room
+
+        from .robot import TrajectoryError, random_trajectory
+        from .scene import make_scene
+
+        cfg = self.config
+        for attempt in range(MAX_ROOM_ATTEMPTS):
+            t0 = time.perf_counter()
+            s_seed = scene_seed(self.seed, split, scene, attempt)
+            room = make_scene(s_seed, cfg.room, cfg.classes)
+            t1 = time.perf_counter()
+            self.timings["scene"] += t1 - t0
+            try:
+                traj = random_trajectory(room, cfg.samples_per_scene, trajectory_seed(self.seed, split, scene, attempt),
+                                         **cfg.trajectory.kwargs())
+            except TrajectoryError:
+                self.timings["trajectory"] += time.perf_counter() - t1
+                continue
+            t2 = time.perf_counter()
+            self.timings["trajectory"] += t2 - t1
+            self._room = None
+            mesh_set = room.mesh_set(backend=self.backend, device=self.device)
+            self.timings["upload"] += time.perf_counter() - t2
+            self._room = _Room((split, scene), room, np.asarray(traj.poses, dtype=np.float64), mesh_set, s_seed)
+            return self._room
+        raise RuntimeError(f"split {split!r} scene {scene}: no room among {MAX_ROOM_ATTEMPTS} attempts had free "
+                           "floor for the robot; loosen config.room or config.trajectory")
+
+    def make(self, split: str, index: int) -> Sample:
+        """Sample ``index`` of ``split``.
+
+        Raises:
+            ConfigError: an unknown split or an index outside it.
+        """
+        from fruxel.kernels.fruxelize import fruxelize
+
+        n = self.config.split_samples(split)
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
+            raise ConfigError(f"sample index {index!r} is outside split {split!r} of {n} samples")
+        index = int(index)
+        scene, frame = divmod(index, self.config.samples_per_scene)
+        room = self._load_room(split, scene)
+        pose = room.poses[frame]
+        t0 = time.perf_counter()
+        if self._renderer is None:
+            from .images import SceneRenderer
+
+            self._renderer = SceneRenderer(self.config)
+        self._renderer.set_scene(room.scene)
+        image = self._renderer.render(pose, augment_rng(self.seed, split, index))
+        t1 = time.perf_counter()
+        labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
+                                      dtype=np.uint8)
+        t2 = time.perf_counter()
+        self.timings["render"] += t1 - t0
+        self.timings["fruxelize"] += t2 - t1
+        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
+
+    def close(self) -> None:
+        """Free the renderer's OpenGL context and the current room (idempotent)."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        self._room = None
+
+    def __enter__(self) -> SampleMaker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
