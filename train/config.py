@@ -47,20 +47,22 @@ class ModelConfig:
     """k: the input image is ``2^k`` times the grid's width and height (k = 1: 128^2 images for a 64^3 grid)."""
     levels: int = 5
     """L: resolution levels; every grid axis must be divisible by ``2^(L-1)``."""
-    stem: int = 16
+    stem: int = 24
     """Channels of the 2D stem (at half the image resolution)."""
-    encoder: tuple[int, ...] = (24, 32, 64, 96, 128)
+    encoder: tuple[int, ...] = (32, 48, 96, 160, 224)
     """Channels of the 2D encoder per level."""
-    encoder_blocks: tuple[int, ...] = (1, 2, 2, 2, 2)
+    encoder_blocks: tuple[int, ...] = (2, 2, 3, 3, 2)
     """2D inverted residual blocks per level."""
-    topdown: tuple[int, ...] = (32, 32, 48, 64, 96)
+    encoder_expand: int = 4
+    """Expansion factor of the 2D inverted residual blocks (2D work is cheap next to the 3D decoder's)."""
+    topdown: tuple[int, ...] = (48, 64, 96, 128, 160)
     """Channels of the 2D top-down path per level (the image features copied into the 3D levels)."""
     decoder: tuple[int, ...] = (16, 24, 32, 48, 64)
     """Channels of the 3D decoder per level."""
     decoder_blocks: tuple[int, ...] = (1, 1, 1, 2, 2)
     """Volumetric inverted residual blocks per level."""
     expand: int = 2
-    """Expansion factor of every inverted residual block."""
+    """Expansion factor of the 3D decoder's inverted residual blocks."""
     lift: str = "depth"
     """2D-to-3D skips: ``"depth"`` (image features copied along depth with each column's predicted surface depth
     distribution) or ``"copy"`` (the plain Z-GAN copy)."""
@@ -91,6 +93,7 @@ class ModelConfig:
         _positive_int(f"{path}.levels", self.levels)
         _positive_int(f"{path}.stem", self.stem)
         _positive_int(f"{path}.expand", self.expand)
+        _positive_int(f"{path}.encoder_expand", self.encoder_expand)
         _positive_int(f"{path}.group_width", self.group_width)
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
             raise ConfigError(f"{path}.image_scale must be an integer in [0, 4], got {self.image_scale!r}")
@@ -346,21 +349,21 @@ def _presets() -> dict[str, TrainConfig]:
         "tiny": TrainConfig(
             name="tiny",
             model=ModelConfig(grid=tiny_grid, levels=4, stem=8, encoder=(16, 24, 32, 48), encoder_blocks=(1, 1, 1, 1),
-                              topdown=(16, 24, 32, 48), decoder=(8, 16, 24, 32), decoder_blocks=(1, 1, 1, 1),
-                              discriminator=(16, 32)),
+                              encoder_expand=2, topdown=(16, 24, 32, 48), decoder=(8, 16, 24, 32),
+                              decoder_blocks=(1, 1, 1, 1), discriminator=(16, 32)),
             data=DataConfig(workers=1, eval_samples=32, frequency_samples=64),
             optim=OptimConfig(warmup=20),
             run=RunConfig(steps=2000, batch_size=8, precision="fp32", channels_last=False, log_every=10,
                           eval_every=500, checkpoint_every=500),
         ),
-        "ssz64": TrainConfig(name="ssz64"),
+        "ssz64": TrainConfig(name="ssz64", data=DataConfig(workers=14, replay=4096, reuse=2)),
         "paper": TrainConfig(
             name="paper",
             model=ModelConfig(grid=paper_grid, image_scale=2, levels=6, stem=16, encoder=(24, 32, 48, 64, 96, 128),
                               encoder_blocks=(1, 1, 2, 2, 2, 2), topdown=(24, 32, 32, 48, 64, 96),
                               decoder=(8, 16, 24, 32, 48, 64), decoder_blocks=(0, 1, 1, 1, 2, 2),
                               discriminator=(16, 32, 64, 128)),
-            data=DataConfig(workers=12),
+            data=DataConfig(workers=14),
             run=RunConfig(batch_size=8),
         ),
     }

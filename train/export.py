@@ -50,6 +50,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         image_scale=config.image_scale, levels=config.levels, stem=config.stem,
                         encoder=config.encoder, encoder_blocks=config.encoder_blocks, topdown=config.topdown,
                         decoder=config.decoder, decoder_blocks=config.decoder_blocks, expand=config.expand,
+                        encoder_expand=config.encoder_expand,
                         lift=config.lift, upsample=config.upsample, group_width=config.group_width,
                         full_res_spatial=config.full_res_spatial, checkpointing=checkpointing)
 

@@ -18,7 +18,6 @@ saved, refills from the stream instead). Ctrl-C, a ``time_limit`` or the end of 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import time
@@ -236,8 +235,8 @@ class Trainer:
 
             n = c.loss.shell_view_size
             self.shell = ShellLoss(c.model.grid, ShellLossConfig(
-                novel_views=c.loss.shell_views, novel_size=(n, n), novel_hfov=c.model.grid.hfov,
-                seed=c.run.seed * 1000 + self.dist.rank))
+                novel_views=c.loss.shell_views, novel_size=(n, n), novel_hfov=c.model.grid.hfov, seed=c.run.seed),
+                rank=self.dist.rank)
 
     def _batches(self, position: tuple[int, int]) -> Any:
         from .data import Batches
@@ -273,7 +272,7 @@ class Trainer:
             "data": {"position": list(batches.position)},
             "class_weights": weights.detach().cpu(),
             "rng": rng_state(),
-            "shell_rng": json.dumps(self.shell.generator.bit_generator.state) if self.shell is not None else "",
+            "shell_poses": self.shell.state_dict() if self.shell is not None else None,
             "replay": self.replay.state_dict() if self.replay is not None else None,
             "summary": summary,
         }
@@ -285,8 +284,8 @@ class Trainer:
         if self.discriminator is not None and state.get("discriminator") is not None:
             self.discriminator.load_state_dict(state["discriminator"])
             self.d_opt.load_state_dict(state["d_optimizer"])
-        if self.shell is not None and state.get("shell_rng"):
-            self.shell.generator.bit_generator.state = json.loads(state["shell_rng"])
+        if self.shell is not None and state.get("shell_poses"):
+            self.shell.load_state_dict(state["shell_poses"])
         if self.replay is not None and state.get("replay"):
             self.replay.load_state_dict(state["replay"])
         set_rng_state(state["rng"])
@@ -430,8 +429,8 @@ class Trainer:
                 log.close()
             raise
         bar.close()
-        if not interrupted:
-            last_summary = self._eval_and_log(step, log)
+        # Also after a time-limit stop: each chunk of a run that trains in time slices ends with its metrics.
+        last_summary = self._eval_and_log(step, log)
         final = state()
         self._save(final)
         if log is not None:

@@ -68,7 +68,8 @@ class SSZGenerator(nn.Module):
         topdown: T_s, channels of the top-down path at level s (length L).
         decoder: V_s, channels of decoder level s (length L).
         decoder_blocks: volumetric inverted residual blocks per decoder level (length L).
-        expand: expansion factor of every inverted residual block.
+        expand: expansion factor of the 3D decoder's inverted residual blocks.
+        encoder_expand: expansion factor of the 2D inverted residual blocks.
         lift: ``"depth"`` (skips with the column depth distribution) or ``"copy"`` (the plain Z-GAN skip).
         upsample: :class:`~.blocks.Up3d` mode.
         group_width: channels per group of the decoder's 3x3x3 convolutions (1 = depthwise).
@@ -80,7 +81,8 @@ class SSZGenerator(nn.Module):
 
     def __init__(self, *, classes: int, grid_shape: tuple[int, int, int], image_scale: int, levels: int,
                  stem: int, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...], topdown: tuple[int, ...],
-                 decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, lift: str = "depth",
+                 decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, encoder_expand: int = 4,
+                 lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  checkpointing: bool = False) -> None:
         super().__init__()
@@ -113,7 +115,7 @@ class SSZGenerator(nn.Module):
         for s in range(levels):
             layers: list[nn.Module] = [Down2d(cin, encoder[s])] if s else [
                 nn.Conv2d(cin, encoder[s], 1, bias=False), nn.BatchNorm2d(encoder[s]), act2d()]
-            layers += [InvertedResidual2d(encoder[s], expand) for _ in range(encoder_blocks[s])]
+            layers += [InvertedResidual2d(encoder[s], encoder_expand) for _ in range(encoder_blocks[s])]
             enc.append(nn.Sequential(*layers))
             cin = encoder[s]
         self.encoder = nn.ModuleList(enc)
@@ -123,7 +125,7 @@ class SSZGenerator(nn.Module):
         self.topdown_up = nn.ModuleList(nn.Conv2d(topdown[s + 1], topdown[s], 1, bias=False)
                                         for s in range(levels - 1))
         self.topdown = nn.ModuleList(
-            nn.Sequential(nn.BatchNorm2d(topdown[s]), act2d(), InvertedResidual2d(topdown[s], expand))
+            nn.Sequential(nn.BatchNorm2d(topdown[s]), act2d(), InvertedResidual2d(topdown[s], encoder_expand))
             for s in range(levels))
         self.depth_head = nn.Conv2d(topdown[0], d + 1, 1) if lift == "depth" else None
         self.surface_head = nn.Conv2d(topdown[0], classes, 1)
