@@ -1,10 +1,11 @@
 """Warp backend of ``soft_first_hit``: expected first hit along every pixel's ray, with its exact backward pass.
 
 One thread per ray (batch item b, pixel p = y * w + x of one camera). Cells are visited in exactly the order of
-the DDA of :mod:`fruxel.kernels.traversal` (steps 1-5, plain loop: every cell contributes), using the shared
-traversal steps of :mod:`.traverse`. The kernels take each cell's class probabilities ``p_m`` (channel 0 =
-empty, as softmax gives them). With occupancy ``o_m = 1 - p_m0``, the non-empty classes renormalised
-``q_mc = p_mc / o_m`` and entry depth ``t_m`` (first_hit's depth), the hit weight of cell m is
+the DDA of :mod:`fruxel.kernels.traversal` (steps 1-5, plain loop: every cell contributes), by the walk of
+:mod:`.traverse` that ``first_hit`` takes (its start, step choice and step on the cell level, and the step undone
+backwards), so the cells and their entry depths are first_hit's bit for bit. The kernels take each cell's class
+probabilities ``p_m`` (channel 0 = empty, as softmax gives them). With occupancy ``o_m = 1 - p_m0``, the non-empty
+classes renormalised ``q_mc = p_mc / o_m`` and entry depth ``t_m`` (first_hit's depth), the hit weight of cell m is
 ``w_m = o_m T_m`` with ``T_m = prod_{l<m} (1 - o_l) = prod_{l<m} p_l0``, and the renormalisation cancels::
 
     acc_c = sum_m w_m q_mc = sum_m T_m p_mc          (c = 1..C-1)
@@ -71,24 +72,20 @@ from .. import traversal
 from .arrays import Buffer, Packed, Workspace, device_of
 from .runtime import warp
 from .traverse import (
-    FAMILY_U,
-    FAMILY_V,
     FAMILY_Z,
     CameraInfo,
     GridInfo,
-    boundary_ahead,
-    boundary_behind,
     camera_arg,
     clip_ray,
-    entry_cell,
     grid_info,
-    pick_family,
+    pick_step,
     pixel_ray,
     ray_coefficients,
     ray_crossing,
-    select,
-    set_family,
+    start_walk,
+    step_back,
     step_signs,
+    take_step,
 )
 
 wp = warp()
@@ -245,8 +242,9 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         i, j, k of the last one), ``log_t[r]`` = sum of ``log p_0`` over them (saturated cells left out) and
         ``tape[:, r]`` = the family of every step, 2 bits each, TAPE_STEPS_PER_WORD per word (ray-minor, so that
         neighbouring threads write neighbouring words); without ``save`` these three are 1-column dummies. The
-        walk keeps one index and next crossing per family in scalars (a vector indexed by the family would live
-        in local memory).
+        walk is :func:`~fruxel.kernels.wp.traverse.trace_ray`'s on the cell level (its start, choice and step),
+        keeping one index and next crossing per family in scalars (a vector indexed by the family would live in
+        local memory).
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
@@ -262,18 +260,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         iv = int(0)  # noqa: UP018
         iz = int(0)  # noqa: UP018
         if t_lo < t_hi:
-            idx = entry_cell(g, o, d, t_lo, plane)
-            iu = idx[0]
-            iv = idx[1]
-            iz = idx[2]
-            s = step_signs(o, d)
-            su = s[0]
-            sv = s[1]
-            sz = s[2]
-            na, nb, da, db = ray_coefficients(g, o, d)
-            cu = ray_crossing(na, nb, da, db, FAMILY_U, boundary_ahead(iu, su), su)
-            cv = ray_crossing(na, nb, da, db, FAMILY_V, boundary_ahead(iv, sv), sv)
-            cz = ray_crossing(na, nb, da, db, FAMILY_Z, boundary_ahead(iz, sz), sz)
+            iu, iv, iz, su, sv, sz, na, nb, da, db, cu, cv, cz = start_walk(g, o, d, t_lo, plane, 0)
             t_entry = t_lo
             word = int(0)  # noqa: UP018
             for _it in range(max_steps):
@@ -286,13 +273,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     # costs a hundred times more per operation.
                     tr = real(0.0)
                     break
-                f = pick_family(cu, cv, cz)
-                tf = select(f, cu, cv, cz)
-                if tf >= t_hi:
-                    break
-                sf = select(f, su, sv, sz)
-                nxt = select(f, iu, iv, iz) + sf
-                if nxt < 0 or nxt >= select(f, g.width, g.height, g.depth):
+                f, t, sf, nf, _old, nxt = pick_step(g, 0, su, sv, sz, iu, iv, iz, cu, cv, cz)
+                if t >= t_hi or nxt < 0 or nxt >= nf:
                     break
                 if save == 1:
                     step = ncell - 1
@@ -300,10 +282,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     if step % spw == spw - 1:
                         tape[step // spw, r] = word
                         word = 0
-                iu, iv, iz, cu, cv, cz = set_family(
-                    f, nxt, ray_crossing(na, nb, da, db, f, boundary_ahead(nxt, sf), sf), iu, iv, iz, cu, cv, cz
-                )
-                t_entry = tf
+                iu, iv, iz, cu, cv, cz = take_step(na, nb, da, db, 0, f, sf, nf, nxt, iu, iv, iz, cu, cv, cz)
+                t_entry = t
             if save == 1 and (ncell - 1) % spw != 0:
                 tape[(ncell - 1) // spw, r] = word
         finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
@@ -379,8 +359,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         shapes, of which ``given`` flags those that exist (the others are 1-element dummies). Adds atomically,
         nonzero values only, into ``grad`` ``(B, C, D*H*W)`` (channel 0 and the class channels with a nonzero
         ``G_c``) and ``common`` ``(B, D*H*W)`` (the part of every class channel's gradient that does not depend on
-        the channel). The ray's cells are visited last to first by undoing the taped steps; the module docstring
-        gives the recursion.
+        the channel). The ray's cells are visited last to first by undoing the taped steps
+        (:func:`~fruxel.kernels.wp.traverse.step_back`); the module docstring gives the recursion.
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
@@ -394,10 +374,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         d = pixel_ray(cam, p % cam.width, p // cam.width)
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
         na, nb, da, db = ray_coefficients(g, o, d)
-        s = step_signs(o, d)
-        su = s[0]
-        sv = s[1]
-        sz = s[2]
+        su, sv, sz = step_signs(o, d)
         iu = state[1, r]
         iv = state[2, r]
         iz = state[3, r]
@@ -414,11 +391,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             if m > 0:
                 step = m - 1
                 f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
-                sf = select(f, su, sv, sz)
-                t = ray_crossing(na, nb, da, db, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
-                iu = wp.where(f == FAMILY_U, iu - sf, iu)
-                iv = wp.where(f == FAMILY_V, iv - sf, iv)
-                iz = wp.where(f == FAMILY_Z, iz - sf, iz)
+                t, iu, iv, iz = step_back(na, nb, da, db, f, su, sv, sz, iu, iv, iz)
                 nxt = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
             logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
             for c in range(wp.static(nc)):
