@@ -49,10 +49,11 @@ walk), needs no tape, and owns its cells, so the first own view of a backward pa
 (zeros behind an early stop) into an uninitialised tensor: no zero fill, no read-modify-write, no atomics.
 
 Geometry (ray, clip, crossings) is float32 as in every backend; accumulation is in the kernel's scalar type,
-float32 or float64 (one instantiation per scalar type and number of classes, built once per process). Warp runs
+float32 or float64 (one instance per scalar type and number of classes: its per-cell functions and four kernels,
+each made by a cached factory, in one Warp module built once per process; see :func:`kernels`). Warp runs
 CPU threads one after another, so CPU results are deterministic; CPU launches run with denormals flushed to zero,
 as GPUs run (see :func:`_flush_denormals`). Launches go through :class:`~fruxel.kernels.wp.arrays.Workspace` (torch
-memory, torch's current CUDA stream, prepared launch commands), so nothing waits for the device.
+memory, torch's current CUDA stream, recorded launches), so nothing waits for the device.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -78,6 +80,7 @@ from .traverse import (
     camera_arg,
     clip_ray,
     grid_info,
+    inline_func,
     pick_step,
     pixel_ray,
     ray_coefficients,
@@ -102,18 +105,52 @@ GIVEN_DSUM = wp.constant(4)
 
 
 # ---------------------------------------------------------------------------------------------- kernels
+@inline_func
+def column_ray(g: GridInfo, cam: CameraInfo, p: int):
+    """The own view's ray down column ``p = j * W + i`` (``cam`` the grid's own camera): where it enters the
+    frustum, on slice 0's near face, and its coefficients (:func:`~fruxel.kernels.wp.traverse.ray_coefficients`),
+    from which the column kernels take its z-plane crossings.
+
+    Returns:
+        ``(t_lo, na, nb, da, db)``.
+    """
+    o = cam.origin
+    d = pixel_ray(cam, p % g.width, p // g.width)
+    t_lo, _t_hi, _plane = clip_ray(g, o, d)
+    na, nb, da, db = ray_coefficients(g, o, d)
+    return t_lo, na, nb, da, db
+
+
+# One instance per scalar type ``real`` (``wp.float32`` / ``wp.float64``) and number of classes ``nc`` (``C - 1``,
+# channel 0 = empty excluded): the per-cell functions (:func:`_cell_funcs`) and four kernels, each made by a cached
+# factory of its own, in one Warp module per instance that :func:`kernels` makes complete before its first launch
+# (a kernel added to a loaded module would rebuild it). Built once per process and device, cached on disk by Warp.
+#
+# Warp evaluates a function's annotations with the closure variables its body uses, so a function whose body does
+# not use ``real`` or ``vec_c`` annotates those parameters as Any (the same code once specialised).
+
+
+def _module(real: Any, nc: int) -> str:
+    """The Warp module of instance ``(real, nc)``."""
+    return f"fruxel_soft_first_hit_{nc}_{real.__name__}"
+
+
 @cache
-def _kernels(real: Any, nc: int) -> dict[str, Any]:
-    """The forward and backward kernels, general and own view, for scalar type ``real`` (``wp.float32`` /
-    ``wp.float64``) and ``nc`` classes (``C - 1``, channel 0 = empty excluded), in one module of their own: built
-    once per process and device (and cached on disk by Warp)."""
-    # Warp evaluates a function's annotations with the closure variables its body uses, so a function whose body
-    # does not use ``real`` or ``vec_c`` annotates those parameters as Any (same code once specialised).
-    vec_c = wp.types.vector(length=nc, dtype=real)
-    vec_p = wp.types.vector(length=nc + 1, dtype=real)
-    module = f"fruxel_soft_first_hit_{nc}_{real.__name__}"
-    spw = wp.constant(TAPE_STEPS_PER_WORD)
-    tiny = float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
+def _vectors(real: Any, nc: int) -> tuple[Any, Any]:
+    """``(vec_c, vec_p)``: vectors of ``nc`` class values and of all ``nc + 1`` channels, of scalar type ``real``."""
+    return wp.types.vector(length=nc, dtype=real), wp.types.vector(length=nc + 1, dtype=real)
+
+
+def _tiny(real: Any) -> float:
+    """The smallest normal number of ``real``: a transmittance or hit probability below it counts as 0."""
+    return float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
+
+
+@cache
+def _cell_funcs(real: Any, nc: int) -> SimpleNamespace:
+    """The per-cell and per-pixel ``wp.func`` of instance ``(real, nc)`` that the kernels share."""
+    vec_c, vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
 
     @wp.func
     def absorb(probs: wp.array3d(dtype=real), b: int, cell: int, t: float, acc: vec_c, ds: real, logt: real,
@@ -185,7 +222,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         return gc, g0, gd, k
 
     @wp.func
-    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):  # Any: see _kernels' note on annotations
+    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):  # Any: see the note above _module
         """All C probabilities of one cell, channel 0 first."""
         v = vec_p()
         for c in range(wp.static(nc + 1)):
@@ -217,7 +254,19 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             s = s + pm[c + 1]
         return lt, wp.exp(lt), u, a + u * s, p0
 
-    @wp.kernel(enable_backward=False, module=module)
+    return SimpleNamespace(absorb=absorb, finish_ray=finish_ray, save_ray=save_ray, ray_gradients=ray_gradients,
+                           load_cell=load_cell, no_gradient=no_gradient, cell_gradient=cell_gradient)
+
+
+@cache
+def _forward_kernel(real: Any, nc: int) -> Any:
+    """:func:`accumulate_soft_hits_kernel` of instance ``(real, nc)``: the general forward walk."""
+    vec_c, _vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
+    cells = _cell_funcs(real, nc)
+    spw = wp.constant(TAPE_STEPS_PER_WORD)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def accumulate_soft_hits_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -265,7 +314,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             word = int(0)  # noqa: UP018
             for _it in range(max_steps):
                 cell = (iz * g.height + iv) * g.width + iu
-                acc, ds, logt, tr = absorb(probs, b, cell, t_entry, acc, ds, logt, tr, save)
+                acc, ds, logt, tr = cells.absorb(probs, b, cell, t_entry, acc, ds, logt, tr, save)
                 ncell += 1
                 if tr < real(tiny):
                     # Transmittance 0, or below the smallest normal number, where it is flushed to 0 (as FTZ
@@ -286,11 +335,21 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                 t_entry = t
             if save == 1 and (ncell - 1) % spw != 0:
                 tape[(ncell - 1) // spw, r] = word
-        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
+        cells.finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            save_ray(state, log_t, r, ncell, iu, iv, iz, logt)
+            cells.save_ray(state, log_t, r, ncell, iu, iv, iz, logt)
 
-    @wp.kernel(enable_backward=False, module=module)
+    return accumulate_soft_hits_kernel
+
+
+@cache
+def _forward_own_kernel(real: Any, nc: int) -> Any:
+    """:func:`accumulate_own_view_kernel` of instance ``(real, nc)``: the forward walk down the grid's columns."""
+    vec_c, _vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
+    cells = _cell_funcs(real, nc)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def accumulate_own_view_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -311,10 +370,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
-        o = cam.origin
-        d = pixel_ray(cam, p % g.width, p // g.width)
-        t_lo, _t_hi, _plane = clip_ray(g, o, d)
-        na, nb, da, db = ray_coefficients(g, o, d)
+        t_lo, na, nb, da, db = column_ray(g, cam, p)
         plane_cells = g.height * g.width
         acc = vec_c()
         ds = real(0.0)
@@ -323,17 +379,26 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         ncell = int(0)  # noqa: UP018
         t_entry = t_lo
         for k in range(g.depth):
-            acc, ds, logt, tr = absorb(probs, b, k * plane_cells + p, t_entry, acc, ds, logt, tr, save)
+            acc, ds, logt, tr = cells.absorb(probs, b, k * plane_cells + p, t_entry, acc, ds, logt, tr, save)
             ncell += 1
             if tr < real(tiny):
                 tr = real(0.0)
                 break
             t_entry = ray_crossing(na, nb, da, db, FAMILY_Z, k + 1, 1)
-        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
+        cells.finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
+            cells.save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
 
-    @wp.kernel(enable_backward=False, module=module)
+    return accumulate_own_view_kernel
+
+
+@cache
+def _backward_kernel(real: Any, nc: int) -> Any:
+    """:func:`backpropagate_soft_hits_kernel` of instance ``(real, nc)``: the general backward walk."""
+    cells = _cell_funcs(real, nc)
+    spw = wp.constant(TAPE_STEPS_PER_WORD)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def backpropagate_soft_hits_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -367,8 +432,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         ncell = state[0, r]
         if ncell == 0:
             return
-        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        if no_gradient(gc, g0, gd, k):
+        gc, g0, gd, k = cells.ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        if cells.no_gradient(gc, g0, gd, k):
             return  # a pixel the loss ignores: nothing to add
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
@@ -382,7 +447,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         rr = g0
         # One cell of lookahead: the next cell's loads go out before this cell's atomics, which they could
         # otherwise not pass (the compiler cannot tell that the two arrays do not overlap).
-        pm = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+        pm = cells.load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
         for back in range(ncell):
             m = ncell - 1 - back
             cell = (iz * g.height + iv) * g.width + iu
@@ -392,8 +457,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                 step = m - 1
                 f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
                 t, iu, iv, iz = step_back(na, nb, da, db, f, su, sv, sz, iu, iv, iz)
-                nxt = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
-            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+                nxt = cells.load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+            logt, tr, u, a, p0 = cells.cell_gradient(pm, t, logt, gc, gd, k)
             for c in range(wp.static(nc)):
                 v = tr * gc[c]
                 if v != real(0.0):
@@ -407,7 +472,15 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             rr = a + p0 * rr
             pm = nxt
 
-    @wp.kernel(enable_backward=False, module=module)
+    return backpropagate_soft_hits_kernel
+
+
+@cache
+def _backward_own_kernel(real: Any, nc: int) -> Any:
+    """:func:`backpropagate_own_view_kernel` of instance ``(real, nc)``: the backward walk up the grid's columns."""
+    cells = _cell_funcs(real, nc)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def backpropagate_own_view_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -437,8 +510,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
         ncell = state[0, r]
         plane_cells = g.height * g.width
-        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        quiet = no_gradient(gc, g0, gd, k)
+        gc, g0, gd, k = cells.ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        quiet = cells.no_gradient(gc, g0, gd, k)
         if store == 1:
             first_zero = ncell
             if quiet:
@@ -448,14 +521,11 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     grad[b, c, kk * plane_cells + p] = real(0.0)
         if quiet:
             return
-        o = cam.origin
-        d = pixel_ray(cam, p % g.width, p // g.width)
-        t_lo, _t_hi, _plane = clip_ray(g, o, d)
-        na, nb, da, db = ray_coefficients(g, o, d)
+        t_lo, na, nb, da, db = column_ray(g, cam, p)
         logt = log_t[r]
         rr = g0
         # One cell of lookahead, as in backpropagate_soft_hits_kernel: loads before this cell's stores.
-        pm = load_cell(probs, b, (ncell - 1) * plane_cells + p)
+        pm = cells.load_cell(probs, b, (ncell - 1) * plane_cells + p)
         for back in range(ncell):
             m = ncell - 1 - back
             cell = m * plane_cells + p
@@ -463,8 +533,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             nxt = pm
             if m > 0:
                 t = ray_crossing(na, nb, da, db, FAMILY_Z, m, 1)
-                nxt = load_cell(probs, b, cell - plane_cells)
-            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+                nxt = cells.load_cell(probs, b, cell - plane_cells)
+            logt, tr, u, a, p0 = cells.cell_gradient(pm, t, logt, gc, gd, k)
             if store == 1:
                 for c in range(wp.static(nc)):
                     grad[b, c + 1, cell] = tr * (gc[c] + u)
@@ -480,11 +550,18 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             rr = a + p0 * rr
             pm = nxt
 
+    return backpropagate_own_view_kernel
+
+
+@cache
+def kernels(real: Any, nc: int) -> dict[str, Any]:
+    """The four kernels of instance ``(real, nc)``, made together so that their Warp module is complete before its
+    first launch: ``"forward"``, ``"forward_own"`` (the grid's own view), ``"backward"``, ``"backward_own"``."""
     return {
-        "forward": accumulate_soft_hits_kernel,
-        "forward_own": accumulate_own_view_kernel,
-        "backward": backpropagate_soft_hits_kernel,
-        "backward_own": backpropagate_own_view_kernel,
+        "forward": _forward_kernel(real, nc),
+        "forward_own": _forward_own_kernel(real, nc),
+        "backward": _backward_kernel(real, nc),
+        "backward_own": _backward_own_kernel(real, nc),
     }
 
 
@@ -580,7 +657,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     b, c = probs.shape[0], probs.shape[1]
     h, w = cameras[0].height, cameras[0].width
     n_cam = len(cameras)
-    kernels = _kernels(real, c - 1)
+    kern = kernels(real, c - 1)
     own = [traversal.is_own_view(cam, grid) for cam in cameras]
     classes = ws.empty((b, n_cam, c, h * w), real)
     depth = ws.empty((b, n_cam, h * w), real)
@@ -597,10 +674,10 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     with _flush_denormals(not ws.is_cuda):
         for n, (cam, is_own) in enumerate(zip(cams, own, strict=True)):
             if is_own:
-                ws.launch(kernels["forward_own"], (b, h * w),
+                ws.launch(kern["forward_own"], (b, h * w),
                           [p, g, cam, n, int(save), classes, depth, dsum, state, log_t])
             else:
-                ws.launch(kernels["forward"], (b, h * w), [p, g, cam, n, steps, int(save), classes, depth, dsum, state,
+                ws.launch(kern["forward"], (b, h * w), [p, g, cam, n, steps, int(save), classes, depth, dsum, state,
                                                            log_t, tape])
     saved = SavedRays(state.native, log_t.native, tape.native, cams, own, (h, w)) if save else None
     return (classes.native.view(b, n_cam, c, h, w), depth.native.view(b, n_cam, h, w),
@@ -629,7 +706,7 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
     dev = device_of(probs)
     ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
-    kernels = _kernels(real, c - 1)
+    kern = kernels(real, c - 1)
     n_cells = grid.n_cells
     launches = [(saved.own[n], gi, n) for gi, (saved, *_rest) in enumerate(groups) for n in range(len(saved.cams))]
     launches.sort(key=lambda x: not x[0])  # own views first (a stable sort keeps the order otherwise)
@@ -668,11 +745,11 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
             state, log_t, tape, classes, g_cls, depth, g_depth, g_dsum, given = bufs[gi]
             cam = saved.cams[n]
             if own:
-                ws.launch(kernels["backward_own"], (b, h * w), [p, g, cam, n, int(store), state, log_t, classes,
+                ws.launch(kern["backward_own"], (b, h * w), [p, g, cam, n, int(store), state, log_t, classes,
                                                                 depth, g_cls, g_depth, g_dsum, given, gbuf])
                 store = False
             else:
-                ws.launch(kernels["backward"], (b, h * w), [p, g, cam, n, state, log_t, tape, classes, depth, g_cls,
+                ws.launch(kern["backward"], (b, h * w), [p, g, cam, n, state, log_t, tape, classes, depth, g_cls,
                                                             g_depth, g_dsum, given, gbuf, common])
     if common is not None:
         grad.view(b, c, n_cells)[:, 1:] += common.native.unsqueeze(1)
