@@ -6,9 +6,11 @@ CUDA code.
     python benchmarks/ab_trees.py --base e5471e1 --ptx                 # sm_90 PTX of every Warp kernel, no GPU needed
 
 ``--base`` is a source tree (a folder with ``pyproject.toml``) or a git revision of this checkout, which is
-extracted with ``git archive`` (``pyproject.toml``, ``fruxel``, ``kernels``, ``benchmarks/common.py``). ``--new``
-defaults to this checkout. Each tree runs in processes of its own, which import ``fruxel`` from that tree through
-the folders its ``pyproject.toml`` maps (``fruxel.kernels`` = ``kernels/``, ...) and times with that tree's
+extracted with ``git archive`` (``pyproject.toml``, ``fruxel``, ``kernels``, ``benchmarks/common.py``); where the
+machine that runs the comparison has no git history (a lent GPU machine), extract it beforehand, e.g.
+``mkdir .ab-base && git archive REV pyproject.toml fruxel kernels benchmarks/common.py | tar -x -C .ab-base``.
+``--new`` defaults to this checkout. Each tree runs in processes of its own, which import ``fruxel`` from that tree
+through the folders its ``pyproject.toml`` maps (``fruxel.kernels`` = ``kernels/``, ...) and times with that tree's
 ``benchmarks/common.py``: wall time per call (median, minimum) and, on the CPU, the process's CPU time per call
 (which a busy neighbour moves less), on CUDA the pipelined time per call and the GPU time of a call's kernels
 (CUPTI). Rounds alternate the trees' order, so that a busy neighbour slows both alike; the report gives per case
@@ -27,7 +29,8 @@ An output that a tree does not reproduce itself between two rounds (atomic addit
 is compared to a relative 1e-5 instead, and reported as such.
 
 With ``--ptx`` each tree's Warp kernels are built for ``sm_90`` (NVRTC, no GPU needed) after a small run of every
-operation on the CPU, and each kernel's PTX is compared, its hash suffixes and register numbers set aside: equal
+operation on the CPU, and each kernel's PTX is compared, its names' hash suffixes and its label numbers set aside
+(a kernel that differs only in virtual register numbers is reported as such, else its instruction counts): equal
 PTX compiles to the same machine code, so the H100 runs it in the same time.
 
 Writes nothing unless ``--out FILE`` (the report as text).

@@ -515,8 +515,8 @@ def pick_step(
         ``(f, t, sf, nf, old, new)``: the family with the nearest crossing (ties in the order u, v, z), that
         crossing, the family's sign and cell count, and its cell index before the step and after it (the first
         cell of the next box). The walk ends instead where ``t >= t_hi`` (past the clipped segment) or ``new``
-        leaves ``[0, nf)``: the caller tests that in its ``if`` (as a returned bool, the test compiles to other
-        instructions, and the walk's code is kept as measured).
+        leaves ``[0, nf)``: the caller tests that in its ``if``. (Returned from here as a bool, the test made
+        :func:`trace_ray` compile to other code than the code measured on the H100; see PERF_NOTES.md.)
     """
     f = pick_family(cu, cv, cz)
     t = wp.min(cu, wp.min(cv, cz))  # select(f, cu, cv, cz), without waiting for f
