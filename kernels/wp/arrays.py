@@ -10,10 +10,21 @@ kernels run on one Warp device, results go back in the caller's kind of array on
 * stream: with torch on CUDA, torch's current stream of the device, so kernels run in order with the caller's
   torch work and nothing needs a host synchronisation; otherwise Warp's current stream of the device;
 * inputs: wrapped without a copy where kind, device, dtype and layout allow, converted once otherwise;
-* launches: replayed from a per-thread cache of prepared Warp launch commands (one per kernel overload, launch
-  dimensions and buffer shapes) that own their array descriptors, so a launch only writes addresses and scalars
-  into them: a fraction of ``wp.launch``, which matters on CUDA, where a call's kernels take tens of microseconds;
+* launches: replayed from a per-thread cache of Warp's recorded launches (``wp.launch(..., record_cmd=True)``, one
+  per kernel overload, launch dimensions and buffer shapes) through the :class:`warp.Launch` methods
+  ``set_param_at_index_from_ctype`` and ``launch``; an array argument is set again only where its address changed.
+  A fraction of ``wp.launch``'s cost, which matters on CUDA, where a call's kernels take tens of microseconds;
 * results: handed back as the caller's kind on the caller's device.
+
+Warp documents the recorded launch and its setters, but not the ctypes structures they take, nor how long a recorded
+launch stays valid. Three undocumented behaviours of Warp (1.19) are relied on, each checked by
+``tests/kernels/test_wp_arrays.py``, so that a Warp upgrade that changes one fails there:
+
+* the array descriptor (:data:`_ARRAY_DESCRIPTOR`, Warp's ``array_t``), which :meth:`Buffer.make_descriptor` fills
+  without making a Warp array;
+* the ``__ctype__()`` protocol by which Warp packs a struct argument (:class:`Packed` provides it for structures
+  built directly; Warp's own struct instances have it);
+* a recorded launch holds the module build it was recorded with, so it stays valid if Warp rebuilds the module.
 
 Torch is imported only when the caller passes torch tensors, so the backend works without it.
 """
@@ -33,8 +44,10 @@ from .runtime import resolve_device, warp
 
 wp = warp()
 
-# Warp's array descriptor type, taken from a Warp array so that only public API is used.
 _ARRAY_DESCRIPTOR = type(wp.empty(1, dtype=wp.uint8, device="cpu").__ctype__())
+"""Warp's array descriptor, ``array_t`` (fields ``data``, ``grad``, ``shape``, ``strides``, ``ndim``): the ctypes
+structure a Warp array packs into a kernel parameter. Warp documents no constructor for it, so its type is taken
+from what a Warp array's ``__ctype__()`` (the method Warp's own launches call) returns."""
 
 
 def scalar_type(dtype: Any) -> Any:
@@ -110,8 +123,9 @@ class Buffer:
         return cls(native, shape[: len(shape) - inner] if inner else shape, dtype, ptr, device)
 
     def make_descriptor(self) -> Any:
-        """A new Warp array descriptor of this buffer (C-contiguous strides), for launch parameters; it holds no
-        reference to the memory."""
+        """A new Warp array descriptor (:data:`_ARRAY_DESCRIPTOR`) of this buffer, C-contiguous strides and no
+        gradient, as a Warp array of it would pack itself; for launch parameters. It holds no reference to the
+        memory."""
         n = len(self.shape)
         strides, acc = [0] * n, wp.types.type_size_in_bytes(self.dtype)
         for axis in range(n - 1, -1, -1):
@@ -168,39 +182,38 @@ def _commands() -> OrderedDict:
 
 
 class _Prepared:
-    """A recorded Warp launch command whose array parameters are descriptors it owns, rewritten per launch.
+    """A recorded Warp launch (``wp.launch(..., record_cmd=True)``), replayed with each call's arguments.
+
+    Arguments are written with :meth:`warp.Launch.set_param_at_index_from_ctype`: structs and scalars on every
+    launch, arrays as descriptors owned here, set again only where the buffer's address changed since (a parameter
+    keeps the value it was last set to). The first launch sets every argument, which also replaces the recording's
+    references to the first call's arrays, so a cached command keeps no memory alive.
 
     Args:
         kernel, device, dim, args, block_dim: as for :meth:`Workspace.launch` (the first call's arguments).
     """
 
-    __slots__ = ("cmd", "descriptors")
+    __slots__ = ("cmd", "descriptors", "ptrs")
 
     def __init__(self, kernel: Any, device: str, dim: tuple[int, ...], args: list[Any], block_dim: int) -> None:
         values = [a.array() if isinstance(a, Buffer) else a for a in args]
-        cmd = wp.launch(kernel, dim=dim, inputs=values, device=device, record_cmd=True, block_dim=block_dim or None)
-        # The command outlives this call: keep no references to its arrays (it holds raw descriptors only).
-        cmd.fwd_args = None
-        self.descriptors = [None] * len(args)
-        for i, a in enumerate(args):
-            if isinstance(a, Buffer):
-                desc = a.make_descriptor()
-                cmd.set_param_at_index_from_ctype(i, desc)  # the command keeps this very structure
-                self.descriptors[i] = desc
-        self.cmd = cmd
+        self.cmd = wp.launch(kernel, dim=dim, inputs=values, device=device, record_cmd=True,
+                             block_dim=block_dim or None)
+        self.descriptors = [a.make_descriptor() if isinstance(a, Buffer) else None for a in args]
+        self.ptrs: list[int | None] = [None] * len(args)  # per array argument, the address last set (None: none)
 
     def launch(self, args: list[Any], stream: Any) -> None:
         """Write ``args`` into the command and launch it on ``stream`` (None: the device's current stream)."""
-        cmd, descriptors = self.cmd, self.descriptors
+        cmd, descriptors, ptrs = self.cmd, self.descriptors, self.ptrs
         for i, a in enumerate(args):
             desc = descriptors[i]
-            if desc is not None:
-                desc.data = a.ptr
-            elif hasattr(a, "__ctype__"):
-                cmd.set_param_at_index_from_ctype(i, a.__ctype__())
-            else:
-                # Warp scalars (wp.float64(x)) hold their Python value in .value
-                cmd.set_param_at_index_from_ctype(i, getattr(a, "value", a))
+            if desc is None:
+                # Structs pack themselves (__ctype__); Warp scalars (wp.float64(x)) hold their value in .value.
+                value = a.__ctype__() if hasattr(a, "__ctype__") else getattr(a, "value", a)
+                cmd.set_param_at_index_from_ctype(i, value)
+            elif a.ptr != ptrs[i]:
+                desc.data = ptrs[i] = a.ptr
+                cmd.set_param_at_index_from_ctype(i, desc)
         cmd.launch(stream)
 
 
@@ -319,10 +332,12 @@ class Workspace:
     def launch(self, kernel: Any, dim: tuple[int, ...], args: list[Any], block_dim: int = 0) -> None:
         """Launch ``kernel`` over ``dim`` on the compute device, on this call's stream (asynchronous on CUDA).
 
-        The first launch of a kernel overload with given buffer shapes on a device records a Warp launch command
-        (resolving a generic kernel's overload from the buffers' dtypes) whose array parameters are descriptors
-        owned by the command; later launches only write the buffers' addresses and the other arguments into it.
-        A launch copies its parameters (CUDA) or runs at once (CPU), so rewriting them afterwards is safe.
+        The first launch of a kernel overload with given buffer shapes on a device records a Warp launch
+        (resolving a generic kernel's overload from the buffers' dtypes); later launches write their arguments into
+        it (:class:`_Prepared`). A launch copies its parameters (CUDA) or runs at once (CPU), so rewriting them
+        afterwards is safe. A recorded launch runs the module build it was recorded with, which Warp's ``Launch``
+        keeps loaded (module docstring), also if Warp rebuilds the module later; fruxel's modules get their kernels
+        and options before their first launch, so that build is the current one.
 
         Args:
             kernel: a Warp kernel.
@@ -338,8 +353,6 @@ class Workspace:
         cache = _commands()
         key = (kernel, self.device, block_dim, dim, *(_arg_key(a) for a in args))
         prepared = cache.get(key)
-        if prepared is not None and prepared.cmd.module_exec not in kernel.module.execs.values():
-            prepared = None  # Warp rebuilt the kernel's module since (new options or overloads): record it again
         if prepared is None:
             prepared = _Prepared(kernel, self.device, dim, args, block_dim)
             cache[key] = prepared

@@ -1,10 +1,11 @@
 """Warp backend of ``soft_first_hit``: expected first hit along every pixel's ray, with its exact backward pass.
 
 One thread per ray (batch item b, pixel p = y * w + x of one camera). Cells are visited in exactly the order of
-the DDA of :mod:`fruxel.kernels.traversal` (steps 1-5, plain loop: every cell contributes), using the shared
-traversal steps of :mod:`.traverse`. The kernels take each cell's class probabilities ``p_m`` (channel 0 =
-empty, as softmax gives them). With occupancy ``o_m = 1 - p_m0``, the non-empty classes renormalised
-``q_mc = p_mc / o_m`` and entry depth ``t_m`` (first_hit's depth), the hit weight of cell m is
+the DDA of :mod:`fruxel.kernels.traversal` (steps 1-5, plain loop: every cell contributes), by the walk of
+:mod:`.traverse` that ``first_hit`` takes (its start, step choice and step on the cell level, and the step undone
+backwards), so the cells and their entry depths are first_hit's bit for bit. The kernels take each cell's class
+probabilities ``p_m`` (channel 0 = empty, as softmax gives them). With occupancy ``o_m = 1 - p_m0``, the non-empty
+classes renormalised ``q_mc = p_mc / o_m`` and entry depth ``t_m`` (first_hit's depth), the hit weight of cell m is
 ``w_m = o_m T_m`` with ``T_m = prod_{l<m} (1 - o_l) = prod_{l<m} p_l0``, and the renormalisation cancels::
 
     acc_c = sum_m w_m q_mc = sum_m T_m p_mc          (c = 1..C-1)
@@ -48,10 +49,11 @@ walk), needs no tape, and owns its cells, so the first own view of a backward pa
 (zeros behind an early stop) into an uninitialised tensor: no zero fill, no read-modify-write, no atomics.
 
 Geometry (ray, clip, crossings) is float32 as in every backend; accumulation is in the kernel's scalar type,
-float32 or float64 (one instantiation per scalar type and number of classes, built once per process). Warp runs
+float32 or float64 (one instance per scalar type and number of classes: its per-cell functions and four kernels,
+each made by a cached factory, in one Warp module built once per process; see :func:`kernels`). Warp runs
 CPU threads one after another, so CPU results are deterministic; CPU launches run with denormals flushed to zero,
 as GPUs run (see :func:`_flush_denormals`). Launches go through :class:`~fruxel.kernels.wp.arrays.Workspace` (torch
-memory, torch's current CUDA stream, prepared launch commands), so nothing waits for the device.
+memory, torch's current CUDA stream, recorded launches), so nothing waits for the device.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -71,24 +74,21 @@ from .. import traversal
 from .arrays import Buffer, Packed, Workspace, device_of
 from .runtime import warp
 from .traverse import (
-    FAMILY_U,
-    FAMILY_V,
     FAMILY_Z,
     CameraInfo,
     GridInfo,
-    boundary_ahead,
-    boundary_behind,
     camera_arg,
     clip_ray,
-    entry_cell,
     grid_info,
-    pick_family,
+    inline_func,
+    pick_step,
     pixel_ray,
     ray_coefficients,
     ray_crossing,
-    select,
-    set_family,
+    start_walk,
+    step_back,
     step_signs,
+    take_step,
 )
 
 wp = warp()
@@ -105,18 +105,52 @@ GIVEN_DSUM = wp.constant(4)
 
 
 # ---------------------------------------------------------------------------------------------- kernels
+@inline_func
+def column_ray(g: GridInfo, cam: CameraInfo, p: int):
+    """The own view's ray down column ``p = j * W + i`` (``cam`` the grid's own camera): where it enters the
+    frustum, on slice 0's near face, and its coefficients (:func:`~fruxel.kernels.wp.traverse.ray_coefficients`),
+    from which the column kernels take its z-plane crossings.
+
+    Returns:
+        ``(t_lo, na, nb, da, db)``.
+    """
+    o = cam.origin
+    d = pixel_ray(cam, p % g.width, p // g.width)
+    t_lo, _t_hi, _plane = clip_ray(g, o, d)
+    na, nb, da, db = ray_coefficients(g, o, d)
+    return t_lo, na, nb, da, db
+
+
+# One instance per scalar type ``real`` (``wp.float32`` / ``wp.float64``) and number of classes ``nc`` (``C - 1``,
+# channel 0 = empty excluded): the per-cell functions (:func:`_cell_funcs`) and four kernels, each made by a cached
+# factory of its own, in one Warp module per instance that :func:`kernels` makes complete before its first launch
+# (a kernel added to a loaded module would rebuild it). Built once per process and device, cached on disk by Warp.
+#
+# Warp evaluates a function's annotations with the closure variables its body uses, so a function whose body does
+# not use ``real`` or ``vec_c`` annotates those parameters as Any (the same code once specialised).
+
+
+def _module(real: Any, nc: int) -> str:
+    """The Warp module of instance ``(real, nc)``."""
+    return f"fruxel_soft_first_hit_{nc}_{real.__name__}"
+
+
 @cache
-def _kernels(real: Any, nc: int) -> dict[str, Any]:
-    """The forward and backward kernels, general and own view, for scalar type ``real`` (``wp.float32`` /
-    ``wp.float64``) and ``nc`` classes (``C - 1``, channel 0 = empty excluded), in one module of their own: built
-    once per process and device (and cached on disk by Warp)."""
-    # Warp evaluates a function's annotations with the closure variables its body uses, so a function whose body
-    # does not use ``real`` or ``vec_c`` annotates those parameters as Any (same code once specialised).
-    vec_c = wp.types.vector(length=nc, dtype=real)
-    vec_p = wp.types.vector(length=nc + 1, dtype=real)
-    module = f"fruxel_soft_first_hit_{nc}_{real.__name__}"
-    spw = wp.constant(TAPE_STEPS_PER_WORD)
-    tiny = float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
+def _vectors(real: Any, nc: int) -> tuple[Any, Any]:
+    """``(vec_c, vec_p)``: vectors of ``nc`` class values and of all ``nc + 1`` channels, of scalar type ``real``."""
+    return wp.types.vector(length=nc, dtype=real), wp.types.vector(length=nc + 1, dtype=real)
+
+
+def _tiny(real: Any) -> float:
+    """The smallest normal number of ``real``: a transmittance or hit probability below it counts as 0."""
+    return float(np.finfo(np.float64 if real == wp.float64 else np.float32).tiny)
+
+
+@cache
+def _cell_funcs(real: Any, nc: int) -> SimpleNamespace:
+    """The per-cell and per-pixel ``wp.func`` of instance ``(real, nc)`` that the kernels share."""
+    vec_c, vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
 
     @wp.func
     def absorb(probs: wp.array3d(dtype=real), b: int, cell: int, t: float, acc: vec_c, ds: real, logt: real,
@@ -188,7 +222,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         return gc, g0, gd, k
 
     @wp.func
-    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):  # Any: see _kernels' note on annotations
+    def load_cell(probs: wp.array3d(dtype=Any), b: int, cell: int):  # Any: see the note above _module
         """All C probabilities of one cell, channel 0 first."""
         v = vec_p()
         for c in range(wp.static(nc + 1)):
@@ -220,7 +254,19 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             s = s + pm[c + 1]
         return lt, wp.exp(lt), u, a + u * s, p0
 
-    @wp.kernel(enable_backward=False, module=module)
+    return SimpleNamespace(absorb=absorb, finish_ray=finish_ray, save_ray=save_ray, ray_gradients=ray_gradients,
+                           load_cell=load_cell, no_gradient=no_gradient, cell_gradient=cell_gradient)
+
+
+@cache
+def _forward_kernel(real: Any, nc: int) -> Any:
+    """:func:`accumulate_soft_hits_kernel` of instance ``(real, nc)``: the general forward walk."""
+    vec_c, _vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
+    cells = _cell_funcs(real, nc)
+    spw = wp.constant(TAPE_STEPS_PER_WORD)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def accumulate_soft_hits_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -245,8 +291,9 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         i, j, k of the last one), ``log_t[r]`` = sum of ``log p_0`` over them (saturated cells left out) and
         ``tape[:, r]`` = the family of every step, 2 bits each, TAPE_STEPS_PER_WORD per word (ray-minor, so that
         neighbouring threads write neighbouring words); without ``save`` these three are 1-column dummies. The
-        walk keeps one index and next crossing per family in scalars (a vector indexed by the family would live
-        in local memory).
+        walk is :func:`~fruxel.kernels.wp.traverse.trace_ray`'s on the cell level (its start, choice and step),
+        keeping one index and next crossing per family in scalars (a vector indexed by the family would live in
+        local memory).
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
@@ -262,23 +309,12 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         iv = int(0)  # noqa: UP018
         iz = int(0)  # noqa: UP018
         if t_lo < t_hi:
-            idx = entry_cell(g, o, d, t_lo, plane)
-            iu = idx[0]
-            iv = idx[1]
-            iz = idx[2]
-            s = step_signs(o, d)
-            su = s[0]
-            sv = s[1]
-            sz = s[2]
-            na, nb, da, db = ray_coefficients(g, o, d)
-            cu = ray_crossing(na, nb, da, db, FAMILY_U, boundary_ahead(iu, su), su)
-            cv = ray_crossing(na, nb, da, db, FAMILY_V, boundary_ahead(iv, sv), sv)
-            cz = ray_crossing(na, nb, da, db, FAMILY_Z, boundary_ahead(iz, sz), sz)
+            iu, iv, iz, su, sv, sz, na, nb, da, db, cu, cv, cz = start_walk(g, o, d, t_lo, plane, 0)
             t_entry = t_lo
             word = int(0)  # noqa: UP018
             for _it in range(max_steps):
                 cell = (iz * g.height + iv) * g.width + iu
-                acc, ds, logt, tr = absorb(probs, b, cell, t_entry, acc, ds, logt, tr, save)
+                acc, ds, logt, tr = cells.absorb(probs, b, cell, t_entry, acc, ds, logt, tr, save)
                 ncell += 1
                 if tr < real(tiny):
                     # Transmittance 0, or below the smallest normal number, where it is flushed to 0 (as FTZ
@@ -286,13 +322,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     # costs a hundred times more per operation.
                     tr = real(0.0)
                     break
-                f = pick_family(cu, cv, cz)
-                tf = select(f, cu, cv, cz)
-                if tf >= t_hi:
-                    break
-                sf = select(f, su, sv, sz)
-                nxt = select(f, iu, iv, iz) + sf
-                if nxt < 0 or nxt >= select(f, g.width, g.height, g.depth):
+                f, t, sf, nf, _old, nxt = pick_step(g, 0, su, sv, sz, iu, iv, iz, cu, cv, cz)
+                if t >= t_hi or nxt < 0 or nxt >= nf:
                     break
                 if save == 1:
                     step = ncell - 1
@@ -300,17 +331,25 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     if step % spw == spw - 1:
                         tape[step // spw, r] = word
                         word = 0
-                iu, iv, iz, cu, cv, cz = set_family(
-                    f, nxt, ray_crossing(na, nb, da, db, f, boundary_ahead(nxt, sf), sf), iu, iv, iz, cu, cv, cz
-                )
-                t_entry = tf
+                iu, iv, iz, cu, cv, cz = take_step(na, nb, da, db, 0, f, sf, nf, nxt, iu, iv, iz, cu, cv, cz)
+                t_entry = t
             if save == 1 and (ncell - 1) % spw != 0:
                 tape[(ncell - 1) // spw, r] = word
-        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
+        cells.finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            save_ray(state, log_t, r, ncell, iu, iv, iz, logt)
+            cells.save_ray(state, log_t, r, ncell, iu, iv, iz, logt)
 
-    @wp.kernel(enable_backward=False, module=module)
+    return accumulate_soft_hits_kernel
+
+
+@cache
+def _forward_own_kernel(real: Any, nc: int) -> Any:
+    """:func:`accumulate_own_view_kernel` of instance ``(real, nc)``: the forward walk down the grid's columns."""
+    vec_c, _vec_p = _vectors(real, nc)
+    tiny = _tiny(real)
+    cells = _cell_funcs(real, nc)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def accumulate_own_view_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -331,10 +370,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
-        o = cam.origin
-        d = pixel_ray(cam, p % g.width, p // g.width)
-        t_lo, _t_hi, _plane = clip_ray(g, o, d)
-        na, nb, da, db = ray_coefficients(g, o, d)
+        t_lo, na, nb, da, db = column_ray(g, cam, p)
         plane_cells = g.height * g.width
         acc = vec_c()
         ds = real(0.0)
@@ -343,17 +379,26 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         ncell = int(0)  # noqa: UP018
         t_entry = t_lo
         for k in range(g.depth):
-            acc, ds, logt, tr = absorb(probs, b, k * plane_cells + p, t_entry, acc, ds, logt, tr, save)
+            acc, ds, logt, tr = cells.absorb(probs, b, k * plane_cells + p, t_entry, acc, ds, logt, tr, save)
             ncell += 1
             if tr < real(tiny):
                 tr = real(0.0)
                 break
             t_entry = ray_crossing(na, nb, da, db, FAMILY_Z, k + 1, 1)
-        finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
+        cells.finish_ray(classes, depth, dsum, b, n, p, acc, ds, tr)
         if save == 1:
-            save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
+            cells.save_ray(state, log_t, r, ncell, p % g.width, p // g.width, ncell - 1, logt)
 
-    @wp.kernel(enable_backward=False, module=module)
+    return accumulate_own_view_kernel
+
+
+@cache
+def _backward_kernel(real: Any, nc: int) -> Any:
+    """:func:`backpropagate_soft_hits_kernel` of instance ``(real, nc)``: the general backward walk."""
+    cells = _cell_funcs(real, nc)
+    spw = wp.constant(TAPE_STEPS_PER_WORD)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def backpropagate_soft_hits_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -379,25 +424,22 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         shapes, of which ``given`` flags those that exist (the others are 1-element dummies). Adds atomically,
         nonzero values only, into ``grad`` ``(B, C, D*H*W)`` (channel 0 and the class channels with a nonzero
         ``G_c``) and ``common`` ``(B, D*H*W)`` (the part of every class channel's gradient that does not depend on
-        the channel). The ray's cells are visited last to first by undoing the taped steps; the module docstring
-        gives the recursion.
+        the channel). The ray's cells are visited last to first by undoing the taped steps
+        (:func:`~fruxel.kernels.wp.traverse.step_back`); the module docstring gives the recursion.
         """
         b, p = wp.tid()
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
         ncell = state[0, r]
         if ncell == 0:
             return
-        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        if no_gradient(gc, g0, gd, k):
+        gc, g0, gd, k = cells.ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        if cells.no_gradient(gc, g0, gd, k):
             return  # a pixel the loss ignores: nothing to add
         o = cam.origin
         d = pixel_ray(cam, p % cam.width, p // cam.width)
         t_lo, _t_hi, _plane = clip_ray(g, o, d)
         na, nb, da, db = ray_coefficients(g, o, d)
-        s = step_signs(o, d)
-        su = s[0]
-        sv = s[1]
-        sz = s[2]
+        su, sv, sz = step_signs(o, d)
         iu = state[1, r]
         iv = state[2, r]
         iz = state[3, r]
@@ -405,7 +447,7 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         rr = g0
         # One cell of lookahead: the next cell's loads go out before this cell's atomics, which they could
         # otherwise not pass (the compiler cannot tell that the two arrays do not overlap).
-        pm = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+        pm = cells.load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
         for back in range(ncell):
             m = ncell - 1 - back
             cell = (iz * g.height + iv) * g.width + iu
@@ -414,13 +456,9 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             if m > 0:
                 step = m - 1
                 f = (tape[step // spw, r] >> (2 * (step % spw))) & 3
-                sf = select(f, su, sv, sz)
-                t = ray_crossing(na, nb, da, db, f, boundary_behind(select(f, iu, iv, iz), sf), sf)
-                iu = wp.where(f == FAMILY_U, iu - sf, iu)
-                iv = wp.where(f == FAMILY_V, iv - sf, iv)
-                iz = wp.where(f == FAMILY_Z, iz - sf, iz)
-                nxt = load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
-            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+                t, iu, iv, iz = step_back(na, nb, da, db, f, su, sv, sz, iu, iv, iz)
+                nxt = cells.load_cell(probs, b, (iz * g.height + iv) * g.width + iu)
+            logt, tr, u, a, p0 = cells.cell_gradient(pm, t, logt, gc, gd, k)
             for c in range(wp.static(nc)):
                 v = tr * gc[c]
                 if v != real(0.0):
@@ -434,7 +472,15 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             rr = a + p0 * rr
             pm = nxt
 
-    @wp.kernel(enable_backward=False, module=module)
+    return backpropagate_soft_hits_kernel
+
+
+@cache
+def _backward_own_kernel(real: Any, nc: int) -> Any:
+    """:func:`backpropagate_own_view_kernel` of instance ``(real, nc)``: the backward walk up the grid's columns."""
+    cells = _cell_funcs(real, nc)
+
+    @wp.kernel(enable_backward=False, module=_module(real, nc))
     def backpropagate_own_view_kernel(
         probs: wp.array3d(dtype=real),
         g: GridInfo,
@@ -464,8 +510,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
         r = (b * depth.shape[1] + n) * depth.shape[2] + p
         ncell = state[0, r]
         plane_cells = g.height * g.width
-        gc, g0, gd, k = ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
-        quiet = no_gradient(gc, g0, gd, k)
+        gc, g0, gd, k = cells.ray_gradients(classes, depth, g_classes, g_depth, g_dsum, given, b, n, p)
+        quiet = cells.no_gradient(gc, g0, gd, k)
         if store == 1:
             first_zero = ncell
             if quiet:
@@ -475,14 +521,11 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
                     grad[b, c, kk * plane_cells + p] = real(0.0)
         if quiet:
             return
-        o = cam.origin
-        d = pixel_ray(cam, p % g.width, p // g.width)
-        t_lo, _t_hi, _plane = clip_ray(g, o, d)
-        na, nb, da, db = ray_coefficients(g, o, d)
+        t_lo, na, nb, da, db = column_ray(g, cam, p)
         logt = log_t[r]
         rr = g0
         # One cell of lookahead, as in backpropagate_soft_hits_kernel: loads before this cell's stores.
-        pm = load_cell(probs, b, (ncell - 1) * plane_cells + p)
+        pm = cells.load_cell(probs, b, (ncell - 1) * plane_cells + p)
         for back in range(ncell):
             m = ncell - 1 - back
             cell = m * plane_cells + p
@@ -490,8 +533,8 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             nxt = pm
             if m > 0:
                 t = ray_crossing(na, nb, da, db, FAMILY_Z, m, 1)
-                nxt = load_cell(probs, b, cell - plane_cells)
-            logt, tr, u, a, p0 = cell_gradient(pm, t, logt, gc, gd, k)
+                nxt = cells.load_cell(probs, b, cell - plane_cells)
+            logt, tr, u, a, p0 = cells.cell_gradient(pm, t, logt, gc, gd, k)
             if store == 1:
                 for c in range(wp.static(nc)):
                     grad[b, c + 1, cell] = tr * (gc[c] + u)
@@ -507,11 +550,18 @@ def _kernels(real: Any, nc: int) -> dict[str, Any]:
             rr = a + p0 * rr
             pm = nxt
 
+    return backpropagate_own_view_kernel
+
+
+@cache
+def kernels(real: Any, nc: int) -> dict[str, Any]:
+    """The four kernels of instance ``(real, nc)``, made together so that their Warp module is complete before its
+    first launch: ``"forward"``, ``"forward_own"`` (the grid's own view), ``"backward"``, ``"backward_own"``."""
     return {
-        "forward": accumulate_soft_hits_kernel,
-        "forward_own": accumulate_own_view_kernel,
-        "backward": backpropagate_soft_hits_kernel,
-        "backward_own": backpropagate_own_view_kernel,
+        "forward": _forward_kernel(real, nc),
+        "forward_own": _forward_own_kernel(real, nc),
+        "backward": _backward_kernel(real, nc),
+        "backward_own": _backward_own_kernel(real, nc),
     }
 
 
@@ -607,7 +657,7 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     b, c = probs.shape[0], probs.shape[1]
     h, w = cameras[0].height, cameras[0].width
     n_cam = len(cameras)
-    kernels = _kernels(real, c - 1)
+    kern = kernels(real, c - 1)
     own = [traversal.is_own_view(cam, grid) for cam in cameras]
     classes = ws.empty((b, n_cam, c, h * w), real)
     depth = ws.empty((b, n_cam, h * w), real)
@@ -624,10 +674,10 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     with _flush_denormals(not ws.is_cuda):
         for n, (cam, is_own) in enumerate(zip(cams, own, strict=True)):
             if is_own:
-                ws.launch(kernels["forward_own"], (b, h * w),
+                ws.launch(kern["forward_own"], (b, h * w),
                           [p, g, cam, n, int(save), classes, depth, dsum, state, log_t])
             else:
-                ws.launch(kernels["forward"], (b, h * w), [p, g, cam, n, steps, int(save), classes, depth, dsum, state,
+                ws.launch(kern["forward"], (b, h * w), [p, g, cam, n, steps, int(save), classes, depth, dsum, state,
                                                            log_t, tape])
     saved = SavedRays(state.native, log_t.native, tape.native, cams, own, (h, w)) if save else None
     return (classes.native.view(b, n_cam, c, h, w), depth.native.view(b, n_cam, h, w),
@@ -656,7 +706,7 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
     dev = device_of(probs)
     ws = Workspace(dev, "torch", dev)
     b, c = probs.shape[0], probs.shape[1]
-    kernels = _kernels(real, c - 1)
+    kern = kernels(real, c - 1)
     n_cells = grid.n_cells
     launches = [(saved.own[n], gi, n) for gi, (saved, *_rest) in enumerate(groups) for n in range(len(saved.cams))]
     launches.sort(key=lambda x: not x[0])  # own views first (a stable sort keeps the order otherwise)
@@ -695,11 +745,11 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
             state, log_t, tape, classes, g_cls, depth, g_depth, g_dsum, given = bufs[gi]
             cam = saved.cams[n]
             if own:
-                ws.launch(kernels["backward_own"], (b, h * w), [p, g, cam, n, int(store), state, log_t, classes,
+                ws.launch(kern["backward_own"], (b, h * w), [p, g, cam, n, int(store), state, log_t, classes,
                                                                 depth, g_cls, g_depth, g_dsum, given, gbuf])
                 store = False
             else:
-                ws.launch(kernels["backward"], (b, h * w), [p, g, cam, n, state, log_t, tape, classes, depth, g_cls,
+                ws.launch(kern["backward"], (b, h * w), [p, g, cam, n, state, log_t, tape, classes, depth, g_cls,
                                                             g_depth, g_dsum, given, gbuf, common])
     if common is not None:
         grad.view(b, c, n_cells)[:, 1:] += common.native.unsqueeze(1)

@@ -1,9 +1,16 @@
 """Warp functions for the ray traversal of :mod:`fruxel.kernels.traversal`, shared by every Warp kernel that walks
-rays (``first_hit``, ``shell``, and ``soft_first_hit``'s clip / entry / step).
+rays: ``first_hit`` and ``shell`` (:func:`trace_ray`) and ``soft_first_hit``'s forward and backward walks.
 
 Each function implements one numbered step of ``traversal.py`` and says which. Everything is float32 and in the
 grid frame (OpenCV axes, metres); the ray parameter ``t`` is depth in the viewing camera because the camera-frame
 direction has z = 1.
+
+The walk is written once, as pieces every walk uses: :func:`clip_ray` (step 1), :func:`start_walk` (steps 2-4: entry
+cell, step signs, per-ray coefficients and first crossings on a level), :func:`pick_step` and :func:`take_step`
+(step 5's choice and step, on a level of boxes), and, for the backward walk of ``soft_first_hit``,
+:func:`step_back` (a step undone). :func:`trace_ray` walks cells, blocks and super-blocks with them;
+``soft_first_hit``'s forward walk takes every cell (level 0) and records the stepped families, which its backward
+walk undoes. So all of them visit the same cells at the same crossings, bit for bit.
 
 Empty-space skipping (the "Empty-space skipping" paragraph of traversal.py) uses a two-level occupancy pyramid:
 blocks of ``BLOCK`` cells and super-blocks of ``SUPER`` blocks along each axis (index space; the last box of an
@@ -249,9 +256,13 @@ def floor_index(x: float, n: int) -> int:
 
 
 @inline_func
-def entry_cell(g: GridInfo, o: wp.vec3, d: wp.vec3, t: float, plane: int) -> wp.vec3i:
+def entry_cell(g: GridInfo, o: wp.vec3, d: wp.vec3, t: float, plane: int):
     """Step 2: the cell ``(i, j, k)`` the ray enters at parameter ``t`` through clip plane ``plane``; the entry
-    plane's own index is set exactly."""
+    plane's own index is set exactly.
+
+    Returns:
+        ``(i, j, k)``, three ints.
+    """
     p = o + t * d
     i = floor_index((p[0] / p[2] - g.u0) / g.du, g.width)
     j = floor_index((p[1] / p[2] - g.v0) / g.dv, g.height)
@@ -259,7 +270,7 @@ def entry_cell(g: GridInfo, o: wp.vec3, d: wp.vec3, t: float, plane: int) -> wp.
     i = wp.where(plane == PLANE_LEFT, 0, wp.where(plane == PLANE_RIGHT, g.width - 1, i))
     j = wp.where(plane == PLANE_TOP, 0, wp.where(plane == PLANE_BOTTOM, g.height - 1, j))
     k = wp.where(plane == PLANE_NEAR, 0, wp.where(plane == PLANE_FAR, g.depth - 1, k))
-    return wp.vec3i(i, j, k)
+    return i, j, k
 
 
 @inline_func
@@ -293,9 +304,10 @@ def sign_of(x: float) -> int:
 
 
 @inline_func
-def step_signs(o: wp.vec3, d: wp.vec3) -> wp.vec3i:
-    """Step 3: ``(s_i, s_j, s_k)``, constant along the ray; 0 means that family is never crossed."""
-    return wp.vec3i(sign_of(d[0] * o[2] - d[2] * o[0]), sign_of(d[1] * o[2] - d[2] * o[1]), sign_of(d[2]))
+def step_signs(o: wp.vec3, d: wp.vec3):
+    """Step 3: ``(s_i, s_j, s_k)``, three ints -1, 0 or 1, constant along the ray; 0 means that family is never
+    crossed."""
+    return sign_of(d[0] * o[2] - d[2] * o[0]), sign_of(d[1] * o[2] - d[2] * o[1]), sign_of(d[2])
 
 
 # ---------------------------------------------------------------------------------------------- step 4: crossings
@@ -342,12 +354,6 @@ def ray_crossing(na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, family: int
 
 
 @inline_func
-def boundary_ahead(index: int, s: int) -> int:
-    """Step 4: the boundary in front of cell ``index`` moving with sign ``s``, ``index + (s > 0)``."""
-    return wp.where(s > 0, index + 1, index)
-
-
-@inline_func
 def boundary_behind(index: int, s: int) -> int:
     """The boundary a ray moving with sign ``s`` crossed to enter cell ``index``."""
     return wp.where(s > 0, index, index + 1)
@@ -382,7 +388,7 @@ def precedes(t_a: float, family_a: int, t_b: float, family_b: int) -> bool:
 @inline_func
 def box_boundary(index: int, s: int, shift: int, n: int) -> int:
     """The cell boundary in front of the box (``2^shift`` cells per box, ``n`` cells on the axis) that holds cell
-    ``index``, moving with sign ``s``; shift 0 gives :func:`boundary_ahead`."""
+    ``index``, moving with sign ``s``; shift 0 gives step 4's boundary ahead of a cell, ``index + (s > 0)``."""
     return wp.where(s > 0, wp.min(((index >> shift) + 1) << shift, n), (index >> shift) << shift)
 
 
@@ -458,6 +464,109 @@ def catch_up(
     return index, t_next
 
 
+# ---------------------------------------------------------------------------------------------- the walk
+# Every Warp walk is made of these pieces: trace_ray (cells, blocks, super-blocks, forwards) and soft_first_hit's
+# forward (every cell, forwards) and backward (every cell, backwards through its step tape). Written once, they
+# give the walks the same cells at the same crossings, bit for bit.
+@inline_func
+def box_crossings(
+    na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, g: GridInfo, shift: int, si: int, sj: int, sk: int, i: int,
+    j: int, k: int
+):
+    """Step 4 on a level of boxes of ``2^shift`` cells (0: cells): each family's next crossing, the far side of
+    the box holding cell ``(i, j, k)``.
+
+    Returns:
+        ``(cu, cv, cz)``.
+    """
+    cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
+    cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
+    cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+    return cu, cv, cz
+
+
+@inline_func
+def start_walk(g: GridInfo, o: wp.vec3, d: wp.vec3, t_lo: float, plane: int, shift: int):
+    """Steps 2-4 for a ray clipped by :func:`clip_ray` (``t_lo < t_hi``, entering through ``plane``): the walk's
+    start on the level of boxes of ``2^shift`` cells.
+
+    Returns:
+        ``(i, j, k, si, sj, sk, na, nb, da, db, cu, cv, cz)``: the entry cell, the step signs, the per-ray
+        coefficients of :func:`ray_coefficients` and each family's next crossing (:func:`box_crossings`).
+    """
+    i, j, k = entry_cell(g, o, d, t_lo, plane)
+    si, sj, sk = step_signs(o, d)
+    na, nb, da, db = ray_coefficients(g, o, d)
+    cu, cv, cz = box_crossings(na, nb, da, db, g, shift, si, sj, sk, i, j, k)
+    return i, j, k, si, sj, sk, na, nb, da, db, cu, cv, cz
+
+
+@inline_func
+def pick_step(
+    g: GridInfo, shift: int, si: int, sj: int, sk: int, i: int, j: int, k: int, cu: float, cv: float, cz: float
+):
+    """Step 5's choice, on a level of boxes of ``2^shift`` cells: the next step of the walk standing in cell
+    ``(i, j, k)`` of its current box, with next crossings ``cu, cv, cz``.
+
+    The stepped family's values are picked with selects, not a branch per family: the rays of a warp step
+    different families, and three branches would run one after another.
+
+    Returns:
+        ``(f, t, sf, nf, old, new)``: the family with the nearest crossing (ties in the order u, v, z), that
+        crossing, the family's sign and cell count, and its cell index before the step and after it (the first
+        cell of the next box). The walk ends instead where ``t >= t_hi`` (past the clipped segment) or ``new``
+        leaves ``[0, nf)``: the caller tests that in its ``if``. (Returned from here as a bool, the test made
+        :func:`trace_ray` compile to other code than the code measured on the H100; see PERF_NOTES.md.)
+    """
+    f = pick_family(cu, cv, cz)
+    t = wp.min(cu, wp.min(cv, cz))  # select(f, cu, cv, cz), without waiting for f
+    sf = select(f, si, sj, sk)
+    nf = select(f, g.width, g.height, g.depth)
+    old = select(f, i, j, k)
+    return f, t, sf, nf, old, next_box(old, sf, shift)
+
+
+@inline_func
+def take_step(
+    na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, shift: int, f: int, sf: int, nf: int, new: int, i: int, j: int,
+    k: int, cu: float, cv: float, cz: float
+):
+    """Step 5's step, as :func:`pick_step` chose it: family ``f``'s cell index becomes ``new`` and its next
+    crossing the far side of ``new``'s box.
+
+    Returns:
+        The walk's new ``(i, j, k, cu, cv, cz)``.
+    """
+    t_next = ray_crossing(na, nb, da, db, f, box_boundary(new, sf, shift, nf), sf)
+    return set_family(f, new, t_next, i, j, k, cu, cv, cz)
+
+
+@inline_func
+def entered_through(f: int, si: int, sj: int, sk: int, i: int, j: int, k: int):
+    """The face through which a walk's step of family ``f`` entered cell ``(i, j, k)``.
+
+    Returns:
+        ``(boundary, sf)``: the crossed plane's index in family ``f`` and the family's step sign.
+    """
+    sf = select(f, si, sj, sk)
+    return boundary_behind(select(f, i, j, k), sf), sf
+
+
+@inline_func
+def step_back(
+    na: wp.vec3, nb: wp.vec3, da: wp.vec3, db: wp.vec3, f: int, si: int, sj: int, sk: int, i: int, j: int, k: int
+):
+    """Undo a cell step of family ``f`` that entered cell ``(i, j, k)``: where the walk entered the cell, and the
+    cell it came from (the walk backwards through a step tape, each crossing the same expression as forwards).
+
+    Returns:
+        ``(t, i, j, k)``: the crossing at which the step entered cell ``(i, j, k)``, and the cell before it.
+    """
+    boundary, sf = entered_through(f, si, sj, sk, i, j, k)
+    t = ray_crossing(na, nb, da, db, f, boundary, sf)
+    return t, wp.where(f == FAMILY_U, i - sf, i), wp.where(f == FAMILY_V, j - sf, j), wp.where(f == FAMILY_Z, k - sf, k)
+
+
 # ---------------------------------------------------------------------------------------------- step 5: the loop
 @inline_func
 def trace_ray(
@@ -499,22 +608,10 @@ def trace_ray(
     t_lo, t_hi, plane = clip_ray(g, o, d)
     if t_lo >= t_hi:
         return wp.int32(-1), wp.float32(0.0), int(NO_FAMILY), wp.int32(0), wp.int32(0)
-    c = entry_cell(g, o, d, t_lo, plane)
-    i = c[0]
-    j = c[1]
-    k = c[2]
-    s = step_signs(o, d)
-    si = s[0]
-    sj = s[1]
-    sk = s[2]
-    na, nb, da, db = ray_coefficients(g, o, d)
-
     # Start on the super-block level; the first pass of the loop descends as far as the boxes are occupied.
+    i, j, k, si, sj, sk, na, nb, da, db, cu, cv, cz = start_walk(g, o, d, t_lo, plane, SUPER_SHIFT)
     level = int(LEVEL_SUPERS)
     shift = int(SUPER_SHIFT)
-    cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-    cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-    cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
     t = t_lo
     f = int(NO_FAMILY)
     cell = wp.int32(-1)
@@ -527,28 +624,17 @@ def trace_ray(
             # the others catch up inside the box just entered. Then look at the new box again.
             level -= 1
             shift = level_shift(level)
-            cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-            cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-            cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+            cu, cv, cz = box_crossings(na, nb, da, db, g, shift, si, sj, sk, i, j, k)
             i, cu = catch_up(na, nb, da, db, FAMILY_U, i, si, shift, g.width, cu, t, f)
             j, cv = catch_up(na, nb, da, db, FAMILY_V, j, sj, shift, g.height, cv, t, f)
             k, cz = catch_up(na, nb, da, db, FAMILY_Z, k, sk, shift, g.depth, cz, t, f)
             continue
 
-        # One step on the current level: across an empty box, or (level 0) to the next cell. The stepped family's
-        # values are picked with selects, not a branch per family: the rays of a warp step different families,
-        # and three branches would run one after another.
-        f = pick_family(cu, cv, cz)
-        t = wp.min(cu, wp.min(cv, cz))  # select(f, cu, cv, cz), without waiting for f
-        sf = select(f, si, sj, sk)
-        nf = select(f, g.width, g.height, g.depth)
-        old = select(f, i, j, k)
-        new = next_box(old, sf, shift)
+        # One step on the current level: across an empty box, or (level 0) to the next cell.
+        f, t, sf, nf, old, new = pick_step(g, shift, si, sj, sk, i, j, k, cu, cv, cz)
         if t >= t_hi or new < 0 or new >= nf:
             break
-        i, j, k, cu, cv, cz = set_family(
-            f, new, ray_crossing(na, nb, da, db, f, box_boundary(new, sf, shift, nf), sf), i, j, k, cu, cv, cz
-        )
+        i, j, k, cu, cv, cz = take_step(na, nb, da, db, shift, f, sf, nf, new, i, j, k, cu, cv, cz)
         # Up while the step entered an empty parent box (a parent that did not change is still occupied).
         while level < LEVEL_SUPERS:
             up = level_shift(level + 1)
@@ -557,14 +643,12 @@ def trace_ray(
                 break
             level += 1
             shift = up
-            cu = ray_crossing(na, nb, da, db, FAMILY_U, box_boundary(i, si, shift, g.width), si)
-            cv = ray_crossing(na, nb, da, db, FAMILY_V, box_boundary(j, sj, shift, g.height), sj)
-            cz = ray_crossing(na, nb, da, db, FAMILY_Z, box_boundary(k, sk, shift, g.depth), sk)
+            cu, cv, cz = box_crossings(na, nb, da, db, g, shift, si, sj, sk, i, j, k)
     if f < 0:
         ef, eb, es = entry_face(g, plane)
         return cell, t_lo, ef, eb, es
-    sf = select(f, si, sj, sk)
-    return cell, t, f, boundary_behind(select(f, i, j, k), sf), sf
+    eb, es = entered_through(f, si, sj, sk, i, j, k)
+    return cell, t, f, eb, es
 
 
 @inline_func
