@@ -66,7 +66,7 @@ def bench_layers(device: Any, repeat: int, batch: int) -> list[dict[str, Any]]:
     dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
     c, n = 16, 32
     rows = []
-    for mode in ("transpose", "resize"):
+    for mode in ("transpose", "resize", "parity"):
         for cl in (False, True):
             for compiled in (False, True):
                 if compiled and device.type != "cuda":
@@ -76,6 +76,16 @@ def bench_layers(device: Any, repeat: int, batch: int) -> list[dict[str, Any]]:
 
                     def f(x: Any, m: Any = m) -> Any:
                         return m(x)
+                elif mode == "parity":
+                    from fruxel.train.models.blocks import Up3d
+
+                    m = Up3d(c, c, "parity").up
+                    w = torch.ones(1, c, 1, 2, 1, 2, 1, 2, device=device, dtype=dtype)
+
+                    def f(x: Any, m: Any = m, w: Any = w) -> Any:
+                        y = m(x)
+                        b, ch, d, h, ww = y.shape
+                        return (y[:, :, :, None, :, None, :, None] * w).reshape(b, ch, 2 * d, 2 * h, 2 * ww)
                 else:
                     m = nn.Conv3d(c, c, 3, padding=1, groups=c, bias=False)
 
@@ -99,6 +109,52 @@ def bench_layers(device: Any, repeat: int, batch: int) -> list[dict[str, Any]]:
                 rows.append({"mode": mode, "channels_last": cl, "compiled": compiled, "ms": ms})
                 print(f"layers {mode:9s} channels_last={cl!s:5s} compiled={compiled!s:5s} {ms:8.3f} ms", flush=True)
     return rows
+
+
+def bench_variants(device: Any, specs: list[str], batch: int = 32) -> list[dict[str, Any]]:
+    """Forward + backward (with the objective) of the whole ``ssz64`` generator per design variant: up-convolution
+    mode, group width of the 3x3x3 convolutions, channels-last, ``torch.compile``. Each spec is
+    ``GROUP_WIDTH,CHANNELS_LAST(0/1),COMPILE(0/1),UPSAMPLE``."""
+    import dataclasses
+
+    import torch
+
+    from fruxel.train.config import preset as get_preset
+    from fruxel.train.export import build_generator
+    from fruxel.train.models.blocks import channels_last
+    from fruxel.train.objective import SSZObjective
+
+    cfg = get_preset("ssz64")
+    rows = []
+    for spec in specs:
+        gw, cl, comp, up = spec.split(",")
+        m = dataclasses.replace(cfg.model, group_width=int(gw), upsample=up)
+        g = build_generator(m).to(device)
+        if cl == "1":
+            g = channels_last(g)
+        obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=device))
+        f = torch.compile(g) if comp == "1" else g
+        x = torch.rand(batch, 3, *m.image_size, device=device)
+        if cl == "1":
+            x = x.contiguous(memory_format=torch.channels_last)
+        y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=device, dtype=torch.uint8)
+
+        def step(f: Any = f, x: Any = x, y: Any = y, obj: Any = obj) -> None:
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
+                loss = obj(f(x), y)["total"]
+            loss.backward()
+
+        ms = _median_ms(step, device, 10)
+        rows.append({"group_width": int(gw), "channels_last": cl == "1", "compiled": comp == "1", "upsample": up,
+                     "batch": batch, "ms": ms, "samples_per_s": batch / ms * 1000.0})
+        print(f"variant gw={gw} cl={cl} compile={comp} up={up}: {ms:.1f} ms, {batch / ms * 1000:.0f} samples/s",
+              flush=True)
+    return rows
+
+
+DEFAULT_VARIANTS = ["1,0,0,parity", "1,1,0,parity", "1000,1,0,parity", "1,1,1,parity", "1,0,0,resize",
+                    "1000,0,0,resize", "1,1,0,transpose"]
+"""The design variants timed by default (``--variants``)."""
 
 
 def bench_train(preset: str, device: Any, steps: int, workers: int, overrides: dict[str, Any]) -> dict[str, Any]:
@@ -194,8 +250,10 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--parts", nargs="+", default=["layers", "train", "latency"],
-                   choices=["layers", "train", "latency"])
+    p.add_argument("--parts", nargs="+", default=["layers", "variants", "train", "latency"],
+                   choices=["layers", "variants", "train", "latency"])
+    p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
+                   help="GROUP_WIDTH,CHANNELS_LAST,COMPILE,UPSAMPLE specs of the variants part")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
     p.add_argument("--presets", nargs="+", default=["ssz64", "paper"])
     p.add_argument("--steps", type=int, default=120, help="training steps per preset")
@@ -212,11 +270,13 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    result: dict[str, Any] = {"machine": common.machine_info() if hasattr(common, "machine_info") else {},
+    result: dict[str, Any] = {"machine": common.machine_info(),
                               "device": str(device), "gpu": common.gpu_name(), "cpu": common.cpu_description(),
                               "torch": torch.__version__, "date": time.strftime("%Y-%m-%d")}
     if "layers" in args.parts:
         result["layers"] = bench_layers(device, args.repeat, args.batch)
+    if "variants" in args.parts:
+        result["variants"] = bench_variants(device, args.variants)
     if "train" in args.parts:
         ov = json.loads(args.train_override)
         result["train"] = [bench_train(pr, device, args.steps, args.workers, ov) for pr in args.presets]
@@ -230,9 +290,56 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _fmt(v: Any, nd: int = 1) -> str:
+    return "-" if v is None or v != v else f"{v:.{nd}f}"
+
+
 def render() -> None:
-    """Re-render the SSZ section of BENCHMARKS.md from the result files (to be written)."""
-    raise SystemExit("render: not yet")
+    """Re-render the "## SSZ" section of BENCHMARKS.md from every ``benchmarks/results/ssz*.json``."""
+    lines = [SECTION, "", "Written by `benchmarks/bench_ssz.py --render` from `benchmarks/results/ssz*.json`. Targets "
+             "(issue 13): H100 bf16 training with data streamed in the same run, >= 400 samples/s at 64^3 from 128^2 "
+             "and >= 20 samples/s at 128^3 from 512^2; batch-1 image -> logits <= 1 ms (64^3) and <= 5 ms (128^3); "
+             "image -> logits -> shell -> 512^2 ray cast <= 3 ms (64^3) and <= 20 ms (128^3); 2 cores: predicting a "
+             "64^3 model from one image <= 1 s.", ""]
+    for path in sorted(common.RESULTS.glob("ssz*.json")):
+        r = json.loads(path.read_text(encoding="utf-8"))
+        m = r.get("machine", {})
+        where = m.get("gpu") if r.get("device", "").startswith("cuda") else m.get("cpu")
+        lines += [f"### {where}, {m.get('cores', '?')} cores ({r.get('date', '?')}, torch {r.get('torch', '?')}, "
+                  f"load {_fmt(m.get('load_average'))})", "", f"`{path.name}`", ""]
+        if r.get("layers"):
+            lines += ["Up-convolution of one decoder level, B x 16 x 32^3 -> 64^3, forward + backward:", "",
+                      "| form | channels-last | compiled | ms |", "| --- | --- | --- | ---: |"]
+            lines += [f"| {x['mode']} | {x['channels_last']} | {x['compiled']} | {_fmt(x['ms'], 2)} |"
+                      for x in r["layers"]]
+            lines.append("")
+        if r.get("variants"):
+            lines += ["Whole `ssz64` generator with its objective, forward + backward, per design variant:", "",
+                      "| up-convolution | group width | channels-last | compiled | ms / step | samples/s | note |",
+                      "| --- | ---: | --- | --- | ---: | ---: | --- |"]
+            lines += [f"| {x['upsample']} | {x['group_width']} | {x['channels_last']} | {x['compiled']} | "
+                      f"{_fmt(x['ms'])} | {x['samples_per_s']:.0f} | {x.get('note', '')} |" for x in r["variants"]]
+            lines.append("")
+        if r.get("train"):
+            lines += ["Training with the simulator streaming in the same run (profiled phases per step, ms; "
+                      "samples/s from an unprofiled run):", "",
+                      "| preset | batch | workers | samples/s | peak GiB | data | forward | losses | backward | "
+                      "optimiser |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+            for x in r["train"]:
+                ph = x.get("phases_ms", {})
+                lines.append(f"| {x['preset']} | {x['batch']} | {x['workers']} | {_fmt(x.get('samples_per_s'), 0)} | "
+                             f"{_fmt(x.get('peak_memory_gib'))} | " + " | ".join(
+                                 _fmt(ph.get(k)) for k in ("data", "forward", "loss", "backward", "optimizer")) + " |")
+            lines.append("")
+        if r.get("latency"):
+            lines += ["Batch 1 (median of synchronised calls):", "",
+                      "| preset | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms |",
+                      "| --- | --- | ---: | ---: |"]
+            lines += [f"| {x['preset']} | {x['compiled']} | {_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} |"
+                      for x in r["latency"]]
+            lines.append("")
+    common.replace_section(common.BENCHMARKS_MD, SECTION, "\n".join(lines))
+    print(f"rendered {SECTION} of {common.BENCHMARKS_MD}")
 
 
 if __name__ == "__main__":
