@@ -244,10 +244,10 @@ def test_report_holds_the_accumulators_numbers() -> None:
     assert "| completion IoU (%) | 40.0 | 66.7 |" in lines
     assert "| own-view first-hit accuracy (%) | 50.0 | 100.0 |" in lines
     assert "| novel-view first-hit accuracy (%) | 50.0 | n/a |" in lines
-    assert "| a | 16.7 | 100.0 | 100.0 |" in lines
-    assert "| b | 33.3 | 50.0 | 50.0 |" in lines
+    assert "| a | 16.67 | 100.0 | 100.0 |" in lines
+    assert "| b | 33.33 | 50.0 | 50.0 |" in lines
     assert "| novel-view depth error (m) | 0.500 | n/a |" in lines
-    assert "| c | 0.0 | 0.0 | n/a |" in lines
+    assert "| c | 0.00 | 0.0 | n/a |" in lines
     assert "`fruxel-eval --samples 1`" in md and "m.safetensors" in md and "step 7" in md
 
 

@@ -91,10 +91,10 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
     }
 
 
-def _value(v: Any, unit: str) -> str:
+def _value(v: Any, unit: str, digits: int = 1) -> str:
     if v is None:
         return "n/a"
-    return f"{v:.3f}" if unit == "m" else f"{v:.1f}"
+    return f"{v:.3f}" if unit == "m" else f"{v:.{digits}f}"
 
 
 def _table(header: list[str], rows: list[list[str]], numbers: bool = True) -> list[str]:
@@ -152,7 +152,8 @@ def markdown_report(report: Mapping[str, Any]) -> str:
     lines += ["", "## IoU per class (%)", ""]
     names = report["classes"]["names"]
     share = report["class_share"]
-    rows = [[name, _value(share.get(name), "%")] + [_value(res[r]["iou"].get(name), "%") for r in rules]
+    # Shares with two decimals: small classes hold a few hundredths of the cells.
+    rows = [[name, _value(share.get(name), "%", 2)] + [_value(res[r]["iou"].get(name), "%") for r in rules]
             for name in names[1:]]
     lines += _table(["class", "share of cells", *(RULES[r] for r in rules)], rows)
     lines += ["", f"Empty cells: {_value(share.get(names[0]), '%')} % of the ground truth. n/a: a class neither in the "
