@@ -218,7 +218,9 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     out = args.out
     written = write_outputs([
         (out / "report.md", lambda tmp: tmp.write_text(text, encoding="utf-8")),
-        (out / "report.json", lambda tmp: tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")),
+        # default=str: a training summary read from a checkpoint may hold values JSON has no type for.
+        (out / "report.json", lambda tmp: tmp.write_text(json.dumps(report, indent=2, default=str) + "\n",
+                                                          encoding="utf-8")),
         (out / "examples.png", lambda tmp: example_sheet(kept, grid, classes, tmp, title=title, backend=args.backend)),
     ])
     if not args.quiet:
