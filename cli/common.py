@@ -428,3 +428,33 @@ def write_outputs(outputs: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         _remove_made_folders(made, targets)
         raise
     return targets
+
+
+# ---------------------------------------------------------------------------------------------------- models
+def add_model_options(parser: Any) -> None:
+    """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.
+
+    ``--checkpoint`` is a shipped ``.safetensors`` file or a training checkpoint ``.pt``
+    (:func:`fruxel.train.export.load_generator` reads either); None (not given) means the model shipped with
+    fruxel. ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
+    """
+    parser.add_argument("--checkpoint", default=None, metavar="FILE",
+                        help="the model: a shipped .safetensors file or a training checkpoint .pt (default: the model "
+                        "shipped with fruxel)")
+    parser.add_argument("--device", type=device_name, default=None, metavar="cpu|cuda[:N]",
+                        help="where the model runs (default: cuda when present, else cpu)")
+
+
+def torch_device(name: str | None) -> Any:
+    """The ``torch.device`` of ``--device`` (:func:`add_model_options`): CUDA when present if None.
+
+    Raises:
+        UsageError: a CUDA device asked for on a machine without one.
+    """
+    import torch
+
+    if name is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UsageError(f"--device {name}: no CUDA device here")
+    return torch.device(name)

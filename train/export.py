@@ -155,6 +155,9 @@ def load_generator(path: str | os.PathLike[str], device: str | torch.device = "c
     try:
         gen.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
     except RuntimeError as e:
-        first = str(e).strip().splitlines()[0]
-        raise ModelFileError(path, f"weights do not fit the model config ({first})") from None
+        # torch's first line only names the module; the next says what does not fit (it may list many keys).
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        detail = lines[1] if len(lines) > 1 else lines[0] if lines else type(e).__name__
+        detail = detail if len(detail) <= 300 else detail[:297] + "..."
+        raise ModelFileError(path, f"weights do not fit the model config ({detail})") from None
     return gen.to(device).eval(), config, training

@@ -30,6 +30,9 @@ PAD_VALUE = 128
 """Grey (uint8) the model sees where the photo has nothing."""
 MAX_IMAGE_PIXELS = 1 << 28
 """Largest photo accepted, in pixels (a decompression-bomb bound)."""
+MAX_FRAME_GROWTH = 16
+"""A photo whose frame (the grid's view at the photo's scale) would hold more than this many times its pixels (and
+the model image's) is framed at the model's scale instead (see :func:`prepare_image`)."""
 
 
 class ImageError(FruxelError, ValueError):
@@ -113,8 +116,15 @@ def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = Non
             # Too few rows for the grid's aspect: keep every row and narrow the columns instead.
             cols = max(1, round(h * grid.width / grid.height))
     rows = max(1, round(cols * grid.height / grid.width))
-    framed = _crop_or_pad(img, rows, cols)
     out_h, out_w = config.image_size
+    if rows * cols > MAX_FRAME_GROWTH * max(h * w, out_h * out_w):
+        # A photo far narrower than the grid's view (a long lens): padding it at its own scale would need a huge
+        # frame (1 degree of a 4000-pixel photo in a 60 degree grid: 264000^2 pixels), so it is shrunk to the
+        # model's scale first and padded there: the same picture up to resampling.
+        s = out_w / cols
+        img = np.asarray(Image.fromarray(img).resize((max(1, round(w * s)), max(1, round(h * s))), Image.BOX))
+        rows, cols = out_h, out_w
+    framed = _crop_or_pad(img, rows, cols)
     resample = Image.BOX if rows >= out_h else Image.BILINEAR
     return np.asarray(Image.fromarray(framed).resize((out_w, out_h), resample), dtype=np.uint8)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 import zipfile
 from dataclasses import dataclass
 from typing import Any
@@ -89,10 +90,12 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
-        # torch's message goes on to suggest weights_only=False, which would run the file's code: not repeated.
-        first = str(e).split("\n")[0].strip() or type(e).__name__
-        raise CheckpointError(path, f"refused: holds something other than tensors and plain data ({first})") \
-            from None
+        # torch's message suggests weights_only=False, which would run the file's code: only what was refused is
+        # repeated ("Unsupported global: GLOBAL getattr was not an allowed global by default").
+        m = re.search(r"WeightsUnpickler error: ([^.\n]*)", str(e))
+        what = f" ({m.group(1).strip()})" if m else ""
+        raise CheckpointError(path, f"refused: holds something other than tensors and plain data{what}; nothing "
+                                    "in it was run") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError) as e:
         raise CheckpointError(path, f"not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0]})") \
             from None

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,68 @@ def _host(x: Any) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
+Predict = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""A prediction rule: ``(image (B, 3, h, w) float, truth (B, D, H, W) uint8) -> (B, D, H, W)`` integer labels on
+the truth's device. The truth is given only so that baselines built from it (the visible-surface oracle) and from
+its shape (the per-cell prior) can be evaluated like a network."""
+
+
+def generator_predict(generator: torch.nn.Module, autocast: bool = False) -> Predict:
+    """The prediction rule of a generator: the argmax of its logits (bfloat16 autocast on CUDA with ``autocast``)."""
+
+    def predict(image: torch.Tensor, _: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(image.device.type, dtype=torch.bfloat16, enabled=autocast):
+            logits = generator(image).logits
+        return logits.argmax(dim=1).to(torch.uint8)
+
+    return predict
+
+
+@torch.no_grad()
+def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
+                         grid: FruxelGrid, classes: ClassTable, *, device: torch.device, novel: bool = True,
+                         backend: str | None = None, keep: int | Collection[int] = 0
+                         ) -> tuple[dict[str, Accumulator], list[dict[str, Any]]]:
+    """Count every metric of several prediction rules on the same samples, in one pass over them.
+
+    Args:
+        predictors: the rules by name (e.g. the model and the baselines of :mod:`.baselines`).
+        batches: ``(image, labels)`` pairs: ``(B, 3, h, w)`` float in [0, 1] and ``(B, D, H, W)`` integer labels,
+            on any device.
+        grid, classes: the grid and class table of the labels.
+        device: where to predict and count.
+        novel: also count the novel-view metrics (two ``first_hit`` per camera, batch and rule).
+        backend: kernel backend for the novel views.
+        keep: samples to keep for :func:`fruxel.train.eval.visual.example_sheet`: a number (the first ones) or the
+            positions of the samples in the order of ``batches``.
+
+    Returns:
+        ``(accumulators by name, kept)``: kept samples in order, as dicts of ``image`` (3, h, w) float, ``labels``
+        and ``pred`` (D, H, W) uint8 (``pred``: the first rule's prediction), all on the CPU.
+    """
+    accs = {name: Accumulator(len(classes.names)) for name in predictors}
+    cams = novel_cameras(grid) if novel else []
+    wanted = set(range(keep)) if isinstance(keep, int) else {int(k) for k in keep}
+    kept: list[dict[str, Any]] = []
+    seen = 0
+    for image, labels in batches:
+        image = image.to(device, non_blocking=True)
+        target = labels.to(device, non_blocking=True).to(torch.uint8)
+        first = None
+        for name, predict in predictors.items():
+            pred = predict(image, target).to(torch.uint8)
+            first = pred if first is None else first
+            accs[name].add_volumes(pred, target)
+            if cams:
+                count_views(accs[name], pred, target, grid, cams, backend)
+        for b in range(len(target)):
+            if seen + b in wanted:
+                kept.append({"image": image[b].float().cpu(), "labels": target[b].cpu(),
+                             "pred": first[b].cpu() if first is not None else target[b].cpu()})
+        seen += len(target)
+    return accs, kept
+
+
 @torch.no_grad()
 def evaluate(generator: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], grid: FruxelGrid,
              classes: ClassTable, *, device: torch.device, novel: bool = True, backend: str | None = None,
@@ -67,22 +129,9 @@ def evaluate(generator: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, t
     """
     was_training = generator.training
     generator.eval()
-    acc = Accumulator(len(classes.names))
-    cams = novel_cameras(grid) if novel else []
-    kept: list[dict[str, Any]] = []
     try:
-        for image, labels in batches:
-            image = image.to(device, non_blocking=True)
-            labels = labels.to(device, non_blocking=True)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-                logits = generator(image).logits
-            pred = logits.argmax(dim=1).to(torch.uint8)
-            target = labels.to(torch.uint8)
-            acc.add_volumes(pred, target)
-            if cams:
-                count_views(acc, pred, target, grid, cams, backend)
-            for b in range(min(keep - len(kept), len(pred))):
-                kept.append({"image": image[b].float().cpu(), "labels": target[b].cpu(), "pred": pred[b].cpu()})
+        accs, kept = evaluate_predictions({"model": generator_predict(generator, autocast)}, batches, grid, classes,
+                                          device=device, novel=novel, backend=backend, keep=keep)
     finally:
         generator.train(was_training)
-    return acc, kept
+    return accs["model"], kept

@@ -1,0 +1,240 @@
+"""``fruxel-eval``: the metrics of SPEC section 9 for a trained SSZ model, against the two baselines.
+
+Usage::
+
+    fruxel-eval [--checkpoint FILE] [--data DIR [--split test]] [--samples N] [--seed S] [--no-augment]
+                [--prior-samples N] [--out DIR] [--batch B] [--workers K] [--device cpu|cuda[:N]]
+                [--backend NAME] [--examples N] [-q]
+
+The model (``--checkpoint``) is a shipped ``.safetensors`` file or a training checkpoint ``.pt``; by default the
+model shipped with fruxel. Samples are the first N of a data set's split (``--data DIR --split test``, shards
+from ``fruxel-sim generate``, whose grid, image size and classes must be the model's; N defaults to the whole
+split) or N samples of the simulator's test split streamed for the model's grid and image size (default 256,
+``--seed``). The same samples are predicted by
+
+* the model (argmax of its logits),
+* the **per-cell prior**: each cell's most frequent label over ``--prior-samples`` samples of the training split
+  of the same source (``0`` leaves it out),
+* the **visible-surface oracle**: the ground truth's own-view shell alone (a perfect depth and segmentation
+  network that completes nothing),
+
+and every metric is counted over all of them together: IoU per class, mIoU over the classes present, completion
+IoU, own- and novel-view first-hit accuracy and novel-view depth error.
+
+Outputs, written together into ``--out`` (default ``out/``): ``report.md`` (tables, the command line, model file,
+samples, data source and machine), ``report.json`` (the same numbers with the confusion matrices and counts
+behind them) and ``examples.png`` (image | truth and prediction from the grid's own camera | truth and prediction
+from a novel pose). Errors are one line ``fruxel-eval: error: ...`` with exit status 2
+(:func:`fruxel.cli.common.run`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from .common import (
+    OneLineParser,
+    UsageError,
+    add_model_options,
+    non_negative_int,
+    positive_int,
+    run,
+    torch_device,
+    write_outputs,
+)
+
+PROG = "fruxel-eval"
+DEFAULT_OUT = Path("out")
+"""Output folder when ``--out`` is not given."""
+STREAM_SAMPLES = 256
+"""Streamed test samples when ``--samples`` is not given."""
+PRIOR_SAMPLES = 1024
+"""Training samples of the per-cell prior when ``--prior-samples`` is not given."""
+OUTPUTS = ("report.md", "report.json", "examples.png")
+"""Files written into ``--out``."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``fruxel-eval`` (standard library only: ``--help`` is instant)."""
+    p = OneLineParser(
+        prog=PROG,
+        description="Evaluate an SSZ model on a data set split or on streamed simulator samples: IoU per class, "
+        "mIoU, completion IoU, own- and novel-view first-hit accuracy and depth error, beside two baselines on the "
+        "same samples: the per-cell prior (each cell's most frequent training label) and the visible-surface "
+        "oracle (the true own-view surface alone). Writes report.md, report.json and examples.png.",
+    )
+    add_model_options(p)
+    p.add_argument("--data", default=None, metavar="DIR",
+                   help="a data set folder made by fruxel-sim generate (default: stream samples from the simulator)")
+    p.add_argument("--split", default="test", metavar="NAME", help="the data set's split to evaluate on (default test)")
+    p.add_argument("--samples", type=positive_int, default=None, metavar="N",
+                   help=f"evaluate on the first N samples (default: the whole split of --data, else {STREAM_SAMPLES} "
+                   "streamed test samples)")
+    p.add_argument("--seed", type=non_negative_int, default=None, metavar="S",
+                   help="base seed of the streamed samples (default 0; a data set has its own)")
+    p.add_argument("--no-augment", dest="augment", action="store_false",
+                   help="stream images without appearance augmentation (default: augmented, as in training)")
+    p.add_argument("--prior-samples", type=non_negative_int, default=PRIOR_SAMPLES, metavar="N",
+                   help="training samples counted for the per-cell prior, from the train split of the same source "
+                   f"(0 leaves the prior out; default {PRIOR_SAMPLES}, at most the data set's train split)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+                   help=f"output folder (default {DEFAULT_OUT}/): {', '.join(OUTPUTS)}")
+    p.add_argument("--batch", type=positive_int, default=8, metavar="B", help="samples per batch (default 8)")
+    p.add_argument("--workers", type=non_negative_int, default=0, metavar="K",
+                   help="worker processes that make or read the samples (default 0: this process)")
+    p.add_argument("--backend", default=None, metavar="NAME",
+                   help="kernel backend of the views and the oracle: warp, opencl, warp-cpu, warp-cuda (default: the "
+                   "best available)")
+    p.add_argument("--examples", type=positive_int, default=4, metavar="N",
+                   help="samples shown in examples.png (default 4)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
+    return p
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Options that do not go together, found before any work."""
+    if args.data is None:
+        if args.split != "test":
+            raise UsageError("--split names a split of a data set: give --data DIR (streamed samples are the test "
+                             "split)")
+    else:
+        given = [flag for flag, on in (("--seed", args.seed is not None), ("--no-augment", not args.augment)) if on]
+        if given:
+            verb = "describe" if len(given) > 1 else "describes"
+            raise UsageError(f"{', '.join(given)} {verb} streamed samples; a data set (--data) has its own")
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file; --out is the folder for {', '.join(OUTPUTS)}")
+    if args.backend is not None:
+        from fruxel.kernels.registry import split_name
+
+        split_name(args.backend)
+
+
+def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Iterator[Any]:
+    """``batches`` with a progress bar over samples on stderr (hidden with ``--quiet`` or when stderr is no
+    terminal)."""
+    from tqdm import tqdm
+
+    with tqdm(total=total, desc=desc, unit="sample", disable=True if quiet else None, leave=False,
+              dynamic_ncols=True) as bar:
+        for b in batches:
+            yield b
+            bar.update(len(b[1]))
+
+
+def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
+    started = time.perf_counter()
+    _check_options(args)
+    import numpy as np
+    import torch
+
+    from fruxel.kernels.registry import describe
+    from fruxel.render.table1 import machine_info
+    from fruxel.train.engine.data import to_device
+    from fruxel.train.eval.baselines import CellPrior, oracle_prediction, prior_prediction
+    from fruxel.train.eval.evaluate import evaluate_predictions, generator_predict
+    from fruxel.train.eval.report import RULES, build_report, markdown_report
+    from fruxel.train.eval.samples import EvalData, EvalDataError, batches, data_set_manifest, split_size
+    from fruxel.train.eval.visual import example_sheet
+    from fruxel.train.export import load_generator
+    from fruxel.train.predict import default_model
+
+    device = torch_device(args.device)
+    path = args.checkpoint or default_model()
+    generator, mc, training = load_generator(path, device=device)
+    grid, classes = mc.grid, mc.classes
+
+    if args.data is not None:
+        manifest = data_set_manifest(args.data, mc)
+        data = EvalData(source="shards", root=args.data, seed=manifest.seed)
+        available = split_size(data, mc, args.split)
+        count = args.samples or available
+        if count > available:
+            raise EvalDataError(f"{args.data}: --samples {count}, but split {args.split!r} holds {available} samples")
+    else:
+        data = EvalData(source="stream", seed=args.seed or 0, augment=args.augment)
+        count = args.samples or STREAM_SAMPLES
+    # Warp device of the simulator's fruxelize (streaming).
+    sim_device = "cuda" if device.type == "cuda" else "cpu"
+
+    def load(split: str, n: int, desc: str) -> Iterator[Any]:
+        return _progress(batches(data, mc, split, n, args.batch, workers=args.workers, device=sim_device), n, desc,
+                         args.quiet)
+
+    prior_info = None
+    predictors: dict[str, Any] = {"model": generator_predict(generator, autocast=device.type == "cuda")}
+    if args.prior_samples:
+        n_prior = args.prior_samples
+        if data.source == "shards":
+            try:
+                n_prior = min(n_prior, split_size(data, mc, "train"))
+            except EvalDataError:
+                raise EvalDataError(f"{args.data}: the per-cell prior counts the train split, which this data set does "
+                                    "not have; give --prior-samples 0 to leave the prior out") from None
+        prior = CellPrior(grid.shape, len(classes.names))
+        for _, labels in load("train", n_prior, "prior"):
+            prior.add(labels)
+        mode = torch.from_numpy(prior.mode()).to(device)
+        predictors["prior"] = lambda image, truth: prior_prediction(mode, len(truth))
+        prior_info = {"split": "train", "samples": prior.samples}
+    predictors["oracle"] = lambda image, truth: oracle_prediction(truth, grid, args.backend)
+
+    def as_input(pairs: Iterator[Any]) -> Iterator[Any]:
+        for image, labels in pairs:
+            yield to_device({"image": image, "labels": labels}, device)
+
+    with torch.no_grad():
+        # Examples spread over the samples: consecutive samples are frames of one room.
+        shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))
+        accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), grid, classes,
+                                          device=device, backend=args.backend, keep=shown.tolist())
+
+    machine = machine_info(str(device))
+    machine.update(device=str(device), kernels=describe(args.backend, None, torch.zeros(1, device=device)))
+    report = build_report(
+        accs, classes,
+        model={"file": str(path), "grid": grid.to_dict(), "image_size": list(mc.image_size), "training": training},
+        data={"source": data.describe(), "kind": data.source, "root": data.root or None, "seed": data.seed,
+              "augment": data.augment if data.source == "stream" else None, "split": args.split, "samples": count,
+              "indices": f"indices 0..{count - 1}"},
+        prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
+        seconds=time.perf_counter() - started)
+    text = markdown_report(report)
+    res = report["results"]
+
+    def miou(rule: str) -> str:
+        v = res[rule]["miou"]
+        return "n/a" if v is None else f"{v:.1f} %"
+
+    title = (f"{Path(path).name}, {count} {args.split} samples: mIoU "
+             + ", ".join(f"{RULES[r]} {miou(r)}" for r in res))
+    out = args.out
+    written = write_outputs([
+        (out / "report.md", lambda tmp: tmp.write_text(text, encoding="utf-8")),
+        # default=str: a training summary read from a checkpoint may hold values JSON has no type for.
+        (out / "report.json", lambda tmp: tmp.write_text(json.dumps(report, indent=2, default=str) + "\n",
+                                                          encoding="utf-8")),
+        (out / "examples.png", lambda tmp: example_sheet(kept, grid, classes, tmp, title=title, backend=args.backend)),
+    ])
+    if not args.quiet:
+        print(title)
+        for p in written:
+            print(p)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``fruxel-eval`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run(lambda args: _main(args, argv), build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

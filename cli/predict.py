@@ -1,0 +1,161 @@
+"""``fruxel-predict``: fruxel models from photos with a trained SSZ model.
+
+Usage::
+
+    fruxel-predict IMAGE... [--checkpoint FILE] [--out DIR] [--fit crop|pad] [--hfov DEG] [--batch N] [--logits]
+                   [--device cpu|cuda[:N]] [-q]
+
+IMAGE is any PNG, JPEG or other image Pillow reads, of any size. Each is mapped onto the model's own camera
+(:func:`fruxel.train.predict.prepare_image`): its field of view (``--hfov``, default the grid's) is cropped or
+padded to the grid's about the centre, its aspect matched by a centred crop (``--fit crop``, default) or grey
+padding (``--fit pad``), then it is resized to the model's image size. The model (``--checkpoint``: a shipped
+``.safetensors`` file or a training checkpoint ``.pt``; default the model shipped with fruxel) predicts the images
+in batches of ``--batch``.
+
+For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)
+
+* ``NAME.npz``, a fruxel model file (:func:`fruxel.save`): the argmax labels on the model's grid with its classes;
+* with ``--logits``, ``NAME.logits.npz`` too, a logits file (:func:`fruxel.save_logits`): the logits
+  ``(C, D, H, W)`` in float16.
+
+The labels are the argmax of the logits as stored (float16), so both files show the same model; ``fruxel-render``
+reads either. An image's files are written together, atomically; every path written is printed. All images are
+read and checked before the model runs, and two images that would write the same file are refused. Errors are
+one line ``fruxel-predict: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .common import OneLineParser, UsageError, add_model_options, positive_int, run, torch_device, write_outputs
+
+PROG = "fruxel-predict"
+DEFAULT_OUT = Path("out")
+"""Output folder when ``--out`` is not given."""
+MODEL_SUFFIX = ".npz"
+"""Suffix of the fruxel model file written per image."""
+LOGITS_SUFFIX = ".logits.npz"
+"""Suffix of the logits file written per image with ``--logits``."""
+
+
+def field_of_view(text: str) -> float:
+    """argparse type: a horizontal field of view in degrees, in (0, 180)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected degrees in (0, 180), got {text!r}") from None
+    if not (math.isfinite(v) and 0.0 < v < 180.0):
+        raise argparse.ArgumentTypeError(f"expected degrees in (0, 180), got {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``fruxel-predict`` (standard library only: ``--help`` is instant)."""
+    p = OneLineParser(
+        prog=PROG,
+        description="Predict a semantic fruxel model from each photo with a trained SSZ model; writes NAME.npz "
+        "(fruxel model: argmax labels) and, with --logits, NAME.logits.npz per image, both readable by "
+        "fruxel-render.",
+    )
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="photos: PNG, JPEG or anything Pillow reads, any size")
+    add_model_options(p)
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+                   help=f"output folder (default {DEFAULT_OUT}/)")
+    p.add_argument("--fit", choices=("crop", "pad"), default="crop",
+                   help="match the model's aspect by a centred crop or by grey padding (default crop)")
+    p.add_argument("--hfov", type=field_of_view, default=None, metavar="DEG",
+                   help="the photos' horizontal field of view in degrees (default: the model grid's own); a wider "
+                   "photo is cropped to the grid's view, a narrower one padded")
+    p.add_argument("--batch", type=positive_int, default=8, metavar="N", help="images per forward pass (default 8)")
+    p.add_argument("--logits", action="store_true",
+                   help="also write NAME.logits.npz, the logits (C, D, H, W) in float16")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars, no list of files written")
+    return p
+
+
+def output_names(images: Sequence[str], out: Path, logits: bool) -> list[list[Path]]:
+    """The files each image writes: ``[out/NAME.npz]`` (and ``out/NAME.logits.npz``), NAME its file's stem.
+
+    Raises:
+        UsageError: two images that would write the same file (``a/x.png`` and ``b/x.jpg``; ``x.png`` and
+            ``x.logits.png`` with ``--logits``).
+    """
+    owner: dict[Path, str] = {}
+    result = []
+    for image in images:
+        stem = Path(image).stem
+        files = [out / f"{stem}{MODEL_SUFFIX}"] + ([out / f"{stem}{LOGITS_SUFFIX}"] if logits else [])
+        for f in files:
+            if f in owner:
+                raise UsageError(f"{owner[f]} and {image} would both write {f}; rename one, or predict them in two "
+                                 "runs with different --out folders")
+            owner[f] = image
+        result.append(files)
+    return result
+
+
+def _progress(items: Any, total: int, desc: str, quiet: bool) -> Any:
+    from tqdm import tqdm
+
+    # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
+    return tqdm(items, total=total, desc=desc, unit="image", disable=True if quiet else None, leave=False,
+                dynamic_ncols=True)
+
+
+def _writers(logits: Any, grid: Any, classes: Any, files: list[Path]) -> list[tuple[Path, Any]]:
+    """The writers of one image's files, from its ``(C, D, H, W)`` float32 logits."""
+    import numpy as np
+
+    from fruxel import FruxelModel, labels_from_scores, save, save_logits
+
+    # float16 holds +-65504; a larger logit would become infinite, which a logits file refuses.
+    half = np.clip(logits, -65504.0, 65504.0).astype(np.float16)
+    # Labels from the stored float16 logits, so the model file and the logits file show the same cells.
+    model = FruxelModel(labels_from_scores(half, axis=0), grid, classes)
+    out = [(files[0], lambda tmp: save(tmp, model))]
+    if len(files) > 1:
+        out.append((files[1], lambda tmp: save_logits(tmp, half, grid, classes)))
+    return out
+
+
+def _main(args: argparse.Namespace) -> int:
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file; --out is the folder the predictions go to")
+    targets = output_names(args.images, args.out, args.logits)
+
+    from fruxel.train.predict import ImageError, load_image, load_predictor, prepare_image
+
+    predictor = load_predictor(args.checkpoint, device=str(torch_device(args.device)), batch=args.batch)
+    config = predictor.config
+    # Every image is read and checked before the model runs; what is kept is its small model-sized version.
+    prepared = []
+    for path in _progress(args.images, len(args.images), "read", args.quiet):
+        try:
+            prepared.append(prepare_image(load_image(path), config, hfov=args.hfov, fit=args.fit))
+        except ImageError:
+            raise
+        except ValueError as e:
+            raise ImageError(f"{path}: {e}") from None
+    grid, classes = config.grid, config.classes
+    predictions = _progress(predictor.predict(prepared), len(prepared), "predict", args.quiet)
+    for logits, files in zip(predictions, targets, strict=True):
+        written = write_outputs(_writers(logits.cpu().numpy(), grid, classes, files))
+        if not args.quiet:
+            for p in written:
+                print(p)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``fruxel-predict`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    return run(_main, build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,64 @@
+"""Fixtures of the command tests: a small SSZ model in both file forms (shipped safetensors, training checkpoint)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fruxel.grid import FruxelGrid
+
+SMALL_GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+"""The grid of the test model: 16^3 cells, from 64 x 64 images."""
+
+
+def small_model_config() -> Any:
+    """A :class:`fruxel.train.config.ModelConfig`: a 16^3-from-64^2 SSZ architecture with a few thousand weights
+    (a forward pass takes milliseconds)."""
+    from fruxel.train.config import ModelConfig
+
+    return ModelConfig(grid=SMALL_GRID, image_scale=2, levels=3, stem=4, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1),
+                       encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4), decoder_blocks=(1, 1, 1),
+                       discriminator=(8,))
+
+
+@pytest.fixture(scope="session")
+def small_generator() -> Any:
+    """``(generator, config)``: freshly initialised, with a widened output layer so that its argmax holds several
+    classes (a fresh model predicts almost only empty cells)."""
+    torch = pytest.importorskip("torch")
+    from fruxel.train.export import build_generator
+
+    config = small_model_config()
+    torch.manual_seed(0)
+    gen = build_generator(config).eval()
+    with torch.no_grad():
+        gen.head.weight.normal_(0.0, 8.0)
+        gen.head.bias.zero_()
+        gen.head.bias[0] = 6.0
+    return gen, config
+
+
+@pytest.fixture(scope="session")
+def shipped_model(small_generator: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small model as a shipped file (float32 weights, so that it predicts exactly as the checkpoint form)."""
+    from fruxel.train.export import save_shipped
+
+    gen, config = small_generator
+    path = tmp_path_factory.mktemp("models") / "small.safetensors"
+    save_shipped(path, gen, config, {"step": 0, "note": "fresh"}, half=False)
+    return path
+
+
+@pytest.fixture(scope="session")
+def checkpoint_model(small_generator: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small model as a training checkpoint (``.pt``, written by the engine's own writer)."""
+    from fruxel.train.config import TrainConfig
+    from fruxel.train.engine.checkpoint import save_checkpoint
+
+    gen, config = small_generator
+    path = tmp_path_factory.mktemp("models") / "small.pt"
+    save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()},
+                    TrainConfig(name="small", model=config))
+    return path

@@ -1,0 +1,233 @@
+"""Tests of ``fruxel-eval``: end to end on streamed samples and on a data set, each number of report.json checked
+against counts made here from the same samples; bad model files, data sets and options give one error line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fruxel.cli import eval as eval_cli
+
+from .conftest import SMALL_GRID
+from .test_predict import BAD_MODELS, bad_model_file, error_line
+
+torch = pytest.importorskip("torch")
+
+from fruxel.train.eval.evaluate import count_views, novel_cameras  # noqa: E402 - needs torch
+from fruxel.train.eval.metrics import Accumulator  # noqa: E402
+from fruxel.train.export import load_generator  # noqa: E402
+from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig  # noqa: E402
+from fruxel.train.sim.sample import SampleMaker  # noqa: E402
+from fruxel.train.sim.writer import generate  # noqa: E402
+
+BATCH = 2
+
+
+def streamed(split: str, count: int, seed: int = 0) -> list[Any]:
+    """The first ``count`` samples of a split of the stream the command makes for the small model."""
+    config = SimConfig(grid=SMALL_GRID, image=ImageConfig(size=64, augment=AugmentConfig(enabled=True)),
+                       samples_per_scene=16, splits=((split, count),))
+    with SampleMaker(config, seed, backend="warp", device="cpu") as maker:
+        return [maker.make(split, i) for i in range(count)]
+
+
+def expected(model: Path, tests: list[Any], train_labels: list[np.ndarray] | None) -> dict[str, Accumulator]:
+    """Counts of the model and the baselines made here: the model in batches of BATCH, the prior as a one-hot
+    count, the oracle as each column's first occupied cell (no kernel), novel views through ``first_hit``."""
+    gen, config, _ = load_generator(model)
+    rules: dict[str, list[torch.Tensor]] = {"model": [], "prior": [], "oracle": []}
+    labels = torch.from_numpy(np.stack([s.labels for s in tests]))
+    for i in range(0, len(tests), BATCH):
+        img = torch.from_numpy(np.stack([s.image for s in tests[i:i + BATCH]])).permute(0, 3, 1, 2).float() / 255.0
+        with torch.no_grad():
+            rules["model"].append(gen(img).logits.argmax(1).to(torch.uint8))
+    if train_labels is not None:
+        onehot = np.stack(train_labels)[..., None] == np.arange(len(config.classes.names))
+        mode = torch.from_numpy(onehot.sum(0).argmax(-1).astype(np.uint8))
+        rules["prior"] = [mode.expand(len(tests), *mode.shape)]
+    else:
+        del rules["prior"]
+    occupied = labels != 0
+    first = occupied.to(torch.uint8).argmax(1, keepdim=True)
+    rules["oracle"] = [labels * (torch.zeros_like(occupied).scatter_(1, first, True) & occupied)]
+    accs = {}
+    for name, parts in rules.items():
+        pred = torch.cat(parts)
+        acc = Accumulator(len(config.classes.names))
+        acc.add_volumes(pred, labels)
+        count_views(acc, pred, labels, config.grid, novel_cameras(config.grid))
+        accs[name] = acc
+    return accs
+
+
+def check_report(out: Path, accs: dict[str, Accumulator], samples: int, examples: int) -> dict[str, Any]:
+    report = json.loads((out / "report.json").read_text())
+    assert list(report["results"]) == list(accs)
+    names = tuple(report["classes"]["names"])
+    for name, acc in accs.items():
+        got = report["results"][name]
+        assert got["confusion"] == acc.conf.tolist(), name
+        want = acc.summary(names)
+        assert got["samples"] == want["samples"] == samples
+        for key in ("miou", "completion_iou", "own_view_accuracy", "novel_view_accuracy", "depth_error"):
+            assert got[key] == pytest.approx(want[key], rel=1e-6), (name, key)
+        assert got["iou"] == pytest.approx(want["iou"], rel=1e-6, nan_ok=True)
+        assert got["counts"]["novel_pixels"] == acc.novel_pixels and got["counts"]["own_hits"] == acc.own_hits
+    assert report["results"]["oracle"]["own_view_accuracy"] == 100.0
+    assert sum(map(sum, report["results"]["model"]["confusion"])) == samples * int(np.prod(SMALL_GRID.shape))
+    md = (out / "report.md").read_text()
+    for name in accs:
+        miou = report["results"][name]["miou"]
+        assert f"{miou:.1f}" in md.split("## Metrics")[1].splitlines()[4]
+    assert report["command"] in md and "## IoU per class (%)" in md and "![examples](examples.png)" in md
+    sheet = np.asarray(Image.open(out / "examples.png").convert("RGB"))
+    # Five 192-pixel tiles and the legend column per row, one row per example under two lines of text.
+    assert sheet.shape == (36 + examples * 192, 5 * 192 + 130, 3)
+    for r in range(examples):
+        row = sheet[36 + r * 192:36 + (r + 1) * 192, :5 * 192]
+        for t in range(5):
+            assert np.ptp(row[:, t * 192:(t + 1) * 192]) > 0, f"tile {t} of example {r} is blank"
+    return report
+
+
+def test_streamed_samples_end_to_end(shipped_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "report"
+    argv = ["--checkpoint", str(shipped_model), "--samples", "5", "--prior-samples", "6", "--batch", str(BATCH),
+            "--out", str(out), "--examples", "3", "--device", "cpu"]
+    assert eval_cli.main(argv) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1:] == [str(out / n) for n in ("report.md", "report.json", "examples.png")]
+    assert "mIoU model" in printed[0] and "per-cell prior" in printed[0]
+    accs = expected(shipped_model, streamed("test", 5), [s.labels for s in streamed("train", 6)])
+    report = check_report(out, accs, 5, 3)
+    assert report["prior"] == {"split": "train", "samples": 6}
+    assert report["data"]["kind"] == "stream" and report["data"]["seed"] == 0 and report["data"]["samples"] == 5
+    assert report["command"] == "fruxel-eval " + " ".join(argv)
+    assert report["model"]["file"] == str(shipped_model) and report["model"]["training"] == {"step": 0,
+                                                                                             "note": "fresh"}
+    # The model is not the oracle: the test would not notice swapped rules otherwise.
+    assert report["results"]["model"]["confusion"] != report["results"]["oracle"]["confusion"]
+
+
+@pytest.fixture(scope="module")
+def data_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("data") / "small"
+    config = SimConfig(grid=SMALL_GRID, image=ImageConfig(size=64), samples_per_scene=2, shard_size=2,
+                       splits=(("train", 4), ("test", 3)))
+    generate(str(out), config, 5, progress=False)
+    return out
+
+
+def test_data_set_split_end_to_end(shipped_model: Path, checkpoint_model: Path, data_set: Path,
+                                   tmp_path: Path) -> None:
+    from fruxel.train.sim.dataset import ShardDataset
+
+    out = tmp_path / "report"
+    # The training checkpoint form, read by a DataLoader worker, with a prior asked for more samples than there are.
+    assert eval_cli.main(["--checkpoint", str(checkpoint_model), "--data", str(data_set), "--batch", str(BATCH),
+                          "--prior-samples", "10", "--out", str(out), "--workers", "1", "-q"]) == 0
+    tests = [ShardDataset(str(data_set), "test").sample(i) for i in range(3)]
+    train = [ShardDataset(str(data_set), "train").sample(i).labels for i in range(4)]
+    accs = expected(checkpoint_model, tests, train)
+    report = check_report(out, accs, 3, 3)
+    assert report["prior"] == {"split": "train", "samples": 4}
+    assert report["data"]["kind"] == "shards" and report["data"]["root"] == str(data_set)
+    assert report["data"]["seed"] == 5 and report["data"]["split"] == "test"
+    # The same weights in the shipped form give the same numbers.
+    out2 = tmp_path / "report2"
+    assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(data_set), "--samples", "2",
+                          "--prior-samples", "0", "--out", str(out2), "-q"]) == 0
+    r2 = json.loads((out2 / "report.json").read_text())
+    assert list(r2["results"]) == ["model", "oracle"] and r2["prior"] is None
+    assert r2["data"]["samples"] == 2
+    assert "per-cell prior" not in (out2 / "report.md").read_text().split("## Metrics")[1]
+
+
+# ---------------------------------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("kind", BAD_MODELS)
+def test_bad_model_files_give_one_line_and_run_nothing(kind: str, shipped_model: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    path, word = bad_model_file(kind, tmp_path, shipped_model)
+    out = tmp_path / "out"
+    assert eval_cli.main(["--checkpoint", str(path), "--samples", "1", "--out", str(out)]) == 2
+    line = error_line(capsys, "fruxel-eval")
+    assert str(path) in line and word in line, line
+    assert not (tmp_path / "ran").exists(), "a pickled object in the file was run"
+    assert not out.exists()
+
+
+def small_data_set(root: Path, **changes: Any) -> Path:
+    kw: dict[str, Any] = {"grid": SMALL_GRID, "image": ImageConfig(size=64), "samples_per_scene": 2, "shard_size": 2,
+                          "splits": (("test", 1),)}
+    kw.update(changes)
+    generate(str(root), SimConfig(**kw), 1, progress=False)
+    return root
+
+
+def test_data_sets_that_do_not_fit_are_refused(shipped_model: Path, data_set: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    def refused(*argv: str) -> str:
+        out = tmp_path / "out"
+        assert eval_cli.main(["--checkpoint", str(shipped_model), "--out", str(out), *argv]) == 2
+        assert not out.exists()
+        return error_line(capsys, "fruxel-eval")
+
+    other = small_data_set(tmp_path / "images32", image=ImageConfig(size=32))
+    line = refused("--data", str(other))
+    assert str(other) in line and "does not fit the model" in line and "images 32x32" in line
+    no_train = small_data_set(tmp_path / "no-train")
+    line = refused("--data", str(no_train))
+    assert "train split" in line and "--prior-samples 0" in line
+    assert "no such folder" in refused("--data", str(tmp_path / "nowhere"))
+    (tmp_path / "plain").mkdir()
+    assert "not a data set folder" in refused("--data", str(tmp_path / "plain"))
+    line = refused("--data", str(data_set), "--split", "val")
+    assert "no split 'val'" in line and "train, test" in line
+    line = refused("--data", str(data_set), "--samples", "4")
+    assert "--samples 4" in line and "3 samples" in line
+    # Options of streamed samples do not apply to a data set, --split only to a data set.
+    assert "--seed" in refused("--data", str(data_set), "--seed", "3")
+    assert "--no-augment" in refused("--data", str(data_set), "--no-augment")
+    assert "--split" in refused("--split", "train")
+    assert "unknown backend" in refused("--backend", "cuda-magic")
+    (tmp_path / "file").write_text("")
+    assert "--out" in eval_cli_line(shipped_model, ["--out", str(tmp_path / "file")], capsys)
+    # With no prior the data set without a train split is evaluated.
+    assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(no_train), "--prior-samples", "0",
+                          "--examples", "1", "--out", str(tmp_path / "ok"), "-q"]) == 0
+
+
+def eval_cli_line(model: Path, argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    assert eval_cli.main(["--checkpoint", str(model), *argv]) == 2
+    return error_line(capsys, "fruxel-eval")
+
+
+@pytest.mark.parametrize("workers", ["0", "1"])
+def test_corrupt_shard_gives_one_line(workers: str, shipped_model: Path, data_set: Path, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    broken = tmp_path / "broken"
+    shutil.copytree(data_set, broken)
+    shard = broken / "test-00000.npz"
+    raw = bytearray(shard.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    shard.write_bytes(bytes(raw))
+    assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(broken), "--prior-samples", "0",
+                          "--workers", workers, "--out", str(tmp_path / "out")]) == 2
+    line = error_line(capsys, "fruxel-eval")
+    assert "test-00000.npz" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_help_is_instant_and_imports_nothing_heavy() -> None:
+    code = ("import sys\nfrom fruxel.cli.eval import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n"
+            "    pass\nheavy = [m for m in ('torch', 'warp', 'pyrender', 'PIL') if m in sys.modules]\nprint(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert "--prior-samples" in out.stdout and out.stdout.strip().endswith("[]")

@@ -1,0 +1,170 @@
+"""The evaluation report of ``fruxel-eval``: a model against the two baselines of SPEC section 9 on the same samples.
+
+:func:`build_report` gathers the counts of each prediction rule (:class:`~.metrics.Accumulator`) and what was
+evaluated into one JSON-able dict (``report.json``); :func:`markdown_report` writes that dict as Markdown
+(``report.md``), so the Markdown can always be made again from the JSON.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from fruxel.classes import ClassTable
+
+from .metrics import Accumulator
+
+FORMAT = "fruxel-eval-report"
+"""``format`` of ``report.json``."""
+VERSION = 1
+"""Version of ``report.json``'s layout."""
+RULES = {"model": "model", "prior": "per-cell prior", "oracle": "visible-surface oracle"}
+"""The prediction rules of a report, by key, and their names in the tables."""
+METRICS = (
+    ("miou", "mIoU", "%"),
+    ("completion_iou", "completion IoU", "%"),
+    ("own_view_accuracy", "own-view first-hit accuracy", "%"),
+    ("novel_view_accuracy", "novel-view first-hit accuracy", "%"),
+    ("depth_error", "novel-view depth error", "m"),
+)
+"""``(key of Accumulator.summary, name, unit)`` of the summary table's rows."""
+DEFINITIONS = {
+    "prior": "every cell gets its most frequent label over the training samples counted (ties go to the lower class "
+             "id, empty first), the same volume for every sample: where things usually are, without the image.",
+    "oracle": "the ground truth's own-view shell alone: the first occupied cell of each column with its true label, "
+              "nothing behind it; a perfect depth and segmentation network that completes nothing.",
+}
+"""What each baseline predicts, in words (written into the report)."""
+
+
+def rule_result(acc: Accumulator, classes: ClassTable) -> dict[str, Any]:
+    """One rule's metrics (:meth:`Accumulator.summary`) with the counts behind them.
+
+    Returns:
+        The summary's keys, plus ``confusion`` (``C x C`` cell counts ``[true][predicted]``) and ``counts`` (the
+        own- and novel-view pixel counts and the summed depth error).
+    """
+    out = acc.summary(tuple(classes.names))
+    out["confusion"] = np.asarray(acc.conf, dtype=np.int64).tolist()
+    out["counts"] = {k: getattr(acc, k) for k in ("own_hits", "own_correct", "novel_pixels", "novel_correct",
+                                                     "depth_pixels", "depth_abs_sum")}
+    return out
+
+
+def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, model: dict[str, Any],
+                 data: dict[str, Any], prior: dict[str, Any] | None, machine: dict[str, Any], command: str,
+                 seconds: float, examples: str | None = "examples.png") -> dict[str, Any]:
+    """The report as a JSON-able dict (``report.json``).
+
+    Args:
+        results: the accumulators by rule, keys from :data:`RULES` (``"model"`` first; a baseline not evaluated is
+            left out).
+        classes: the class table of the labels.
+        model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary).
+        data: the samples: ``source`` (in words), ``split``, ``samples``, and anything else worth keeping.
+        prior: how the per-cell prior was made (``split``, ``samples``), None when it was not.
+        machine: where it ran (CPU, GPU, versions, device, kernel backend).
+        command: the command line.
+        seconds: wall time of the evaluation.
+        examples: the picture of examples beside the report, or None.
+    """
+    names = tuple(classes.names)
+    truth = next(iter(results.values())).conf.sum(axis=1) if results else np.zeros(len(names))
+    total = float(truth.sum())
+    share = {names[c]: (100.0 * float(truth[c]) / total if total else None) for c in range(len(names))}
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "command": command,
+        "model": model,
+        "data": data,
+        "prior": prior,
+        "machine": machine,
+        "seconds": round(float(seconds), 2),
+        "classes": classes.to_dict(),
+        "class_share": share,
+        "results": {name: rule_result(acc, classes) for name, acc in results.items()},
+        "definitions": {k: v for k, v in DEFINITIONS.items() if k in results},
+        "examples": examples,
+    }
+
+
+def _value(v: Any, unit: str, digits: int = 1) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:.3f}" if unit == "m" else f"{v:.{digits}f}"
+
+
+def _table(header: list[str], rows: list[list[str]], numbers: bool = True) -> list[str]:
+    """A Markdown table; with ``numbers`` every column but the first is right-aligned."""
+    align = ["---"] + ["---:" if numbers else "---"] * (len(header) - 1)
+    return ["| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |",
+            *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def _grid_text(g: Mapping[str, Any]) -> str:
+    return (f"{g['width']}x{g['height']}x{g['depth']} cells, z {g['z_near']:g}..{g['z_far']:g} m, "
+            f"hfov {g['hfov']:g} deg")
+
+
+def _plain(d: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
+    """The scalar entries of a dict as ``key value, ...``."""
+    parts = []
+    for k, v in d.items():
+        if k in skip or isinstance(v, (dict, list, tuple)) or v is None:
+            continue
+        parts.append(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}")
+    return ", ".join(parts)
+
+
+def markdown_report(report: Mapping[str, Any]) -> str:
+    """``report.md``: the report of :func:`build_report` as Markdown (a summary, then the tables)."""
+    rules = [r for r in RULES if r in report["results"]]
+    res = report["results"]
+    m, d = report["model"], report["data"]
+    head = [f"# Evaluation of {m['file']}", ""]
+    trained = _plain(m.get("training") or {})
+    h, w = m["image_size"]
+    about = [
+        ["model", f"`{m['file']}`: grid {_grid_text(m['grid'])}, {w}x{h} images, {len(report['classes']['names'])} "
+                  f"classes" + (f"; trained: {trained}" if trained else "")],
+        ["samples", f"{d['samples']} samples of split `{d['split']}` ({d.get('indices', '')}), {d['source']}"],
+    ]
+    if report.get("prior"):
+        p = report["prior"]
+        about.append(["per-cell prior", f"mode of {p['samples']} samples of split `{p['split']}` of the same source"])
+    mach = report["machine"]
+    about.append(["machine", _plain(mach)])
+    about.append(["time", f"{report['seconds']:g} s"])
+    about.append(["command", f"`{report['command']}`"])
+    lines = head + _table(["", ""], about, numbers=False)
+
+    lines += ["", "## Metrics", ""]
+    rows = [[f"{name} ({unit})"] + [_value(res[r].get(key), unit) for r in rules] for key, name, unit in METRICS]
+    lines += _table(["metric", *(RULES[r] for r in rules)], rows)
+    lines += ["", "mIoU: the mean IoU over the classes present in the ground truth; IoU, accuracy and depth error are "
+                  "counted over every cell or pixel of every sample together. Novel views: "
+                  "`orbit_cameras(grid, 4)` at the grid's width and height; accuracy over the pixels where either "
+                  "volume is hit, depth error where both are."]
+
+    lines += ["", "## IoU per class (%)", ""]
+    names = report["classes"]["names"]
+    share = report["class_share"]
+    # Shares with two decimals: small classes hold a few hundredths of the cells.
+    rows = [[name, _value(share.get(name), "%", 2)] + [_value(res[r]["iou"].get(name), "%") for r in rules]
+            for name in names[1:]]
+    lines += _table(["class", "share of cells", *(RULES[r] for r in rules)], rows)
+    lines += ["", f"Empty cells: {_value(share.get(names[0]), '%')} % of the ground truth. n/a: a class neither in the "
+                  "ground truth nor predicted."]
+
+    defs = report.get("definitions") or {}
+    if defs:
+        lines += ["", "## Baselines", ""]
+        lines += [f"- **{RULES[k]}**: {v}" for k, v in defs.items()]
+    if report.get("examples"):
+        lines += ["", "## Examples", "",
+                  "Per sample: the image | truth and model prediction from the grid's own camera | truth and model "
+                  "prediction ray-cast from a novel pose.", "", f"![examples]({report['examples']})"]
+    return "\n".join(lines) + "\n"
