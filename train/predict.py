@@ -4,10 +4,10 @@ SSZ sees the grid's own camera (SPEC section 8): an image of ``2^k W x 2^k H`` p
 view is the grid's. A photo of another size and field of view is mapped onto it geometrically, about the
 optical centre (the photo's centre):
 
-* its field of view is brought to the grid's: a wider photo is cropped to the grid's view, a narrower one is
-  padded (the model sees grey where the photo has nothing);
-* its aspect is brought to ``H / W`` the same way: crop (``fit="crop"``, default) or pad (``fit="pad"``) rows or
-  columns, centred;
+* with its field of view given (``hfov``), geometry decides: a wider photo is cropped to the grid's view, a
+  narrower one is padded (the model sees grey where the photo has nothing), in both directions;
+* without it, the photo is taken as the grid's view and only its aspect is brought to ``H / W``: crop
+  (``fit="crop"``, default) or pad (``fit="pad"``) rows or columns, centred;
 * then it is resized to the model's image size (area averaging when shrinking).
 
 Images are ``(h, w, 3)`` uint8 RGB arrays (rows down, columns right) until :func:`to_tensor`.
@@ -87,8 +87,9 @@ def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = Non
     Args:
         img: ``(h, w, 3)`` uint8 RGB.
         config: the model's architecture (grid and image size).
-        hfov: the photo's horizontal field of view, degrees (None: the grid's own).
-        fit: ``"crop"`` or ``"pad"``, how the aspect is matched.
+        hfov: the photo's horizontal field of view, degrees; None takes the photo's width (crop) or its whole
+            frame (pad) as the grid's view.
+        fit: ``"crop"`` or ``"pad"``, how the aspect is matched when ``hfov`` is None.
 
     Returns:
         ``(2^k H, 2^k W, 3)`` uint8 RGB.
@@ -107,15 +108,20 @@ def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = Non
     if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
         raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
     h, w = img.shape[:2]
-    # Pixels per unit of x/z of the photo; the grid's view spans u in [-tu, tu].
-    f = w / (2.0 * math.tan(math.radians(hfov if hfov is not None else grid.hfov) / 2.0))
-    cols = max(1, round(2.0 * grid.tu * f))
-    if fit == "crop":
-        rows_for_aspect = round(cols * grid.height / grid.width)
-        if rows_for_aspect > h:
-            # Too few rows for the grid's aspect: keep every row and narrow the columns instead.
-            cols = max(1, round(h * grid.width / grid.height))
-    rows = max(1, round(cols * grid.height / grid.width))
+    if hfov is None:
+        # The photo is taken as the grid's view: the largest centred region of the grid's aspect (crop), or the
+        # smallest frame of that aspect around the whole photo (pad).
+        wide = w * grid.height >= h * grid.width
+        if (fit == "crop") == wide:
+            rows, cols = h, max(1, round(h * grid.width / grid.height))
+        else:
+            rows, cols = max(1, round(w * grid.height / grid.width)), w
+    else:
+        # Geometry decides: the grid's view spans x/z in [-tu, tu] and y/z in [-tv, tv]; the photo's focal length
+        # in pixels follows from its field of view (square pixels). Outside the photo is padded, beyond the
+        # grid's view cropped; ``fit`` plays no part.
+        f = w / (2.0 * math.tan(math.radians(hfov) / 2.0))
+        cols, rows = max(1, round(2.0 * grid.tu * f)), max(1, round(2.0 * grid.tv * f))
     out_h, out_w = config.image_size
     if rows * cols > MAX_FRAME_GROWTH * max(h * w, out_h * out_w):
         # A photo far narrower than the grid's view (a long lens): padding it at its own scale would need a huge
