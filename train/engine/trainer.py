@@ -203,6 +203,10 @@ class Trainer:
     def _build(self) -> None:
         c, dev = self.config, self.dist.device
         cuda = dev.type == "cuda"
+        if not cuda:
+            # Zero-initialised residual projections make denormal floats early in training, which x86 cores handle
+            # in microcode: flushing them to zero halved the tiny preset's CPU step time.
+            torch.set_flush_denormal(True)
         torch.manual_seed(c.run.seed)
         self.generator = build_generator(c.model, checkpointing=c.run.checkpointing).to(dev)
         self.discriminator = build_discriminator(c.model).to(dev) if c.loss.adversarial else None
