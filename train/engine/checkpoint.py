@@ -7,7 +7,8 @@ refuses anything else, so a file holding a pickled object is rejected without ru
      "step": int, "samples": int, "generator": state_dict, "discriminator": state_dict or None,
      "optimizer": ..., "d_optimizer": ... or None, "scheduler": ..., "data": {"position": [block, used]},
      "class_weights": (C,) float32, "rng": {"torch": ..., "cuda": [...]},
-     "shell_poses": ..., "replay": ..., "summary": {...}, "elapsed": seconds of training}
+     "shell_poses": ..., "replay": ..., "summary": {...}, "losses": {...} (the last logged),
+     "elapsed": seconds of training}
 """
 
 from __future__ import annotations

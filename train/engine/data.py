@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator
+import signal
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,10 +97,13 @@ class BlockStream(IterableDataset):
         first_block: the block to start with.
         skip: samples of the first block to leave out (already used before a resume).
         device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
+        stop_block: the block to stop before (None: endless, the range repeating in epochs). A loader that needs a
+            known number of samples (the evaluation set) stops there, so its workers make nothing more.
     """
 
     def __init__(self, plan: BlockPlan, source: str, split: str, *, sim_config: Any = None, seed: int = 0,
-                 root: str = "", first_block: int = 0, skip: int = 0, device: str | None = None) -> None:
+                 root: str = "", first_block: int = 0, skip: int = 0, device: str | None = None,
+                 stop_block: int | None = None) -> None:
         super().__init__()
         self.plan = plan
         self.source = source
@@ -109,35 +114,45 @@ class BlockStream(IterableDataset):
         self.first_block = first_block
         self.skip = skip
         self.device = device
+        self.stop_block = stop_block
 
-    def _reader(self) -> Any:
+    def _reader(self) -> tuple[Callable[[int], Any], Callable[[], None]]:
+        """``(read, close)``: sample ``i`` of the split (simulated or read from shards), and the closing of what
+        reading holds."""
         if self.source == "stream":
             from fruxel.train.sim.sample import SampleMaker
 
             maker = SampleMaker(self.sim_config, self.seed, backend="warp", device=self.device)
-            return lambda i: maker.make(self.split, i)
+            return (lambda i: maker.make(self.split, i)), maker.close
         from fruxel.train.sim.dataset import ShardDataset
 
         ds = ShardDataset(self.root, self.split)
-        return ds.sample
+        return ds.sample, ds.close
 
     def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        read = self._reader()
+        read, close = self._reader()
         q = self.first_block + worker
-        while True:
-            idx = self.plan.block(q)
-            if q == self.first_block:
-                idx = idx[self.skip:]
-            samples = [read(i) for i in idx]
-            yield {
-                "image": np.stack([s.image for s in samples]),
-                "labels": np.stack([np.asarray(s.labels, dtype=np.uint8) for s in samples]),
-                "index": np.asarray([s.index for s in samples], dtype=np.int64),
-                "block": np.int64(q),
-            }
-            q += workers
+        # What reading holds (the renderer's OpenGL context and Warp meshes, or open shard files) is freed when the
+        # iteration ends or the generator is dropped; in a DataLoader worker, when its loop returns, before the
+        # interpreter exits. Left to the exit, the EGL and CUDA contexts are torn down in whatever order the
+        # interpreter's clean-up takes (the suspected cause of workers aborting after training on the H100).
+        try:
+            while self.stop_block is None or q < self.stop_block:
+                idx = self.plan.block(q)
+                if q == self.first_block:
+                    idx = idx[self.skip:]
+                samples = [read(i) for i in idx]
+                yield {
+                    "image": np.stack([s.image for s in samples]),
+                    "labels": np.stack([np.asarray(s.labels, dtype=np.uint8) for s in samples]),
+                    "index": np.asarray([s.index for s in samples], dtype=np.int64),
+                    "block": np.int64(q),
+                }
+                q += workers
+        finally:
+            close()
 
 
 def _single_thread_render(_: int) -> None:
@@ -162,7 +177,10 @@ class Batches:
         self.batch = batch
         block, used = position
         ds = stream_factory(block, used)
-        kwargs: dict[str, Any] = {"batch_size": None, "num_workers": workers, "pin_memory": pin}
+        # A generator of its own: each iter() of a DataLoader draws a base seed from its generator, which would
+        # otherwise be torch's global one, whose state a checkpoint restores (a resumed run draws once more).
+        kwargs: dict[str, Any] = {"batch_size": None, "num_workers": workers, "pin_memory": pin,
+                                  "generator": torch.Generator().manual_seed(0)}
         if workers:
             kwargs.update(multiprocessing_context="spawn", prefetch_factor=4, persistent_workers=False,
                           worker_init_fn=_single_thread_render if workers > 1 else None)
@@ -209,9 +227,37 @@ class Batches:
         return self
 
     def close(self) -> None:
-        """Stop the workers."""
-        self._it = None
+        """Stop the workers and wait until they have exited (idempotent).
+
+        A worker that a signal ends as it exits (its data no longer needed) gives one warning naming the signal,
+        not an error.
+        """
+        it, self._it = self._it, None
         self._loader = None  # type: ignore[assignment]
+        # The DataLoader's iterator shuts its workers down when garbage-collected, and an error raised there (its
+        # SIGCHLD handler's "DataLoader worker (pid N) is killed by signal", when a worker dies while it exits)
+        # was printed as an ignored exception with a traceback. Shut down here instead, where it can be caught;
+        # whether the handler sees the death at all is a race, so the exit codes are read once all have ended.
+        shutdown = getattr(it, "_shutdown_workers", None)
+        if shutdown is None:
+            return
+        try:
+            shutdown()
+        except RuntimeError as e:
+            if not str(e).startswith("DataLoader worker"):
+                raise
+        ended = [f"pid {w.pid} by {_signal_name(-w.exitcode)}" for w in getattr(it, "_workers", ())
+                 if w.exitcode is not None and w.exitcode < 0]
+        if ended:
+            warnings.warn(f"data workers ended by a signal as they stopped, after their last batch was used: "
+                          f"{', '.join(ended)}", RuntimeWarning, stacklevel=2)
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
 
 
 def to_device(batch: dict[str, torch.Tensor], device: torch.device, channels_last: bool = False

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from fruxel.errors import FruxelError
 from fruxel.io import atomic_write
 
-from ..config import TrainConfig
+from ..config import TrainConfig, override
 from ..export import build_discriminator, build_generator, save_shipped
 from ..models.blocks import channels_last
 from ..models.discriminator import hinge_d_loss, hinge_g_loss
@@ -72,6 +72,29 @@ class TrainResult:
     ``optimizer``, ``discriminator``) after the first ``warm`` steps, and ``steps`` timed; else empty."""
     peak_memory: int
     """Peak bytes allocated on the CUDA device (0 on the CPU)."""
+    losses: dict[str, float] = dataclasses.field(default_factory=dict)
+    """The last logged training losses (mean over the last ``log_every`` steps): ``total``, ``ce``, ..."""
+
+
+RESUME_SETTINGS = {"steps": "run", "time_limit": "run", "log_every": "run", "eval_every": "run",
+                   "checkpoint_every": "run", "tensorboard": "run", "workers": "data"}
+"""The settings :class:`Trainer`'s ``overrides`` may change, by name, and the part of the config each is in."""
+
+
+def override_settings(config: TrainConfig, overrides: dict[str, Any]) -> TrainConfig:
+    """``config`` with the settings of :data:`RESUME_SETTINGS` named in ``overrides`` changed.
+
+    Raises:
+        TrainingError: a setting that cannot be changed on resume.
+        ConfigError: an impossible value.
+    """
+    changes: dict[str, dict[str, Any]] = {}
+    for key, value in overrides.items():
+        part = RESUME_SETTINGS.get(key)
+        if part is None:
+            raise TrainingError(f"{key!r} cannot be changed on resume; these can: {', '.join(RESUME_SETTINGS)}")
+        changes.setdefault(part, {})[key] = value
+    return override(config, changes, "").check()
 
 
 def sim_config(config: TrainConfig) -> Any:
@@ -146,10 +169,13 @@ def load_eval_set(config: TrainConfig, count: int, workers: int = 0, device: str
     if count <= 0:
         raise TrainingError("the data has no test split to evaluate on")
     plan = BlockPlan(0, count, config.data.samples_per_scene, None)
+    first, last = plan.rooms
 
     def factory(block: int, skip: int) -> BlockStream:
+        # The stream ends after the blocks of ``count`` samples: the workers make nothing that is not used.
         return BlockStream(plan, config.data.source, "test", sim_config=sim, seed=config.data.seed,
-                           root=config.data.root, first_block=block, skip=skip, device=device)
+                           root=config.data.root, first_block=block, skip=skip, device=device,
+                           stop_block=last - first)
 
     batches = Batches(factory, count, min(workers, math.ceil(count / config.data.samples_per_scene)))
     try:
@@ -163,20 +189,20 @@ class Trainer:
     """One run (see the module docstring); :meth:`fit` trains it.
 
     Args:
-        config: the experiment (ignored on resume, where the checkpoint's config is used; ``time_limit`` and
-            ``steps`` may still be changed through ``overrides``).
+        config: the experiment (ignored on resume, where the checkpoint's config is used; may be None then).
         run_dir: the run's folder (created).
         resume: continue from ``run_dir/last.pt``.
         device: ``"cpu"``, ``"cuda"`` or None (CUDA when present).
         progress: show a progress bar (rank 0).
-        overrides: run settings to change on resume, e.g. ``{"time_limit": 540.0}``.
+        overrides: settings to change, by name, e.g. ``{"time_limit": 540.0}``; on resume only those of
+            :data:`RESUME_SETTINGS` (the others would make the continuation differ from the run it continues).
         profile: time the phases of every step after the first ``warm`` ones (synchronises the device at each
             phase boundary, so steps are slower; for benchmarks).
         warm: steps left out of the profile (start-up, autotuning, compilation).
         evaluation: evaluate (periodically and at the end); off for throughput measurements.
     """
 
-    def __init__(self, config: TrainConfig, run_dir: str, *, resume: bool = False, device: str | None = None,
+    def __init__(self, config: TrainConfig | None, run_dir: str, *, resume: bool = False, device: str | None = None,
                  progress: bool = True, overrides: dict[str, Any] | None = None, profile: bool = False,
                  warm: int = 20, evaluation: bool = True) -> None:
         self.evaluation = evaluation
@@ -185,7 +211,8 @@ class Trainer:
         self.timings: dict[str, float] = {}
         self.rates: list[float] = []
         self.run_dir = os.fsdecode(run_dir)
-        self.dist = distributed.setup(device)
+        self.saved_step: int | None = None
+        """The step of the last checkpoint this trainer wrote (None before the first)."""
         self.ckpt = None
         if resume:
             path = os.path.join(self.run_dir, LATEST)
@@ -193,9 +220,12 @@ class Trainer:
                 raise TrainingError(f"{path}: no checkpoint to resume from")
             self.ckpt = read_checkpoint(path)
             config = self.ckpt.config
+        if config is None:
+            raise TrainingError("a new run needs a config")
         if overrides:
-            config = dataclasses.replace(config, run=dataclasses.replace(config.run, **overrides)).check()
+            config = override_settings(config, overrides)
         self.config = config.check()
+        self.dist = distributed.setup(device)
         self.progress = progress and self.dist.main
         os.makedirs(self.run_dir, exist_ok=True)
 
@@ -247,7 +277,11 @@ class Trainer:
 
         c, d = self.config, self.dist
         sim, n_train, _ = _data_source(c)
-        lo, hi = rank_range(n_train, c.data.samples_per_scene, d.rank, d.world)
+        try:
+            lo, hi = rank_range(n_train, c.data.samples_per_scene, d.rank, d.world)
+        except ValueError as e:
+            where = c.data.root if c.data.source == "shards" else "data.train_samples"
+            raise TrainingError(f"{where}: training split: {e}") from None
         plan = BlockPlan(lo, hi, c.data.samples_per_scene, None if c.data.source == "stream" else c.run.seed)
         per_rank = c.run.batch_size // d.world
         if c.data.replay:
@@ -262,8 +296,8 @@ class Trainer:
         return Batches(factory, per_rank, c.data.workers, pin=d.device.type == "cuda", position=position)
 
     # ------------------------------------------------------------------ state
-    def _state(self, step: int, samples: int, seconds: float, batches: Any, weights: torch.Tensor,
-               summary: dict[str, Any]) -> dict[str, Any]:
+    def _state(self, step: int, samples: int, seconds: float, position: tuple[int, int], weights: torch.Tensor,
+               summary: dict[str, Any], losses: dict[str, float]) -> dict[str, Any]:
         return {
             "step": step,
             "samples": samples,
@@ -273,12 +307,13 @@ class Trainer:
             "optimizer": self.opt.state_dict(),
             "d_optimizer": self.d_opt.state_dict() if self.d_opt is not None else None,
             "scheduler": self.sched.state_dict(),
-            "data": {"position": list(batches.position)},
+            "data": {"position": list(position)},
             "class_weights": weights.detach().cpu(),
             "rng": rng_state(),
             "shell_poses": self.shell.state_dict() if self.shell is not None else None,
             "replay": self.replay.state_dict() if self.replay is not None else None,
             "summary": summary,
+            "losses": losses,
         }
 
     def _restore(self, state: dict[str, Any]) -> None:
@@ -298,6 +333,7 @@ class Trainer:
         if not self.dist.main:
             return
         save_checkpoint(os.path.join(self.run_dir, LATEST), state, self.config)
+        self.saved_step = int(state["step"])
         summary = dict(state["summary"])
         summary.update(step=state["step"], samples=state["samples"], seconds=round(state["elapsed"], 1),
                        config=self.config.name)
@@ -327,12 +363,19 @@ class Trainer:
     def fit(self) -> TrainResult:
         """Train to ``run.steps`` (or until Ctrl-C / the time limit) and return what happened.
 
+        A run resumed at or after ``run.steps`` returns at once, with what its checkpoint says.
+
         Raises:
             KeyboardInterrupt: after saving a checkpoint, so that the caller exits like an interrupted program.
         """
         from tqdm import tqdm
 
         c, d = self.config, self.dist
+        if self.ckpt is not None and int(self.ckpt.state["step"]) >= c.run.steps:
+            st = self.ckpt.state
+            return TrainResult(step=int(st["step"]), samples=int(st["samples"]), seconds=float(st["elapsed"]),
+                               interrupted=False, metrics=dict(st.get("summary") or {}), timings={}, peak_memory=0,
+                               losses=dict(st.get("losses") or {}))
         self._build()
         self._eval_set = None
         per_rank = c.run.batch_size // d.world
@@ -349,19 +392,24 @@ class Trainer:
         step, samples, elapsed, position = 0, 0, 0.0, (0, 0)
         weights = None
         last_summary: dict[str, Any] = {}
+        last_losses: dict[str, float] = {}
         if self.ckpt is not None:
             st = self.ckpt.state
             step, samples, elapsed = int(st["step"]), int(st["samples"]), float(st["elapsed"])
             position = tuple(int(v) for v in st["data"]["position"])
             weights = st["class_weights"].to(d.device)
-            last_summary = dict(st.get("summary", {}))
+            last_summary = dict(st.get("summary") or {})
+            last_losses = dict(st.get("losses") or {})
         batches = self._batches(position)
-        prefetched: list[dict[str, torch.Tensor]] = []
+        # Batches drawn ahead of their step, each with the data position before it: a checkpoint taken while some
+        # are still unused records the position of the first of them, so that a resumed run draws them again.
+        prefetched: list[tuple[tuple[int, int], dict[str, torch.Tensor]]] = []
         if weights is None:
             # Class frequencies from the first training batches, which are then trained on as usual.
             need = math.ceil(c.data.frequency_samples / max(1, batches.batch))
-            prefetched = [next(batches) for _ in range(need)]
-            counts = torch.as_tensor(class_frequencies([b["labels"] for b in prefetched], c.model.num_classes))
+            for _ in range(need):
+                prefetched.append((batches.position, next(batches)))
+            counts = torch.as_tensor(class_frequencies([b["labels"] for _, b in prefetched], c.model.num_classes))
             if d.distributed:
                 counts = counts.to(d.device)
                 torch.distributed.all_reduce(counts)
@@ -374,19 +422,20 @@ class Trainer:
                       tensorboard=c.run.tensorboard) if d.main else None
         bar = tqdm(total=c.run.steps, initial=step, disable=not self.progress, unit="step", dynamic_ncols=True)
         sums: dict[str, torch.Tensor] = {}
-        window_start, window_samples = time.perf_counter(), 0
+        window_steps, window_start, window_samples = 0, time.perf_counter(), 0
         t_start = time.perf_counter()
         stop_at = t_start + c.run.time_limit if c.run.time_limit else math.inf
         interrupted = False
 
         def state() -> dict[str, Any]:
-            return self._state(step, samples, elapsed + time.perf_counter() - t_start, batches, weights,
-                               last_summary)
+            position = prefetched[0][0] if prefetched else batches.position
+            return self._state(step, samples, elapsed + time.perf_counter() - t_start, position, weights,
+                               last_summary, last_losses)
 
         try:
             while step < c.run.steps:
                 self._tick(step, None)
-                host = prefetched.pop(0) if prefetched else None
+                host = prefetched.pop(0)[1] if prefetched else None
                 if self.replay is not None:
                     if step == 0 or self.replay.filled < per_rank:
                         while self.replay.filled < per_rank:
@@ -405,17 +454,19 @@ class Trainer:
                     sums[k] = sums[k] + v if k in sums else v
                 step += 1
                 samples += c.run.batch_size
+                window_steps += 1
                 window_samples += c.run.batch_size
                 bar.update(1)
                 if step % c.run.log_every == 0 or step == c.run.steps:
-                    n = c.run.log_every if step % c.run.log_every == 0 else step % c.run.log_every
-                    values = {f"loss/{k}": float(v) / n for k, v in sums.items()}
+                    # The mean over the steps summed (after a resume within a window, fewer than log_every).
+                    values = {f"loss/{k}": float(v) / window_steps for k, v in sums.items()}
                     values = distributed.mean_scalars(d, values)
+                    last_losses = {k.split("/", 1)[1]: v for k, v in values.items()}
                     now = time.perf_counter()
                     values["samples_per_s"] = window_samples / max(now - window_start, 1e-9)
                     self.rates.append(values["samples_per_s"])
                     values["lr"] = self.sched.get_last_lr()[0]
-                    window_start, window_samples, sums = now, 0, {}
+                    window_steps, window_start, window_samples, sums = 0, now, 0, {}
                     if log is not None:
                         log.log(step, values)
                     bar.set_postfix(loss=f"{values['loss/total']:.3f}", sps=f"{values['samples_per_s']:.0f}")
@@ -428,22 +479,31 @@ class Trainer:
                     break
         except KeyboardInterrupt:
             bar.close()
-            self._save(state())
+            final = state()
+            # The data workers are stopped and waited for before the checkpoint is written (on Ctrl-C they exit
+            # too): a worker dying as it exits must not break the write.
+            batches.close()
+            self._save(final)
             if log is not None:
                 log.close()
             raise
+        except BaseException:
+            batches.close()
+            raise
         bar.close()
-        # Also after a time-limit stop: each chunk of a run that trains in time slices ends with its metrics.
-        last_summary = self._eval_and_log(step, log)
         final = state()
+        # The training data's workers (renderers, GPU contexts) are gone before the evaluation starts its own.
+        batches.close()
+        # Also after a time-limit stop: each chunk of a run that trains in time slices ends with its metrics.
+        last_summary = final["summary"] = self._eval_and_log(step, log)
         self._save(final)
         if log is not None:
             plot_curves(log.rows, os.path.join(self.run_dir, CURVES), title=c.name)
             log.close()
-        batches.close()
         peak = torch.cuda.max_memory_allocated(d.device) if d.device.type == "cuda" else 0
         return TrainResult(step=step, samples=samples, seconds=final["elapsed"], interrupted=interrupted,
-                           metrics=last_summary, timings=dict(self.timings), peak_memory=int(peak))
+                           metrics=last_summary, timings=dict(self.timings), peak_memory=int(peak),
+                           losses=last_losses)
 
     def _tick(self, step: int, phase: str | None) -> None:
         """With ``profile``: add the time since the last tick to ``phase`` (None starts a step)."""
@@ -511,9 +571,9 @@ class Trainer:
 def train(config: TrainConfig, run_dir: str, *, resume: bool = False, device: str | None = None,
           progress: bool = True, overrides: dict[str, Any] | None = None, profile: bool = False) -> TrainResult:
     """Train (or continue) one run; see :class:`Trainer`."""
-    trainer = Trainer(config, run_dir, resume=resume, device=device, progress=progress, overrides=overrides,
-                      profile=profile)
     try:
+        trainer = Trainer(config, run_dir, resume=resume, device=device, progress=progress, overrides=overrides,
+                          profile=profile)
         return trainer.fit()
     finally:
         distributed.teardown()

@@ -1,0 +1,207 @@
+"""The ``fruxel-train`` command line: help, config files and their errors, --print-config, Ctrl-C and --resume,
+and torchrun with two processes.
+
+Runs train a 16^3 SSZ from 32^2 images for a few steps on a data set made with ``fruxel-sim generate``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fruxel.cli.train import main
+
+CONFIG: dict[str, Any] = {
+    "preset": "tiny", "name": "cli-test",
+    "model": {"grid": {"width": 16, "height": 16, "depth": 16}, "levels": 3, "stem": 8, "encoder": [8, 12, 16],
+              "encoder_blocks": [1, 1, 1], "topdown": [8, 12, 16], "decoder": [4, 8, 12],
+              "decoder_blocks": [1, 1, 1]},
+    "data": {"workers": 0, "samples_per_scene": 4, "eval_samples": 4, "frequency_samples": 4},
+    "run": {"steps": 4, "batch_size": 2, "log_every": 1, "eval_every": 0, "checkpoint_every": 0,
+            "tensorboard": False},
+}
+"""A config file for a 16^3 SSZ from 32^2 images (the data set's grid and image size)."""
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data set of 16 training samples (4 rooms) and 4 test samples, 16^3 grids from 32^2 images."""
+    from fruxel.cli.sim import main as sim
+
+    out = tmp_path_factory.mktemp("data")
+    assert sim(["generate", "--out", str(out), "--split", "train=16,test=4", "--grid", "16", "--image", "32",
+                "--samples-per-scene", "4", "--shard-size", "4", "-q"]) == 0
+    return out
+
+
+def _write(path: Path, config: Any) -> Path:
+    path.write_text(config if isinstance(config, str) else json.dumps(config))
+    return path
+
+
+def _error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("fruxel-train: error: ")
+    return err[0]
+
+
+def test_help_is_instant_and_imports_no_torch() -> None:
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "fruxel.cli.train", "--help"], capture_output=True, text=True,
+                         check=True)
+    assert "--resume" in out.stdout and "--print-config" in out.stdout and "ssz64" in out.stdout
+    assert time.perf_counter() - t < 10
+    probe = ("import sys, fruxel.cli.train; "
+             "print(sorted(m for m in ('torch', 'pyrender', 'warp') if m in sys.modules))")
+    mods = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert mods.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("text, words", [
+    ({"run": {"stepz": 3}}, "unknown config key 'run.stepz'"),
+    ({"run": {"steps": "3"}}, "run.steps must be an integer"),
+    ({"optim": {"lr": -1.0}}, "optim.lr must be a finite number >= 0"),
+    ({"model": {"grid": {"width": 15}}}, "model.grid 15x64x64 must be divisible"),
+    ({"preset": "huge"}, "unknown preset 'huge'"),
+    ('{"run": {"steps": 3}', "not valid JSON"),
+    ("[1, 2]", "must be a JSON object"),
+])
+def test_bad_config_files_give_one_line_naming_the_key(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                       text: Any, words: str) -> None:
+    path = _write(tmp_path / "bad.json", text)
+    assert main(["--config", str(path), "--out", str(tmp_path / "run")]) == 2
+    line = _error_line(capsys)
+    assert str(path) in line and words in line, line
+    assert not (tmp_path / "run").exists()
+
+
+def test_missing_or_unreadable_config_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--config", str(tmp_path / "none.json"), "--out", str(tmp_path / "run")]) == 2
+    assert "none.json: No such file or directory" in _error_line(capsys)
+    assert main(["--config", str(tmp_path), "--out", str(tmp_path / "run")]) == 2
+    assert f"{tmp_path}: Is a directory" in _error_line(capsys)
+    (tmp_path / "binary.json").write_bytes(b"\xff\xfe\x00")
+    assert main(["--config", str(tmp_path / "binary.json"), "--out", str(tmp_path / "run")]) == 2
+    assert "binary.json: not a text file" in _error_line(capsys)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--preset", "tiny"], "--out RUN_DIR is required"),
+    (["--out", "x"], "give --config FILE or --preset NAME"),
+    (["--resume"], "--resume needs --out"),
+    (["--resume", "--out", "x", "--preset", "tiny", "--batch-size", "4"], "--preset, --batch-size cannot be given"),
+    (["--resume", "--out", "{tmp}/nothing"], "nothing/last.pt: no checkpoint to resume from"),
+    (["--preset", "tiny", "--batch-size", "3", "--out", "{tmp}/run", "--data", "{tmp}/nodata"], "nodata"),
+])
+def test_option_errors_give_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+                                     words: str) -> None:
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    assert words in _error_line(capsys)
+
+
+@pytest.mark.parametrize("argv", [["--preset", "small"], ["--preset", "tiny", "--steps", "0"],
+                                  ["--preset", "tiny", "--device", "gpu"], ["--preset", "tiny", "--time-limit", "-1"],
+                                  ["--preset", "tiny", "--config", "x.json"]])
+def test_parser_errors_give_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fruxel-train: error:")
+
+
+def test_print_config_gives_a_file_to_start_from(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from fruxel.train.config import TrainConfig, override, preset
+
+    assert main(["--preset", "ssz64", "--steps", "7", "--workers", "2", "--data", "DIR", "--print-config"]) == 0
+    text = capsys.readouterr().out
+    config = TrainConfig.from_json(text)
+    assert config == override(preset("ssz64"), {"run": {"steps": 7}, "data": {"workers": 2, "source": "shards",
+                                                                               "root": "DIR"}}, "")
+    # The printed config is a complete config file: it reads back to itself and prints the same.
+    assert main(["--config", str(_write(tmp_path / "full.json", text)), "--print-config"]) == 0
+    assert capsys.readouterr().out == text
+
+
+def test_ctrl_c_writes_a_checkpoint_and_resume_continues(tmp_path: Path, data: Path,
+                                                         capsys: pytest.CaptureFixture[str],
+                                                         monkeypatch: pytest.MonkeyPatch,
+                                                         torch_one_thread: None) -> None:
+    """Ctrl-C during step 2 of 4 (raised inside the training loop) exits 130 after writing the checkpoint and the
+    shipped model; ``--resume`` continues from step 2 to the end; a further ``--resume`` has nothing to train
+    unless ``--steps`` asks for more."""
+    from fruxel.train.engine.checkpoint import LATEST, read_checkpoint
+    from fruxel.train.engine.trainer import SHIPPED, Trainer
+    from fruxel.train.export import load_generator
+
+    config = _write(tmp_path / "c.json", CONFIG)
+    run = tmp_path / "run"
+    tick = Trainer._tick
+
+    def interrupting(self: Trainer, step: int, phase: str | None) -> None:
+        if phase is None and step == 2:
+            raise KeyboardInterrupt
+        tick(self, step, phase)
+
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "_tick", interrupting)
+        assert main(["--config", str(config), "--data", str(data), "--out", str(run), "--device", "cpu", "-q"]) == 130
+    err = capsys.readouterr().err
+    assert f"checkpoint of step 2 written to {run / LATEST}" in err and "--resume" in err
+    assert err.strip().splitlines()[-1] == "fruxel-train: interrupted"
+    ck = read_checkpoint(run / LATEST)
+    assert ck.state["step"] == 2 and ck.config.name == "cli-test" and ck.config.data.root == str(data)
+    for path in (run / LATEST, run / SHIPPED):
+        load_generator(path)
+
+    assert main(["--resume", "--out", str(run), "--device", "cpu"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and out[0].startswith(f"fruxel-train: {run}: step 4 of 4, 8 samples in "), out
+    assert "; loss " in out[0] and "(ce " in out[0] and "held-out (4 samples): mIoU" in out[0]
+    assert read_checkpoint(run / LATEST).state["step"] == 4
+    assert main(["--resume", "--out", str(run), "--device", "cpu"]) == 0
+    assert "nothing left to train" in capsys.readouterr().out
+    assert main(["--resume", "--out", str(run), "--device", "cpu", "--steps", "5", "-q"]) == 0
+    assert read_checkpoint(run / LATEST).state["step"] == 5
+
+
+def test_a_checkpoint_holding_an_object_is_refused_on_resume(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    import torch
+
+    class Trap:
+        def __reduce__(self) -> tuple[Any, ...]:
+            return (open, (str(tmp_path / "pwned"), "w"))
+
+    (tmp_path / "run").mkdir()
+    torch.save({"format": "fruxel-ssz-checkpoint", "payload": Trap()}, tmp_path / "run" / "last.pt")
+    assert main(["--resume", "--out", str(tmp_path / "run")]) == 2
+    assert "last.pt: refused" in _error_line(capsys)
+    assert not (tmp_path / "pwned").exists()
+
+
+def test_torchrun_with_two_processes(tmp_path: Path, data: Path) -> None:
+    """``torchrun --nproc_per_node 2 -m fruxel.cli.train`` on the CPU (gloo): both processes train their half of
+    each batch (each with a spawned data worker, which imports the command's module again: the main guard), rank
+    0 alone writes the run folder and prints the summary."""
+    from fruxel.train.engine.checkpoint import LATEST, read_checkpoint
+
+    config = _write(tmp_path / "c.json", CONFIG)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "fruxel.cli.train", "--config", str(config), "--data", str(data), "--out", str(run),
+           "--device", "cpu", "--workers", "1", "--batch-size", "4"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = [line for line in done.stdout.splitlines() if line.startswith("fruxel-train:")]
+    assert len(lines) == 1 and "step 4 of 4, 16 samples" in lines[0], done.stdout
+    st = read_checkpoint(run / LATEST).state
+    assert st["step"] == 4 and st["samples"] == 16
+    assert "Traceback" not in done.stderr and "killed by signal" not in done.stderr

@@ -1,0 +1,419 @@
+"""The SSZ training engine on the CPU: overfitting, checkpoints, exact resume, Ctrl-C, DDP, teardown.
+
+Everything trains a 16^3 SSZ from 32^2 images with three levels and narrow layers, a few samples a batch and a
+few steps, with the simulator streaming in this process (``data.workers = 0``) or a small shard data set made by
+``fruxel.train.sim.writer.generate``; the file takes well under two minutes on two cores.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import socket
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+from fruxel.train.config import TrainConfig, override  # noqa: E402
+from fruxel.train.engine.checkpoint import (  # noqa: E402
+    FORMAT,
+    LATEST,
+    CheckpointError,
+    read_checkpoint,
+    rng_state,
+    save_checkpoint,
+)
+from fruxel.train.engine.data import Batches, BlockPlan, BlockStream  # noqa: E402
+from fruxel.train.engine.trainer import SHIPPED, Trainer, TrainingError, sim_config  # noqa: E402
+from fruxel.train.eval.evaluate import evaluate  # noqa: E402
+from fruxel.train.export import build_generator, load_generator  # noqa: E402
+from fruxel.train.objective import SSZObjective, class_frequencies, class_weights  # noqa: E402
+from fruxel.train.sim.writer import generate  # noqa: E402
+
+TINY: dict[str, Any] = {
+    "preset": "tiny", "name": "engine-test",
+    "model": {"grid": {"width": 16, "height": 16, "depth": 16}, "levels": 3, "stem": 8, "encoder": [8, 12, 16],
+              "encoder_blocks": [1, 1, 1], "topdown": [8, 12, 16], "decoder": [4, 8, 12],
+              "decoder_blocks": [1, 1, 1], "discriminator": [8]},
+    "data": {"workers": 0, "samples_per_scene": 4, "train_samples": 64, "test_samples": 4, "eval_samples": 4,
+             "frequency_samples": 4},
+    "optim": {"warmup": 2},
+    "run": {"steps": 8, "batch_size": 2, "log_every": 1, "eval_every": 0, "checkpoint_every": 0,
+            "tensorboard": False},
+}
+"""A 16^3 SSZ from 32^2 images that trains a step in about a tenth of a second on one core."""
+
+
+def tiny(changes: dict[str, Any] | None = None) -> TrainConfig:
+    """:data:`TINY` with ``changes`` (nested as in a config file)."""
+    return override(TrainConfig.from_dict(TINY), changes or {}, "").check()
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data set of :data:`TINY`'s grid and images: 16 training samples (4 rooms of 4), 4 test samples."""
+    out = tmp_path_factory.mktemp("shards")
+    sim = dataclasses.replace(sim_config(tiny()), splits=(("train", 16), ("test", 4)), shard_size=4)
+    generate(str(out), sim, 0, progress=False)
+    return out
+
+
+def _rows(run: Path) -> dict[int, dict[str, str]]:
+    """The training rows of a run's metrics.csv by step: losses and learning rate."""
+    with open(run / "metrics.csv", newline="") as f:
+        return {int(r["step"]): {k: v for k, v in r.items() if k.startswith("loss/") or k == "lr"}
+                for r in csv.DictReader(f) if r.get("loss/total")}
+
+
+def _interrupt_at(monkeypatch: pytest.MonkeyPatch, at: int) -> None:
+    """Make the next Trainer raise KeyboardInterrupt (as Ctrl-C does) when step ``at`` starts."""
+    tick = Trainer._tick
+
+    def interrupting(self: Trainer, step: int, phase: str | None) -> None:
+        if phase is None and step == at:
+            raise KeyboardInterrupt
+        tick(self, step, phase)
+
+    monkeypatch.setattr(Trainer, "_tick", interrupting)
+
+
+def _assert_same_tensors(a: Any, b: Any, where: str = "") -> None:
+    """Nested dicts / lists of tensors and plain values are identical (tensors bit for bit)."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for k in a:
+            _assert_same_tensors(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same_tensors(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, where
+
+
+def _batch(config: TrainConfig, root: Path | None, count: int, split: str = "train"
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``count`` samples of a split: images ``(N, 3, h, w)`` float in [0, 1], labels ``(N, D, H, W)``
+    uint8."""
+    if root is not None:
+        from fruxel.train.sim.dataset import ShardDataset
+
+        ds = ShardDataset(root, split)
+        samples = [ds.sample(i) for i in range(count)]
+        ds.close()
+    else:
+        from fruxel.train.sim.sample import SampleMaker
+
+        with SampleMaker(sim_config(config), config.data.seed) as maker:
+            samples = [maker.make(split, i) for i in range(count)]
+    image = torch.from_numpy(np.stack([s.image for s in samples])).permute(0, 3, 1, 2).float() / 255.0
+    return image, torch.from_numpy(np.stack([s.labels for s in samples]))
+
+
+# ---------------------------------------------------------------------------------------------- learning
+def test_overfits_one_fixed_batch(tmp_path: Path) -> None:
+    """The engine, trained on one room of two samples (every batch is the same two), drives the loss far below its
+    start, and the own-view first-hit accuracy of SPEC section 9 on those samples rises well above the untrained
+    network's."""
+    config = tiny({"data": {"train_samples": 2, "samples_per_scene": 2, "frequency_samples": 2},
+                   "optim": {"lr": 0.01, "warmup": 5}, "run": {"steps": 100, "batch_size": 2}})
+    image, labels = _batch(config, None, 2)
+    grid, classes = config.model.grid, config.model.classes
+
+    def accuracy(generator: torch.nn.Module) -> float:
+        acc, _ = evaluate(generator, [(image, labels)], grid, classes, device=torch.device("cpu"), novel=False)
+        return acc.summary(classes.names)["own_view_accuracy"]
+
+    torch.manual_seed(config.run.seed)  # the initialisation the trainer starts from
+    before = accuracy(build_generator(config.model))
+    result = Trainer(config, tmp_path, device="cpu", progress=False, evaluation=False).fit()
+    assert result.step == 100 and result.samples == 200
+    losses = [float(r["loss/total"]) for r in _rows(tmp_path).values()]
+    assert len(losses) == 100
+    first, last = np.mean(losses[:3]), np.mean(losses[-3:])
+    assert last < 0.3 * first, (first, last)
+    trained, _, _ = load_generator(tmp_path / LATEST)
+    after = accuracy(trained)
+    assert after > before + 10.0 and after > 50.0, (before, after)
+
+
+# ---------------------------------------------------------------------------------------------- checkpoints
+def test_checkpoint_round_trip(tmp_path: Path) -> None:
+    """A checkpoint reads back with the same tensors (models, optimiser moments, random states) and config."""
+    config = tiny()
+    torch.manual_seed(0)
+    gen = build_generator(config.model)
+    opt = torch.optim.AdamW(gen.parameters(), lr=1e-3)
+    image, labels = torch.rand(2, 3, 32, 32), torch.randint(0, 7, (2, 16, 16, 16), dtype=torch.uint8)
+    weights = torch.from_numpy(class_weights(class_frequencies([labels], 7), 0.5))
+    SSZObjective(config.loss, weights)(gen(image), labels)["total"].backward()
+    opt.step()
+    state = {"step": 7, "samples": 14, "elapsed": 1.5, "generator": gen.state_dict(), "optimizer": opt.state_dict(),
+             "data": {"position": [3, 1]}, "class_weights": weights, "rng": rng_state(),
+             "summary": {"miou": 12.5, "iou": {"wall": None}}, "losses": {"total": 2.0}}
+    path = tmp_path / LATEST
+    save_checkpoint(path, state, config)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [LATEST]  # no temporary file left
+    ck = read_checkpoint(path)
+    assert ck.config == config
+    _assert_same_tensors({k: ck.state[k] for k in state}, state)
+    assert ck.state["format"] == FORMAT
+    # The generator the checkpoint holds loads for prediction, with the same weights.
+    loaded, model_config, _ = load_generator(path)
+    assert model_config == config.model
+    _assert_same_tensors(loaded.state_dict(), gen.state_dict())
+
+
+class _Trap:
+    """Unpickling this creates the file ``path`` (what a hostile checkpoint could do with any callable)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
+
+
+def test_checkpoint_holding_a_pickled_object_is_refused_without_running_it(tmp_path: Path) -> None:
+    marker = tmp_path / "pwned"
+    path = tmp_path / LATEST
+    torch.save({"format": FORMAT, "version": 1, "config": tiny().to_json(), "step": 1, "generator": {},
+                "payload": _Trap(str(marker))}, path)
+    with pytest.raises(CheckpointError, match="refused") as e:
+        read_checkpoint(path)
+    assert str(path) in str(e.value) and "weights_only=False" not in str(e.value)
+    with pytest.raises(CheckpointError, match="refused"):
+        load_generator(path)
+    with pytest.raises(CheckpointError, match="refused"):
+        Trainer(None, tmp_path, resume=True, device="cpu")
+    assert not marker.exists()
+
+
+# ---------------------------------------------------------------------------------------------- resume
+@pytest.mark.parametrize("source", ["shards", "stream"])
+def test_resume_equals_an_uninterrupted_run(tmp_path: Path, shards: Path, monkeypatch: pytest.MonkeyPatch,
+                                            source: str) -> None:
+    """8 steps in one go against 4 steps, Ctrl-C, and 4 resumed: the same losses at every step and bit-identical
+    weights and optimiser state at the end (data position, random states, optimiser and schedule restored).
+
+    Batches of 3 from rooms of 4 samples cross room boundaries; 15 samples for the class frequencies are 5
+    batches drawn before the first step, so the interruption at step 4 falls while one is still unused; the shards'
+    16 training samples run out after 5 steps, so the resumed run goes on in the second epoch's order. The
+    streaming run evaluates every 3 steps, which must not disturb training either.
+    """
+    changes = {"data": {"frequency_samples": 15}, "run": {"batch_size": 3}}
+    if source == "shards":
+        changes["data"].update(source="shards", root=str(shards))
+    else:
+        changes["run"]["eval_every"] = 3
+    config = tiny(changes)
+    evaluation = source == "stream"
+
+    whole = tmp_path / "whole"
+    Trainer(config, whole, device="cpu", progress=False, evaluation=evaluation).fit()
+
+    parts = tmp_path / "parts"
+    with monkeypatch.context() as m:
+        _interrupt_at(m, 4)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(config, parts, device="cpu", progress=False, evaluation=evaluation).fit()
+    assert read_checkpoint(parts / LATEST).state["step"] == 4
+    resumed = Trainer(None, parts, resume=True, device="cpu", progress=False, evaluation=evaluation).fit()
+    assert resumed.step == 8 and resumed.samples == 24
+
+    a, b = _rows(whole), _rows(parts)
+    assert sorted(a) == sorted(b) == list(range(1, 9))
+    assert a == b
+    sa, sb = read_checkpoint(whole / LATEST).state, read_checkpoint(parts / LATEST).state
+    for key in ("generator", "optimizer", "scheduler", "data", "class_weights", "rng", "step", "samples"):
+        _assert_same_tensors(sa[key], sb[key], key)
+
+
+def test_ctrl_c_before_the_loop_and_resuming_a_finished_run(tmp_path: Path, shards: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C at step 0 still leaves a checkpoint (the class weights it needs included); a run resumed at its
+    last step returns at once; settings that would change the run are refused on resume."""
+    config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"steps": 2}})
+    with monkeypatch.context() as m:
+        _interrupt_at(m, 0)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(config, tmp_path, device="cpu", progress=False, evaluation=False).fit()
+    st = read_checkpoint(tmp_path / LATEST).state
+    assert st["step"] == 0 and st["data"]["position"] == [0, 0] and st["class_weights"].shape == (7,)
+    assert Trainer(None, tmp_path, resume=True, device="cpu", progress=False, evaluation=False).fit().step == 2
+    stamp = (tmp_path / LATEST).stat().st_mtime_ns
+    again = Trainer(None, tmp_path, resume=True, device="cpu", progress=False).fit()
+    assert again.step == 2 and again.losses and (tmp_path / LATEST).stat().st_mtime_ns == stamp
+    with pytest.raises(TrainingError, match="batch_size"):
+        Trainer(None, tmp_path, resume=True, device="cpu", overrides={"batch_size": 4})
+
+
+# ---------------------------------------------------------------------------------------------- DDP
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_rank(rank: int, world: int, port: int, config_json: str, batch_file: str, out: str) -> None:
+    """One process of :func:`test_ddp_gradients_match_one_process`: the engine's own set-up (``torchrun``'s
+    environment, gloo, DDP around the generator), then the gradients of this rank's half of the batch, averaged
+    by DDP's all-reduce."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    from torch.nn.parallel import DistributedDataParallel
+
+    from fruxel.train.engine import distributed
+
+    config = TrainConfig.from_json(config_json)
+    trainer = Trainer(config, out, device="cpu", progress=False)
+    trainer._build()
+    assert isinstance(trainer.model, DistributedDataParallel) and trainer.dist.world == world
+    batch = torch.load(batch_file, weights_only=True)
+    per = len(batch["image"]) // world
+    half = slice(rank * per, (rank + 1) * per)
+    grads = {}
+    for mode, objective in _objectives(config, batch["weights"]).items():
+        trainer.generator.train(mode == "train")
+        trainer.generator.zero_grad(set_to_none=True)
+        objective(trainer.model(batch["image"][half]), batch["labels"][half])["total"].backward()
+        grads[mode] = {n: p.grad.clone() for n, p in trainer.generator.named_parameters()}
+    torch.save(grads, os.path.join(out, f"grads{rank}.pt"))
+    distributed.teardown()
+
+
+def _objectives(config: TrainConfig, weights: torch.Tensor) -> dict[str, SSZObjective]:
+    """``eval``: batch norm on its running statistics and only per-cell / per-column mean terms with equal class
+    weights, so the loss of a batch is the mean of its halves' losses. ``train``: the full objective as trained."""
+    plain = dataclasses.replace(config.loss, iou=0.0)
+    return {"eval": SSZObjective(plain, torch.ones_like(weights)), "train": SSZObjective(config.loss, weights)}
+
+
+def test_ddp_gradients_match_one_process(tmp_path: Path, shards: Path) -> None:
+    """DDP on 2 gloo processes, each with half of a fixed batch of 4, gives the gradients one process computes.
+
+    DDP averages the ranks' gradients, each taken of the loss of that rank's half. Two comparisons follow:
+
+    * ``eval``: with batch norm (in the 2D encoder) on its running statistics and a loss that is a mean over
+      cells and columns of equal weight, the mean of the halves' losses is the loss of the whole batch, so DDP
+      must give exactly the one-process gradient of the whole batch of 4.
+    * ``train``: as training runs, batch norm normalises each rank's half with that half's own statistics (DDP does
+      not synchronise them) and the class-weighted cross-entropy and soft IoU are ratios over the batch, so the
+      whole-batch gradient is not what DDP computes. What it must compute is the mean of the two halves'
+      gradients, each half through batch norm on its own; one process computes that by running the halves
+      separately.
+    """
+    config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"batch_size": 4}})
+    image, labels = _batch(config, shards, 4)
+    weights = torch.from_numpy(class_weights(class_frequencies([labels], 7), 0.5))
+    batch_file = tmp_path / "batch.pt"
+    torch.save({"image": image, "labels": labels, "weights": weights}, batch_file)
+    torch.multiprocessing.spawn(_ddp_rank, args=(2, _free_port(), config.to_json(), str(batch_file), str(tmp_path)),
+                                nprocs=2, join=True)
+    ranks = [torch.load(tmp_path / f"grads{r}.pt", weights_only=True) for r in range(2)]
+
+    torch.manual_seed(config.run.seed)  # the initialisation every rank starts from
+    gen = build_generator(config.model)
+    objectives = _objectives(config, weights)
+    expected = {}
+    gen.eval()
+    objectives["eval"](gen(image), labels)["total"].backward()
+    expected["eval"] = {n: p.grad.clone() for n, p in gen.named_parameters()}
+    gen.train()
+    gen.zero_grad(set_to_none=True)
+    for half in (slice(0, 2), slice(2, 4)):
+        (objectives["train"](gen(image[half]), labels[half])["total"] / 2).backward()
+    expected["train"] = {n: p.grad.clone() for n, p in gen.named_parameters()}
+
+    for mode, want in expected.items():
+        scale = max(float(g.abs().max()) for g in want.values())
+        assert scale > 0
+        for name, g in want.items():
+            for r in range(2):
+                torch.testing.assert_close(ranks[r][mode][name], g, rtol=1e-4, atol=1e-6 * scale,
+                                           msg=lambda m, mode=mode, name=name, r=r: f"{mode} {name} rank {r}: {m}")
+
+
+# ---------------------------------------------------------------------------------------------- data workers
+def test_streams_close_their_reader(shards: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A block stream frees its sample maker (OpenGL context, Warp meshes) or shard files when its iteration ends
+    and when it is dropped early, not at the interpreter's exit."""
+    from fruxel.train.sim import dataset, sample
+
+    closed: list[str] = []
+    monkeypatch.setattr(sample.SampleMaker, "close", lambda self: closed.append("maker"))
+    monkeypatch.setattr(dataset.ShardDataset, "close", lambda self: closed.append("shards"))
+    plan = BlockPlan(0, 8, 4, None)
+    blocks = list(BlockStream(plan, "shards", "train", root=str(shards), stop_block=2))
+    assert [int(b["block"]) for b in blocks] == [0, 1] and closed == ["shards"]
+    it = iter(BlockStream(plan, "stream", "train", sim_config=sim_config(tiny()), stop_block=None))
+    assert len(next(it)["index"]) == 4
+    it.close()
+    assert closed == ["shards", "maker"]
+
+
+class _MarkedStream(torch.utils.data.IterableDataset):
+    """Blocks of one zero sample; when its iteration is finalised (in the worker) it writes ``marker``, then,
+    with ``abort``, kills its process with SIGABRT as it exits."""
+
+    def __init__(self, marker: str, abort: bool) -> None:
+        super().__init__()
+        self.marker = marker
+        self.abort = abort
+
+    def __iter__(self) -> Any:
+        if self.abort:
+            import atexit
+
+            atexit.register(os.abort)
+        q = 0
+        try:
+            while True:
+                yield {"image": np.zeros((1, 2, 2, 3), np.uint8), "labels": np.zeros((1, 2, 2, 2), np.uint8),
+                       "index": np.asarray([q]), "block": np.int64(q)}
+                q += 1
+        finally:
+            Path(self.marker).write_text("closed")
+
+
+@pytest.mark.parametrize("abort", [False, True])
+def test_batches_close_waits_for_the_workers(tmp_path: Path, abort: bool) -> None:
+    """``Batches.close`` stops the workers and waits for them: the worker's stream is finalised before it returns.
+    A worker that dies from a signal as it exits (the data no longer needed) gives one warning naming the signal,
+    never an exception (torch's SIGCHLD handler raises one when it sees the death first, a race)."""
+    marker = tmp_path / "closed"
+    batches = Batches(lambda block, skip: _MarkedStream(str(marker), abort), 2, 1)
+    assert next(batches)["index"].tolist() == [0, 1]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        batches.close()
+    assert marker.read_text() == "closed"
+    messages = [str(w.message) for w in caught]
+    if abort:
+        assert len(messages) == 1 and "SIGABRT" in messages[0], messages
+    else:
+        assert messages == []
+    batches.close()  # idempotent
+
+
+def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) -> None:
+    """A short run with evaluation writes every file of the run folder, and the shipped model loads."""
+    config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"steps": 2}})
+    result = Trainer(config, tmp_path, device="cpu", progress=False).fit()
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {LATEST, SHIPPED, "config.json", "metrics.csv", "curves.png", "examples.png"} <= names
+    assert TrainConfig.from_json((tmp_path / "config.json").read_text()) == config
+    assert result.metrics["samples"] == 4 and 0.0 <= result.metrics["own_view_accuracy"] <= 100.0
+    assert set(result.losses) >= {"total", "ce", "iou"}
+    _, model_config, training = load_generator(tmp_path / SHIPPED)
+    assert model_config == config.model and training["step"] == 2
