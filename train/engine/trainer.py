@@ -237,6 +237,11 @@ class Trainer:
             # Zero-initialised residual projections make denormal floats early in training, which x86 cores handle
             # in microcode: flushing them to zero halved the tiny preset's CPU step time.
             torch.set_flush_denormal(True)
+            if c.data.workers and "OMP_NUM_THREADS" not in os.environ:
+                # The simulator's workers take cores too; more compute threads than free cores made CPU steps many
+                # times slower (oversubscribed thread pools spin and wait on each other).
+                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+                torch.set_num_threads(max(1, cores - c.data.workers))
         torch.manual_seed(c.run.seed)
         self.generator = build_generator(c.model, checkpointing=c.run.checkpointing).to(dev)
         self.discriminator = build_discriminator(c.model).to(dev) if c.loss.adversarial else None
