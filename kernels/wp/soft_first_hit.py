@@ -52,14 +52,13 @@ Geometry (ray, clip, crossings) is float32 as in every backend; accumulation is 
 float32 or float64 (one instance per scalar type and number of classes: its per-cell functions and four kernels,
 each made by a cached factory, in one Warp module built once per process; see :func:`kernels`). Warp runs
 CPU threads one after another, so CPU results are deterministic; CPU launches run with denormals flushed to zero,
-as GPUs run (see :func:`_flush_denormals`). Launches go through :class:`~fruxel.kernels.wp.arrays.Workspace` (torch
-memory, torch's current CUDA stream, recorded launches), so nothing waits for the device.
+as GPUs run (see :func:`~fruxel.kernels.fpmode.flush_denormals`). Launches go through
+:class:`~fruxel.kernels.wp.arrays.Workspace` (torch memory, torch's current CUDA stream, recorded launches), so
+nothing waits for the device.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
 from types import SimpleNamespace
@@ -71,6 +70,7 @@ from fruxel.camera import Camera
 from fruxel.grid import FruxelGrid
 
 from .. import traversal
+from ..fpmode import flush_denormals
 from .arrays import Buffer, Packed, Workspace, device_of
 from .runtime import warp
 from .traverse import (
@@ -585,30 +585,6 @@ class SavedRays:
     """Image ``(h, w)`` of every camera."""
 
 
-@contextmanager
-def _flush_denormals(cpu: bool) -> Iterator[None]:
-    """Run the enclosed CPU launches with denormals flushed to zero (FTZ/DAZ), restoring the caller's mode after.
-
-    Warp runs CPU kernels on the calling thread, so its floating-point mode applies. Near the end of a ray the
-    products ``T p`` fall below the smallest normal number, where x86 arithmetic takes a slow microcode assist;
-    GPUs flush them anyway. The mode is probed with a denormal multiplication (zero when flushing is on) and put
-    back as it was.
-    """
-    if not cpu:
-        yield
-        return
-    import torch
-
-    was_on = (torch.tensor([1e-39], dtype=torch.float32) * 2.0).item() == 0.0
-    if not was_on:
-        torch.set_flush_denormal(True)
-    try:
-        yield
-    finally:
-        if not was_on:
-            torch.set_flush_denormal(False)
-
-
 def torch_device(device: str) -> Any:
     """The torch device holding the kernels' data for Warp device ``device`` (``"cpu"``, ``"cuda:N"``): the same
     memory, so torch tensors pass to the kernels with no copy."""
@@ -671,7 +647,9 @@ def forward(probs: Any, grid: FruxelGrid, cameras: list[Camera], *, save: bool,
     p = _buffer(probs, (b, c, grid.n_cells), real, dev)
     g = grid_info(grid)
     cams = [camera_arg(cam) for cam in cameras]
-    with _flush_denormals(not ws.is_cuda):
+    # Warp runs CPU kernels on the calling thread, so the thread's mode applies: near the end of a ray the
+    # products T p fall below the smallest normal number.
+    with flush_denormals(not ws.is_cuda):
         for n, (cam, is_own) in enumerate(zip(cams, own, strict=True)):
             if is_own:
                 ws.launch(kern["forward_own"], (b, h * w),
@@ -738,7 +716,9 @@ def backward(probs: Any, grid: FruxelGrid, groups: list[tuple[Any, ...]]) -> Any
               for t in (depth, g_depth, g_dsum)),
             given,
         ])
-    with _flush_denormals(not ws.is_cuda):
+    # Warp runs CPU kernels on the calling thread, so the thread's mode applies: near the end of a ray the
+    # products T p fall below the smallest normal number.
+    with flush_denormals(not ws.is_cuda):
         for own, gi, n in launches:
             saved = groups[gi][0]
             h, w = saved.size

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 
 from fruxel.errors import FruxelError
 from fruxel.io import atomic_write
+from fruxel.kernels.fpmode import flush_denormals
 
 from ..config import TrainConfig, override
 from ..export import build_discriminator, build_generator, save_shipped
@@ -234,9 +235,6 @@ class Trainer:
         c, dev = self.config, self.dist.device
         cuda = dev.type == "cuda"
         if not cuda:
-            # Zero-initialised residual projections make denormal floats early in training, which x86 cores handle
-            # in microcode: flushing them to zero halved the tiny preset's CPU step time.
-            torch.set_flush_denormal(True)
             if c.data.workers and "OMP_NUM_THREADS" not in os.environ:
                 # The simulator's workers take cores too; more compute threads than free cores made CPU steps many
                 # times slower (oversubscribed thread pools spin and wait on each other).
@@ -373,6 +371,17 @@ class Trainer:
         Raises:
             KeyboardInterrupt: after saving a checkpoint, so that the caller exits like an interrupted program.
         """
+        threads = torch.get_num_threads()
+        # Zero-initialised residual projections make denormal floats early in training, which x86 cores handle in
+        # microcode: flushing them to zero halved the tiny preset's CPU step time. Both the mode and the thread
+        # count are process-wide, so they are put back for the caller.
+        try:
+            with flush_denormals(self.dist.device.type != "cuda"):
+                return self._fit()
+        finally:
+            torch.set_num_threads(threads)
+
+    def _fit(self) -> TrainResult:
         from tqdm import tqdm
 
         c, d = self.config, self.dist
