@@ -17,6 +17,7 @@ buffers are shared state).
 
 from __future__ import annotations
 
+import re
 import threading
 from dataclasses import dataclass, field
 from functools import cache
@@ -231,9 +232,27 @@ def get_runtime(selector: str | None) -> Runtime:
 
 def source(module_file: str, stem: str | None = None) -> str:
     """The OpenCL source that lies beside a Python module: ``foo.py`` -> ``foo.cl``, or ``stem.cl`` in the same
-    folder."""
+    folder, with its ``#include "name.h"`` lines replaced by those headers (from the same folder, themselves
+    resolved), so that the program text, which keys the build caches, is the whole program."""
     path = Path(module_file)
-    return (path.with_suffix(".cl") if stem is None else path.with_name(f"{stem}.cl")).read_text(encoding="utf-8")
+    return _resolve(path.with_suffix(".cl") if stem is None else path.with_name(f"{stem}.cl"))
+
+
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.MULTILINE)
+
+
+def _resolve(path: Path, seen: tuple[Path, ...] = ()) -> str:
+    if path in seen:
+        raise ImportError(f"OpenCL header {path.name} includes itself (through {' -> '.join(p.name for p in seen)})")
+    text = path.read_text(encoding="utf-8")
+
+    def include(m: re.Match[str]) -> str:
+        header = path.with_name(m.group(1))
+        # #line keeps the compiler's messages pointing into the header, then back into the includer.
+        after = text.count("\n", 0, m.end()) + 2
+        return f'#line 1 "{header.name}"\n{_resolve(header, (*seen, path))}\n#line {after} "{path.name}"'
+
+    return _INCLUDE.sub(include, text)
 
 
 def defines(**values: int | float) -> tuple[str, ...]:
