@@ -1,11 +1,11 @@
 /*
- * Occupancy: float scores -> uint8 label volumes (SPEC section 2), and the coarse occupancy pyramid that the
- * traversal (first_hit.cl) uses for empty-space skipping.
+ * Occupancy: float scores -> uint8 label volumes (SPEC section 2), and the distance field that the first-hit walk
+ * (walk.h) uses for empty-space skipping.
  *
  * Build options (-D):
  *   SCORE_HALF / SCORE_FLOAT / SCORE_DOUBLE   the scores' element type (exactly one is defined)
  *   NUM_CHANNELS, MODE                        channel count C and occupancy rule of label_scores_kernel
- *   BLOCK                                     edge of a pyramid block in cells (kernels/traversal.py)
+ *   GROUP_LOG, DIST_CAP, FIELD_LEAD, FIELD_GAP, AXIS   the distance field's (below)
  */
 
 #ifdef SCORE_DOUBLE
@@ -69,32 +69,100 @@ __kernel void label_scores_kernel(__global const SCORE_T* scores, __global uchar
 }
 
 /*
- * build_pyramid_kernel: one work-item per coarse cell (I, J, K) of batch item b: 1 when any of its fine cells (a
- * block of BLOCK^3, cut at the volume's far edges) is nonzero, else 0.
- *   global size (ceil(Wc / lx) lx, Hc, Dc * B), local size (lx, 1, 1); (Dc, Hc, Wc) = ceil((D, H, W) / BLOCK)
- *   fine    uchar (B, D, H, W)    labels or the level below
- *   coarse  uchar (B, Dc, Hc, Wc) out
- * The loops have a fixed trip count and clamp indices at the far edges instead of testing them (OR-ing a cell
- * twice changes nothing), so the body is straight-line code that PoCL vectorises across work-items.
+ * The distance field of the first-hit walk (walk.h): per group of GROUP^3 cells (GROUP = 1 << GROUP_LOG), the
+ * chessboard distance, in groups, to the nearest group that holds an occupied cell, capped at DIST_CAP (0: the group
+ * holds one; d > 0: every group within d - 1 of it is empty, so a ray may leave that cube in one jump). Outside
+ * the grid counts as empty. Built on every call from the labels: one kernel marks occupied groups, then three
+ * separable passes, one per axis, each d(p) = min over |m| <= DIST_CAP of max(|m|, d_in(p + m e_axis)) (the
+ * chessboard distance is the largest of the per-axis offsets, so the passes compose exactly).
+ *
+ * Layout (occupancy.py's field_layout): FIELD_LEAD bytes, then per batch item GD slices of GH + 1 rows of
+ * gd.x = GWP + FIELD_GAP bytes: GD = ceil(D / GROUP), GH = ceil(H / GROUP), GWP = ceil(W / GROUP) rounded up to a
+ * multiple of 16 (whole uchar16 vectors). Everything but the GH x ceil(W / GROUP) groups of a slice is padding that
+ * reads as empty: the lead and each row's gap let the x pass load a row's neighbours unaligned without masks, and
+ * the extra row keeps the slices of a z pass off a 4 KiB stride (loads a multiple of 4 KiB apart compete for the
+ * same L1 cache sets).
+ *
+ * Build options (-D): GROUP_LOG, DIST_CAP (0 turns skipping off: every group reads 0), FIELD_LEAD, FIELD_GAP
+ * (>= DIST_CAP), and AXIS (of chessboard_pass_kernel).
  */
-__kernel void build_pyramid_kernel(__global const uchar* fine, __global uchar* coarse, const int4 n, const int4 nc)
+
+/*
+ * mark_groups_kernel: one work-item per 16 consecutive groups of a row, plus one per row for its gap.
+ *   global size (GWP / 16 + 1, GH + 1, GD * B); n int4 (W, H, D, 1), gd int4 (GWP + FIELD_GAP, GH + 1, GD, 1)
+ *   labels uchar (B, D, H, W) in; field out (this call's field, from its lead on): 0 where the group holds an
+ *   occupied cell, DIST_CAP elsewhere and in the padding.
+ */
+__kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* field, const int4 n, const int4 gd)
 {
-    const int I = get_global_id(0), J = get_global_id(1), KB = get_global_id(2);
-    if (I >= nc.x) return;
-    const int K = KB % nc.z, b = KB / nc.z;
-    __global const uchar* f = fine + (size_t)b * n.x * n.y * n.z;
-    const int i0 = I * BLOCK, j0 = J * BLOCK, k0 = K * BLOCK;
-    uchar acc = 0;
-#pragma unroll
-    for (int kk = 0; kk < BLOCK; ++kk) {
-        const int k = (k0 + kk < n.z) ? k0 + kk : n.z - 1;
-#pragma unroll
-        for (int jj = 0; jj < BLOCK; ++jj) {
-            const int j = (j0 + jj < n.y) ? j0 + jj : n.y - 1;
-            __global const uchar* row = f + ((size_t)k * n.y + j) * n.x;
-#pragma unroll
-            for (int ii = 0; ii < BLOCK; ++ii) acc |= row[(i0 + ii < n.x) ? i0 + ii : n.x - 1];
-        }
+    const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
+    const int gz = gzb % gd.z, b = gzb / gd.z;
+    if (gx == 0 && gy == 0 && gzb == 0) vstore16((uchar16)(DIST_CAP), 0, field);
+    __global uchar* out = field + FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
+    const int x0 = gx << GROUP_LOG, y0 = gy << GROUP_LOG, z0 = gz << GROUP_LOG;
+    if (y0 >= n.y || gx + 16 > gd.x - FIELD_GAP) {
+        /* the padding: the extra row, the gap */
+        vstore16((uchar16)(DIST_CAP), 0, out);
+        return;
     }
-    coarse[(((size_t)b * nc.z + K) * nc.y + J) * nc.x + I] = acc ? 1 : 0;
+    __global const uchar* vol = labels + (size_t)b * n.x * n.y * n.z;
+#if GROUP_LOG == 1
+    if (x0 + 32 <= n.x) {
+        /* 32 cells of the group rows' 4 cell rows (2 of each of 2 slices, the far ones clamped), or-ed, then each
+         * pair of neighbours or-ed */
+        const int y1 = min(y0 + 1, n.y - 1), z1 = min(z0 + 1, n.z - 1);
+        __global const uchar* r0 = vol + ((size_t)z0 * n.y + y0) * n.x + x0;
+        __global const uchar* r1 = vol + ((size_t)z0 * n.y + y1) * n.x + x0;
+        __global const uchar* r2 = vol + ((size_t)z1 * n.y + y0) * n.x + x0;
+        __global const uchar* r3 = vol + ((size_t)z1 * n.y + y1) * n.x + x0;
+        const uchar16 lo = vload16(0, r0) | vload16(0, r1) | vload16(0, r2) | vload16(0, r3);
+        const uchar16 hi = vload16(1, r0) | vload16(1, r1) | vload16(1, r2) | vload16(1, r3);
+        const uchar16 occupied = (uchar16)(lo.even | lo.odd, hi.even | hi.odd);
+        vstore16(select((uchar16)(DIST_CAP), (uchar16)(0), occupied != (uchar16)(0)), 0, out);
+        return;
+    }
+#endif
+    /* The general case: group by group, cells past the grid's far edges left out (groups past it are empty). */
+    for (int q = 0; q < 16; ++q) {
+        const int xa = x0 + (q << GROUP_LOG);
+        uchar occupied = 0;
+        for (int z = z0; z < min(z0 + (1 << GROUP_LOG), n.z); ++z)
+            for (int y = y0; y < min(y0 + (1 << GROUP_LOG), n.y); ++y)
+                for (int x = xa; x < min(xa + (1 << GROUP_LOG), n.x); ++x)
+                    occupied |= vol[((size_t)z * n.y + y) * n.x + x];
+        out[q] = occupied ? 0 : DIST_CAP;
+    }
+}
+
+/*
+ * chessboard_pass_kernel (AXIS 0, 1 or 2: x, y or z): one work-item per 16 consecutive groups of a row.
+ *   global size (GWP / 16, GH + 1, GD * B); gd as mark_groups_kernel's; in, out: fields (from their leads on)
+ *   out(p) = min over |m| <= DIST_CAP of max(|m|, in(p + m e_AXIS)); outside the field reads DIST_CAP (along x the
+ *   lead and gaps, which only the x pass reads, so only mark_groups_kernel writes them).
+ */
+__kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* out, const int4 gd)
+{
+    const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
+    const size_t base = FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
+    uchar16 best = vload16(0, in + base);
+#if AXIS == 0
+#pragma unroll
+    for (int m = 1; m <= DIST_CAP; ++m)
+        best = min(best, max((uchar16)(m), min(vload16(0, in + base - m), vload16(0, in + base + m))));
+#else
+#if AXIS == 1
+    const int p = gy, len = gd.y;
+    const size_t stride = gd.x;
+#else
+    const int p = gzb % gd.z, len = gd.z;
+    const size_t stride = (size_t)gd.x * gd.y;
+#endif
+#pragma unroll
+    for (int m = 1; m <= DIST_CAP; ++m) {
+        const uchar16 lo = p - m >= 0 ? vload16(0, in + base - m * stride) : (uchar16)(DIST_CAP);
+        const uchar16 hi = p + m < len ? vload16(0, in + base + m * stride) : (uchar16)(DIST_CAP);
+        best = min(best, max((uchar16)(m), min(lo, hi)));
+    }
+#endif
+    vstore16(best, 0, out + base);
 }

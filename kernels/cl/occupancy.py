@@ -1,13 +1,14 @@
-"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its coarse pyramid, and the
-traversal's build options and arguments that depend on it.
+"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its distance field, and the
+traversal's build options and arguments that depend on them.
 
 Float scores are turned into labels once per call by :file:`occupancy.cl` (SPEC section 2's rule), so the
-traversal's inner loop only ever tests a byte. The pyramid (blocks of ``BLOCK`` cells a side from
-:mod:`fruxel.kernels.traversal`, and a second level of super-blocks ``BLOCK^2`` cells a side) is rebuilt on every
-call from the labels: it is cheap next to the traversal, and no index cache survives a call.
+traversal's inner loop only ever tests a byte. The distance field (per group of ``GROUP^3`` cells, the chessboard
+distance to the nearest group holding an occupied cell, capped at :data:`DIST_CAP`) is rebuilt on every call from
+the labels: it is cheap next to the traversal, and no index cache survives a call. :file:`walk.h` jumps with it out
+of empty cubes of groups (kernels/traversal.py, "Empty-space skipping").
 
-The traversal's source (:file:`first_hit.cl`), build options and arguments live here too: they depend on the
-pyramid's levels, and both :mod:`.first_hit` and :mod:`.shell` launch the traversal.
+The traversal's build options and arguments live here too: they depend on the field's layout, and :mod:`.first_hit`,
+:mod:`.shell` and :mod:`.soft_first_hit` all build the traversal.
 """
 
 from __future__ import annotations
@@ -24,34 +25,51 @@ from .. import traversal
 from ..inputs import MAX_LABEL, VolumeError, VolumeSpec
 from .runtime import Runtime, defines, source
 
-LEVELS = 3
-"""Pyramid levels used by the traversal: cells, blocks of ``BLOCK`` cells a side and super-blocks of ``BLOCK^2``
-cells a side (1 gives the plain loop, 2 blocks only)."""
-
-LOG_BLOCK = traversal.BLOCK.bit_length() - 1
-if 1 << LOG_BLOCK != traversal.BLOCK:  # pragma: no cover - guards a future edit of traversal.BLOCK
-    raise ImportError(f"the OpenCL pyramid needs traversal.BLOCK to be a power of two, got {traversal.BLOCK}")
-
-_SOURCE = source(__file__)
-TRACE_SOURCE = source(__file__, "first_hit")
-"""The traversal source, :file:`first_hit.cl`; :file:`shell.cl` is compiled after it."""
-
+GROUP_LOG = 1
+"""log2 of the edge, in cells, of a group of the distance field (2: groups of 2 x 2 x 2 cells). Smaller groups
+skip closer to surfaces and cost more to build; 2 measured best on the benchmark scenes (benchmarks/PERF_NOTES.md)."""
+DIST_CAP = 15
+"""Largest distance (in groups) the field records: each axis pass looks this far. 0 turns skipping off (every group
+reads 0, every iteration is a plain step), which tests use to check that skipping changes nothing."""
+TILE = 4
+"""Edge, in pixels, of the square tile of rays one work-item of the first-hit walk traces (16 rays, one per vector
+lane; :file:`walk.h` lays them out for 4)."""
+TILE_LOCAL = (4, 4)
+"""Work-group shape of the tile kernels, in tiles along x, y: 16 tiles (256 pixels) per work-group."""
 TRACE_LOCAL = (16, 4)
-"""Work-group shape of the per-pixel traversal kernels (pixels along x, y): PoCL runs a work-group as one loop,
-so a tile of neighbouring rays shares cache lines of the label volume."""
+"""Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
+loop, so a tile of neighbouring rays shares cache lines of the volume."""
+FIELD_LEAD = 16
+"""Bytes before a distance field's first row: the x pass reads up to :data:`DIST_CAP` groups before a row."""
+FIELD_GAP = 16
+"""Bytes between two rows of a field, read as empty (the same for the row's end)."""
+_FIELD_VECTOR = 16
+"""Groups per work-item of the field kernels (one uchar16): rows are padded to a multiple of it."""
 _LOCAL_CELLS = 256
 """Work-group size of label_scores_kernel (PoCL vectorises its straight-line body across work-items)."""
-_LOCAL_PYRAMID = 16
-"""Work-group width of pyramid (coarse cells along x)."""
+
+if not 0 <= DIST_CAP <= min(FIELD_LEAD, FIELD_GAP, 255):  # pragma: no cover - guards a future edit
+    raise ImportError(f"DIST_CAP must lie in [0, {min(FIELD_LEAD, FIELD_GAP, 255)}], got {DIST_CAP}")
+
+_SOURCE = source(__file__)
 
 _SCORE_TYPES = {np.dtype(np.float16): "SCORE_HALF", np.dtype(np.float32): "SCORE_FLOAT",
                 np.dtype(np.float64): "SCORE_DOUBLE"}
 
 
-def level_shape(grid: FruxelGrid, level: int) -> tuple[int, int, int]:
-    """``(D, H, W)`` of pyramid level ``level`` (0 = cells): each axis ``ceil(n / BLOCK^level)``."""
-    s = traversal.BLOCK**level
-    return tuple(-(-n // s) for n in grid.shape)  # type: ignore[return-value]
+def field_layout(grid: FruxelGrid) -> np.ndarray:
+    """The distance field's row length, rows per slice and slices, as the kernels' int4 ``gd``:
+    ``(GWP + FIELD_GAP, GH + 1, GD, 1)`` with ``GD, GH = ceil((D, H) / GROUP)`` and ``GWP = ceil(W / GROUP)`` rounded
+    up to a multiple of 16 (see :file:`occupancy.cl`)."""
+    g = 1 << GROUP_LOG
+    gwp = round_up(-(-grid.width // g), _FIELD_VECTOR)
+    return np.array([gwp + FIELD_GAP, -(-grid.height // g) + 1, -(-grid.depth // g), 1], np.int32)
+
+
+def field_bytes(grid: FruxelGrid, batch: int) -> int:
+    """Bytes of the distance field of ``batch`` volumes (lead included)."""
+    gd = field_layout(grid)
+    return FIELD_LEAD + batch * int(gd[0]) * int(gd[1]) * int(gd[2])
 
 
 @dataclass
@@ -60,9 +78,8 @@ class DeviceVolume:
 
     labels: Any
     """uint8 ``(B, D, H, W)`` device buffer: 0 = empty, else the label."""
-    levels: list[Any]
-    """Pyramid buffers: level 1 ``(B, *level_shape(grid, 1))`` uint8, level 2 likewise (a 1-byte dummy when the
-    traversal uses fewer levels); empty when not built."""
+    distance: Any = None
+    """Its distance field (:func:`build_field`; layout :func:`field_layout`), or None when not built."""
     data: Any = None
     """A device view of the host array the call was given (after :func:`runtime.host_array`) when one was made
     (float scores, uint8 labels), else None."""
@@ -91,8 +108,8 @@ def check_spec(spec: VolumeSpec) -> None:
 
 
 def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid,
-                     pyramid: bool = True) -> DeviceVolume:
-    """Put a validated volume on the device as uint8 labels and build its pyramid (all enqueued, no wait).
+                     distance: bool = True) -> DeviceVolume:
+    """Put a validated volume on the device as uint8 labels and build its distance field (all enqueued, no wait).
 
     Args:
         rt: the device runtime (its lock held by the caller).
@@ -100,7 +117,8 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
             values in [0, 255], or scores ``(B, C, D, H, W)`` float16/32/64 (see :func:`runtime.host_array`).
         spec: :func:`fruxel.kernels.inputs.inspect_volume`'s description of the volume.
         grid: the volume's grid.
-        pyramid: build the pyramid (only the traversal needs it); without, :attr:`DeviceVolume.levels` is empty.
+        distance: build the distance field (only the first-hit walk needs it); without,
+            :attr:`DeviceVolume.distance` is None.
 
     The caller has checked ``spec`` with :func:`check_spec`.
     """
@@ -115,7 +133,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         kind = _SCORE_TYPES[scores.dtype]
         mode = 0 if spec.threshold is None else (2 if spec.probs else 1)
         k = rt.kernel(_SOURCE, "label_scores_kernel",
-                      defines(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode, BLOCK=traversal.BLOCK))
+                      _options(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode, AXIS=0))
         real = np.float64 if kind == "SCORE_DOUBLE" else np.float32
         labels = rt.scratch("labels", b * cells)
         data = rt.input("scores", scores)
@@ -133,42 +151,55 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         keep.append(lab)
         labels = rt.input("labels", lab)
         data = labels if lab is arr else None
-    levels = build_pyramid(rt, labels, grid, b) if pyramid else []
-    return DeviceVolume(labels=labels, levels=levels, data=data, keep=keep)
+    dist = build_field(rt, labels, grid, b) if distance else None
+    return DeviceVolume(labels=labels, distance=dist, data=data, keep=keep)
 
 
-def build_pyramid(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> list[Any]:
-    """Enqueue the pyramid of a uint8 ``(B, D, H, W)`` label buffer: levels 1 .. LEVELS-1 in pooled buffers,
-    padded with 1-byte dummies to two entries (the kernels always take two level buffers)."""
-    opts = defines(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, BLOCK=traversal.BLOCK)
-    k = rt.kernel(_SOURCE, "build_pyramid_kernel", opts)
-    out = []
-    fine = labels
-    for level in range(1, LEVELS):
-        nf = level_shape(grid, level - 1)
-        nc = level_shape(grid, level)
-        coarse = rt.scratch(f"pyramid{level}", batch * int(np.prod(nc)))
-        k(rt.queue, (round_up(nc[2], _LOCAL_PYRAMID), nc[1], nc[0] * batch), (_LOCAL_PYRAMID, 1, 1), fine, coarse,
-          np.array([nf[2], nf[1], nf[0], 1], np.int32), np.array([nc[2], nc[1], nc[0], 1], np.int32))
-        out.append(coarse)
-        fine = coarse
-    while len(out) < 2:
-        out.append(rt.scratch(f"pyramid{len(out) + 1}", 1))
-    return out
+def _options(**values: int) -> tuple[str, ...]:
+    """Build options of :file:`occupancy.cl`: ``values`` and the distance field's constants."""
+    return defines(**values, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP, FIELD_LEAD=FIELD_LEAD, FIELD_GAP=FIELD_GAP)
 
 
-def trace_options() -> tuple[str, ...]:
-    """``-D`` build options of the traversal, all from :mod:`fruxel.kernels.traversal`."""
-    return defines(BLOCK=traversal.BLOCK, LOG_BLOCK=LOG_BLOCK, LEVELS=LEVELS, FAMILY_U=traversal.FAMILY_U,
-                   FAMILY_V=traversal.FAMILY_V, FAMILY_Z=traversal.FAMILY_Z)
+def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
+    """Enqueue the distance field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the
+    occupied groups, then one pass per axis, between two pooled buffers. Returns the field's buffer."""
+    gd = field_layout(grid)
+    nbytes = field_bytes(grid, batch)
+    a = rt.scratch("field", nbytes)
+    tmp = rt.scratch("field_tmp", nbytes)
+    rows = (int(gd[0] - FIELD_GAP) // _FIELD_VECTOR, int(gd[1]), int(gd[2]) * batch)
+    k = rt.kernel(_SOURCE, "mark_groups_kernel", _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=0))
+    k(rt.queue, (rows[0] + 1, *rows[1:]), None, labels, a, cell_counts(grid), gd)
+    for axis, (src, dst) in enumerate(((a, tmp), (tmp, a), (a, tmp))):
+        k = rt.kernel(_SOURCE, "chessboard_pass_kernel", _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis))
+        k(rt.queue, rows, None, src, dst, gd)
+    return tmp
+
+
+def ray_options() -> tuple[str, ...]:
+    """``-D`` build options of :file:`ray.h`, from :mod:`fruxel.kernels.traversal`."""
+    return defines(FAMILY_U=traversal.FAMILY_U, FAMILY_V=traversal.FAMILY_V, FAMILY_Z=traversal.FAMILY_Z)
+
+
+def trace_options(cells: int) -> tuple[str, ...]:
+    """``-D`` build options of the tile walk (:file:`walk.h`, :file:`ray.h`); ``cells`` (per volume) decides
+    whether cell offsets need 64 bits."""
+    return ray_options() + defines(TILE=TILE, GROUP_LOG=GROUP_LOG, FIELD_LEAD=FIELD_LEAD,
+                                   WIDE_INDEX=int(cells >= 2**31))
 
 
 def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:
-    """The traversal kernels' scalar arguments after the three map buffers: grid (float8), camera (float16),
-    cells per family (int4 ``(W, H, D, 1)``), image width and height, and the iteration guard."""
-    return (traversal.grid_params(grid), traversal.camera_params(camera),
-            cell_counts(grid), np.int32(camera.width),
-            np.int32(camera.height), np.int32((LEVELS + 1) * traversal.max_steps(grid)))
+    """The tile kernels' arguments after the labels and field buffers: the field's layout (int4), grid (float8),
+    camera (float16), cells per family (int4 ``(W, H, D, 1)``), image width and height, and the iteration guard
+    (every iteration moves one family at least one cell on)."""
+    return (field_layout(grid), traversal.grid_params(grid), traversal.camera_params(camera), cell_counts(grid),
+            np.int32(camera.width), np.int32(camera.height), np.int32(traversal.max_steps(grid)))
+
+
+def tile_global(camera: Camera, batch: int) -> tuple[int, int, int]:
+    """NDRange of the tile kernels: the image's tiles rounded up to whole work-groups, times the batch."""
+    lx, ly = TILE_LOCAL
+    return (round_up(-(-camera.width // TILE), lx), round_up(-(-camera.height // TILE), ly), batch)
 
 
 def trace_global(camera: Camera, batch: int) -> tuple[int, int, int]:

@@ -1,8 +1,8 @@
 /*
  * ray.h: the part of kernels/traversal.py that every OpenCL walk shares, written once for a vector width:
  * a pixel's ray (step 0), its clip to the frustum (step 1), its entry cell (step 2), its step signs (step 3) and
- * the crossing of a plane by index (step 4), for soft_first_hit.cl one ray at a time (RAY_W 1) and for walks that
- * trace 16 rays at a time (RAY_W 16).
+ * the crossing of a plane by index (step 4). first_hit.cl and shell.cl use it 16 rays at a time (through
+ * walk.h), soft_first_hit.cl one ray at a time.
  *
  * Include it once per program (runtime.source() resolves the #include) after defining
  *   RAY_W   1 (scalar: one ray per work-item) or 16 (one ray per lane of float16 / int16)

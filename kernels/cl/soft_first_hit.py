@@ -60,7 +60,7 @@ class SavedRays:
 
 
 def _kernel(rt: Runtime, name: str, real: np.dtype, nc: int) -> Any:
-    opts = occupancy.trace_options() + defines(REAL_DOUBLE=int(real == np.float64), NC=nc, SPW=TAPE_STEPS_PER_WORD)
+    opts = occupancy.ray_options() + defines(REAL_DOUBLE=int(real == np.float64), NC=nc, SPW=TAPE_STEPS_PER_WORD)
     return rt.kernel(_SOURCE, name, opts)
 
 

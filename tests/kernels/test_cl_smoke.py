@@ -119,20 +119,62 @@ def test_first_hit_matches_dense_sampling(seed: int) -> None:
         assert np.all(np.einsum("ij,ij->i", n, d[hit]) < 0)
 
 
-def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The pyramid only skips: with 1, 2 or 3 levels every output is bit-identical."""
-    grid = FruxelGrid(width=37, height=21, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
+@pytest.mark.parametrize("width", [37, 64])
+def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch, width: int) -> None:
+    """The distance field only skips: without it (every iteration a plain step), with short jumps and with the
+    default ones, every output is bit-identical. Width 64 takes the field's vector path, 37 its general one."""
+    grid = FruxelGrid(width=width, height=21, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
     lab = _scene(grid, 7)
     lab[:, :, 30:] = 0
     cams = _cameras(grid)[:4]
     results = {}
-    for levels in (1, 2, 3):
-        monkeypatch.setattr(occupancy, "LEVELS", levels)
-        results[levels] = [cl.first_hit(lab, grid, cam) for cam in cams]
-    for levels in (2, 3):
-        for a, b in zip(results[1], results[levels], strict=True):
+    for cap in (0, 2, occupancy.DIST_CAP):
+        monkeypatch.setattr(occupancy, "DIST_CAP", cap)
+        results[cap] = [cl.first_hit(lab, grid, cam) for cam in cams]
+        shells = cl.shell(lab, grid, cams)
+        if cap == 0:
+            plain_shell = shells
+        np.testing.assert_array_equal(shells, plain_shell)
+    for cap in (2, occupancy.DIST_CAP):
+        for a, b in zip(results[0], results[cap], strict=True):
             for name in ("label", "cell", "depth", "normal"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@pytest.mark.parametrize("shape", [(45, 21, 64), (9, 13, 37), (4, 3, 2)])
+def test_distance_field_is_the_chessboard_distance(shape: tuple[int, int, int]) -> None:
+    """The field (occupancy.build_field) against scipy's chessboard distance transform of the occupied groups,
+    capped; two batch items (the vector path for width 64, the general one otherwise). Cells at the grid's far
+    corners and edges check that the field's padding reads as empty to the passes."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    import pyopencl
+
+    from fruxel.kernels.cl.runtime import get_runtime
+    from fruxel.kernels.inputs import inspect_volume
+
+    d, h, w = shape
+    grid = FruxelGrid(width=w, height=h, depth=d, z_near=0.3, z_far=6.0, hfov=80.0)
+    rng = np.random.default_rng(3)
+    lab = np.zeros((2, *grid.shape), np.uint8)
+    lab[0][rng.random(grid.shape) < 0.002] = 4
+    lab[0, d // 2, h // 3, w // 3] = 1
+    lab[1, -1, -1, -1] = 2
+    lab[1, 0, 0, :] = 3
+    rt = get_runtime(None)
+    with rt.lock:
+        vol = occupancy.labels_from_host(rt, lab, inspect_volume(lab, grid), grid)
+        raw = np.empty(occupancy.field_bytes(grid, 2), np.uint8)
+        pyopencl.enqueue_copy(rt.queue, raw, vol.distance)
+    gd = occupancy.field_layout(grid)
+    field = raw[occupancy.FIELD_LEAD:].reshape(2, gd[2], gd[1], gd[0])
+    g = 1 << occupancy.GROUP_LOG
+    for b in range(2):
+        pad = np.zeros((gd[2] * g, (gd[1] - 1) * g, -(-w // g) * g), bool)
+        pad[:d, :h, :w] = lab[b] != 0
+        occ = pad.reshape(gd[2], g, gd[1] - 1, g, -1, g).any(axis=(1, 3, 5))
+        want = ndimage.distance_transform_cdt(~occ, metric="chessboard") if occ.any() else np.full(occ.shape, 999)
+        got = field[b, :, :-1, :occ.shape[2]]
+        np.testing.assert_array_equal(got, np.minimum(want, occupancy.DIST_CAP))
 
 
 def test_shell_is_the_union_of_first_hits() -> None:
