@@ -27,11 +27,11 @@ fi
 # - Mesa's EGL vendor library and DRI drivers give pyrender a headless OpenGL context (llvmpipe on a CPU);
 #   required.
 # - Debian's PoCL (pocl-opencl-icd: PoCL 3.1 on LLVM 15, its kernel library tied to known target CPUs) is the
-#   OpenCL CPU driver that compiles on every x86-64 CPU. The PyPI pocl-binary-distribution that pyopencl brings
-#   (LLVM 14) fails to build any kernel on CPUs newer than its LLVM (Zen 4 / Zen 5: "unknown target CPU
-#   'generic'"). pyopencl's bundled ICD loader also reads /etc/OpenCL/vendors, so both are visible; fruxel's
-#   OpenCL runtime probes each device and prefers the newer PoCL (kernels/cl/runtime.py). Without it OpenCL may
-#   still work, or fruxel falls back to Warp with a warning: recommended, not required.
+#   OpenCL CPU driver that compiles on current x86-64 CPUs. The PyPI pocl-binary-distribution that pyopencl brings
+#   (LLVM 14) fails to build any kernel on CPUs newer than its LLVM (AMD Zen 5: "unknown target CPU 'generic'").
+#   pyopencl's bundled ICD loader also reads /etc/OpenCL/vendors, so both are visible; fruxel's OpenCL runtime
+#   probes each device and prefers the newer PoCL (kernels/cl/runtime.py). Without it OpenCL may still work, or
+#   fruxel falls back to Warp with a warning: recommended, not required.
 have_egl() {
   # No pipes into grep -q here: with pipefail, the early exit of grep would count as a failure.
   local libs
