@@ -10,7 +10,8 @@ compiles there, and pyopencl's ICD loader lists both when both are installed.
 
 Device selectors (what :func:`resolve_device` returns and :func:`get_runtime` takes): ``None`` or ``"gpu"`` (the
 first working GPU, else the first working CPU) or ``"cpu"`` (the first working CPU, else GPU). Candidates are tried
-GPUs first; among CPU devices, PoCL before other drivers and the newer PoCL first (see :func:`rank`). Warp-style
+GPUs first; among CPU devices, PoCL before other drivers and the newer PoCL first (see :func:`rank`); the environment
+variable ``FRUXEL_OPENCL_DEVICE`` keeps only the devices whose name or platform version contains its value. Warp-style
 names (``"cuda"``, ``"cuda:1"``) map to ``"gpu"`` so that data on a CUDA device can ask for "the GPU" without
 knowing about OpenCL platforms.
 
@@ -25,6 +26,7 @@ buffers are shared state).
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 from dataclasses import dataclass, field
@@ -164,13 +166,23 @@ def _status_of(index: int) -> DeviceStatus:
     return st
 
 
+DEVICE_ENV = "FRUXEL_OPENCL_DEVICE"
+"""Environment variable that restricts the candidates to devices whose ``"name (platform version)"`` contains its
+value, e.g. ``FRUXEL_OPENCL_DEVICE="PoCL 3.0"`` to run on the PyPI PoCL where Debian's is installed too."""
+
+
+def _chosen(index: int) -> bool:
+    want = os.environ.get(DEVICE_ENV, "").strip()
+    return not want or want in DeviceStatus(_platform_devices()[0][index], "", None).description
+
+
 def _first_working(kinds: tuple[str, ...]) -> Any | None:
     """The first device in probe order of one of ``kinds`` (in that order of preference) whose probe succeeds,
-    probing candidates only until one does."""
+    probing candidates only until one does (only those :data:`DEVICE_ENV` admits)."""
     devs = _platform_devices()[0]
     for kind in kinds:
         for i, d in enumerate(devs):
-            if _kind(d) == kind and _status_of(i).error is None:
+            if _kind(d) == kind and _chosen(i) and _status_of(i).error is None:
                 return d
     return None
 
@@ -199,7 +211,11 @@ def unavailable_reason() -> str:
     devs, reason = _platform_devices()
     if not devs:
         return reason
-    failed = "; ".join(f"{st.description}: {st.error}" for st in device_report())
+    report = [st for i, st in enumerate(device_report()) if _chosen(i)]
+    if not report:
+        names = "; ".join(st.description for st in device_report())
+        return f"{DEVICE_ENV}={os.environ.get(DEVICE_ENV)!r} matches none of the OpenCL devices ({names})"
+    failed = "; ".join(f"{st.description}: {st.error}" for st in report)
     return f"no OpenCL device can build a kernel here ({failed})"
 
 

@@ -151,3 +151,14 @@ def test_here_the_newest_working_pocl_is_chosen() -> None:
         pytest.skip("no working PoCL CPU device here")
     chosen = runtime.get_runtime("cpu").device
     assert runtime.pocl_version(chosen) == max(runtime.pocl_version(d) for d in pocls)
+
+
+def test_the_environment_can_pick_the_device(fresh: pytest.MonkeyPatch) -> None:
+    working = [st for st in runtime.device_report() if st.error is None]
+    last = working[-1]
+    fresh.setenv(runtime.DEVICE_ENV, last.description)
+    assert runtime.get_runtime(None).device == last.device
+    fresh.setenv(runtime.DEVICE_ENV, "no such device")
+    assert not cl.is_available()
+    with pytest.raises(BackendUnavailable, match=f"{runtime.DEVICE_ENV}='no such device' matches none"):
+        get_backend("opencl")
