@@ -7,7 +7,7 @@ float32 logits.
 
 Each measurement runs once to build and warm up, then ``--repeat`` times; it reports the median and the minimum
 wall time and the median process CPU time (all threads; on an otherwise idle machine wall ~ CPU / cores).
-Parts: the labels and distance field alone, the traversal kernel alone (enqueue + wait), and the host overhead
+Parts: the labels and their field alone, the traversal kernel alone (enqueue + wait), and the host overhead
 (whole call minus device parts). ``--caps`` repeats everything for other distance caps (0: no skipping, every
 iteration a plain step).
 
@@ -84,7 +84,7 @@ def main() -> None:
         k = rt.kernel(first_hit_module._SOURCE, "trace_first_hit_kernel", occupancy.trace_options(g.n_cells))
 
         def run() -> None:
-            k(rt.queue, occupancy.tile_global(cam, 1), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.distance,
+            k(rt.queue, occupancy.tile_global(cam, 1), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
               *occupancy.trace_args(g, cam), *outs)
             rt.queue.finish()  # timing: wait for the kernel
 
@@ -93,7 +93,7 @@ def main() -> None:
     for cap in args.caps:
         occupancy.DIST_CAP = cap
         print(f"--- DIST_CAP = {cap}")
-        print(fmt("labels upload + distance field", measure(field_only, args.repeat)))
+        print(fmt("labels upload + field", measure(field_only, args.repeat)))
         for name, cam in (("oblique", cam_ob), ("above", cam_up)):
             hits = first_hit(lab, g, cam)
             whole = measure(lambda cam=cam: first_hit(lab, g, cam), args.repeat)

@@ -34,14 +34,15 @@ RAY_INLINE void store_row(const int4 label, const long4 cell, const float4 depth
  * camera and batch item b = get_global_id(2).
  *   global size (ceil(ceil(w / TILE) / lx) lx, ceil(ceil(h / TILE) / ly) ly, B), local size (lx, ly, 1);
  *   work-items past the image do nothing.
- * Inputs: labels uchar (B, D, H, W); dist uchar (B, gd.z, gd.y, gd.x), the distance field (occupancy.cl).
+ * Inputs: labels uchar (B, D, H, W); field ushort, the fields of the batch (occupancy.cl: FIELD_LEAD elements,
+ *   then (B, gd.z, gd.y, gd.x)).
  * Outputs, (B, h, w) row-major, pixel index (b * h + y) * w + x:
  *   label  int32   label of the first occupied cell, 0 on a miss
  *   cell   int64   flat cell index (k * H + j) * W + i, -1 on a miss
  *   depth  float32 z of the entry point in the viewing camera (the ray parameter t), 0 on a miss
  *   normal float32 (B, h, w, 3) entry-face normal in the grid frame, zeros on a miss
  */
-__kernel void trace_first_hit_kernel(__global const uchar* labels, __global const uchar* dist, const int4 gd,
+__kernel void trace_first_hit_kernel(__global const uchar* labels, __global const ushort* field, const int4 gd,
                                      const float8 grid, const float16 cam, const int4 n, const int w, const int h,
                                      const int max_iter, __global int* out_label, __global long* out_cell,
                                      __global float* out_depth, __global float* out_normal)
@@ -52,8 +53,8 @@ __kernel void trace_first_hit_kernel(__global const uchar* labels, __global cons
     const size_t pix0 = ((size_t)b * h + y0) * w + x0;
     const int whole = x0 + TILE <= w && y0 + TILE <= h;
     TileHits th;
-    if (!trace_tile(x0, y0, w, h, m0, dist + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter, &th) &&
-        whole) {
+    if (!trace_tile(x0, y0, w, h, field + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
+                    &th) && whole) {
         /* No ray of the tile enters the frustum. */
         for (int row = 0; row < TILE; ++row) {
             const size_t p = pix0 + (size_t)row * w;

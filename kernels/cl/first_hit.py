@@ -1,7 +1,7 @@
 """OpenCL ``first_hit``: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
 
 One work-item per tile of 4 x 4 pixels and batch item runs :file:`first_hit.cl`'s walk over the uint8 labels, one
-ray per vector lane, with the distance field of :mod:`.occupancy` for empty-space skipping.
+ray per vector lane, with the field of :mod:`.occupancy` for empty-space skipping.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def first_hit(
 
 
 def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: Camera) -> tuple[np.ndarray, ...]:
-    """Enqueue labels, distance field and traversal for host volume ``arr`` and wait for the results: label
+    """Enqueue labels, field and traversal for host volume ``arr`` and wait for the results: label
     ``(B, h, w)`` int32, cell ``(B, h, w)`` int64, depth ``(B, h, w)`` float32, normal ``(B, h, w, 3)`` float32."""
     vol = occupancy.labels_from_host(rt, arr, spec, grid)
     b, h, w = spec.batch, cam.height, cam.width
@@ -75,7 +75,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: 
     outs = [(rt.output(name, a), a) for name, a in
             (("hit_label", label), ("hit_cell", cell), ("hit_depth", depth), ("hit_normal", normal))]
     k = rt.kernel(_SOURCE, "trace_first_hit_kernel", occupancy.trace_options(grid.n_cells))
-    k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.distance,
+    k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
       *occupancy.trace_args(grid, cam), *(buf for buf, _ in outs))
     # The call's one synchronisation: the results go to the caller next.
     rt.fetch(outs)

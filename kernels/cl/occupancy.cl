@@ -69,78 +69,98 @@ __kernel void label_scores_kernel(__global const SCORE_T* scores, __global uchar
 }
 
 /*
- * The distance field of the first-hit walk (walk.h): per group of GROUP^3 cells (GROUP = 1 << GROUP_LOG), the
- * chessboard distance, in groups, to the nearest group that holds an occupied cell, capped at DIST_CAP (0: the group
- * holds one; d > 0: every group within d - 1 of it is empty, so a ray may leave that cube in one jump). Outside
- * the grid counts as empty. Built on every call from the labels: one kernel marks occupied groups, then three
- * separable passes, one per axis, each d(p) = min over |m| <= DIST_CAP of max(|m|, d_in(p + m e_axis)) (the
- * chessboard distance is the largest of the per-axis offsets, so the passes compose exactly).
+ * The field of the first-hit walk (walk.h), per group of 2 x 2 x 2 cells (GROUP_LOG = 1):
+ *   d     the chessboard distance, in groups, to the nearest group that holds an occupied cell, capped at DIST_CAP
+ *         (0: the group holds one; d > 0: every group within d - 1 of it is empty, so a ray may leave that cube in
+ *         one jump). Outside the grid counts as empty.
+ *   mask  which of the group's cells are occupied: bit (i & 1) + 2 (j & 1) + 4 (k & 1) for cell (i, j, k), so the
+ *         walk tests a cell without reading the labels.
+ * stored as one ushort, d << 8 | mask, so that the walk reads both with one load. Built on every call from the
+ * labels: one kernel marks occupied groups (and their masks), then three separable passes, one per axis, each
+ * d(p) = min over |m| <= DIST_CAP of max(|m|, d_in(p + m e_axis)) (the chessboard distance is the largest of the
+ * per-axis offsets, so the passes compose exactly); the last pass writes the ushorts.
  *
- * Layout (occupancy.py's field_layout): FIELD_LEAD bytes, then per batch item GD slices of GH + 1 rows of
- * gd.x = GWP + FIELD_GAP bytes: GD = ceil(D / GROUP), GH = ceil(H / GROUP), GWP = ceil(W / GROUP) rounded up to a
- * multiple of 16 (whole uchar16 vectors). Everything but the GH x ceil(W / GROUP) groups of a slice is padding that
- * reads as empty: the lead and each row's gap let the x pass load a row's neighbours unaligned without masks, and
- * the extra row keeps the slices of a z pass off a 4 KiB stride (loads a multiple of 4 KiB apart compete for the
- * same L1 cache sets).
+ * Layout (occupancy.py's field_layout), in elements (uchar for the passes' d, ushort for the field): FIELD_LEAD
+ * elements, then per batch item GD slices of GH + 1 rows of gd.x = GWP + FIELD_GAP elements: GD = ceil(D / 2),
+ * GH = ceil(H / 2), GWP = ceil(W / 2) rounded up to a multiple of 16 (whole uchar16 vectors). Everything but the
+ * GH x ceil(W / 2) groups of a slice is padding that reads as empty: the lead and each row's gap let the x pass load
+ * a row's neighbours unaligned without masks, and the extra row keeps the slices of a z pass off a 4 KiB stride
+ * (loads a multiple of 4 KiB apart compete for the same L1 cache sets).
  *
- * Build options (-D): GROUP_LOG, DIST_CAP (0 turns skipping off: every group reads 0), FIELD_LEAD, FIELD_GAP
- * (>= DIST_CAP), and AXIS (of chessboard_pass_kernel).
+ * Build options (-D): GROUP_LOG (1), DIST_CAP (0 turns skipping off: every group reads d = 0), FIELD_LEAD,
+ * FIELD_GAP (>= DIST_CAP), and AXIS (of chessboard_pass_kernel).
  */
+#if GROUP_LOG != 1
+#error "the field's masks hold the 8 cells of a 2 x 2 x 2 group: GROUP_LOG must be 1"
+#endif
+
+/* Bits s (cells at even x) and s + 1 (odd x) of the masks of 8 groups, from a row of 16 cells. */
+#define PAIR_BITS(v, s)                                                                                          \
+    ((as_uchar8((v).even != (uchar8)(0)) & (uchar8)(1 << (s))) | (as_uchar8((v).odd != (uchar8)(0)) & (uchar8)(2 << (s))))
 
 /*
  * mark_groups_kernel: one work-item per 16 consecutive groups of a row, plus one per row for its gap.
  *   global size (GWP / 16 + 1, GH + 1, GD * B); n int4 (W, H, D, 1), gd int4 (GWP + FIELD_GAP, GH + 1, GD, 1)
- *   labels uchar (B, D, H, W) in; field out (this call's field, from its lead on): 0 where the group holds an
- *   occupied cell, DIST_CAP elsewhere and in the padding.
+ *   labels uchar (B, D, H, W) in; out, from their leads on: dist (uchar) 0 where the group holds an occupied cell,
+ *   DIST_CAP elsewhere and in the padding; masks (uchar) the groups' masks (0 in the padding).
  */
-__kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* field, const int4 n, const int4 gd)
+__kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* dist, __global uchar* masks,
+                                 const int4 n, const int4 gd)
 {
     const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
     const int gz = gzb % gd.z, b = gzb / gd.z;
-    if (gx == 0 && gy == 0 && gzb == 0) vstore16((uchar16)(DIST_CAP), 0, field);
-    __global uchar* out = field + FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
+    if (gx == 0 && gy == 0 && gzb == 0) vstore16((uchar16)(DIST_CAP), 0, dist);
+    const size_t at = FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
     const int x0 = gx << GROUP_LOG, y0 = gy << GROUP_LOG, z0 = gz << GROUP_LOG;
     if (y0 >= n.y || gx + 16 > gd.x - FIELD_GAP) {
         /* the padding: the extra row, the gap */
-        vstore16((uchar16)(DIST_CAP), 0, out);
+        vstore16((uchar16)(DIST_CAP), 0, dist + at);
+        vstore16((uchar16)(0), 0, masks + at);
         return;
     }
     __global const uchar* vol = labels + (size_t)b * n.x * n.y * n.z;
-#if GROUP_LOG == 1
+    /* the group's far cells clamped into the grid: a clamped copy sets a mask bit of a cell the walk never visits */
+    const int y1 = min(y0 + 1, n.y - 1), z1 = min(z0 + 1, n.z - 1);
     if (x0 + 32 <= n.x) {
-        /* 32 cells of the group rows' 4 cell rows (2 of each of 2 slices, the far ones clamped), or-ed, then each
-         * pair of neighbours or-ed */
-        const int y1 = min(y0 + 1, n.y - 1), z1 = min(z0 + 1, n.z - 1);
+        /* 32 cells of each of the 4 cell rows of the 16 groups */
         __global const uchar* r0 = vol + ((size_t)z0 * n.y + y0) * n.x + x0;
         __global const uchar* r1 = vol + ((size_t)z0 * n.y + y1) * n.x + x0;
         __global const uchar* r2 = vol + ((size_t)z1 * n.y + y0) * n.x + x0;
         __global const uchar* r3 = vol + ((size_t)z1 * n.y + y1) * n.x + x0;
-        const uchar16 lo = vload16(0, r0) | vload16(0, r1) | vload16(0, r2) | vload16(0, r3);
-        const uchar16 hi = vload16(1, r0) | vload16(1, r1) | vload16(1, r2) | vload16(1, r3);
-        const uchar16 occupied = (uchar16)(lo.even | lo.odd, hi.even | hi.odd);
-        vstore16(select((uchar16)(DIST_CAP), (uchar16)(0), occupied != (uchar16)(0)), 0, out);
+        const uchar16 a0 = vload16(0, r0), a1 = vload16(0, r1), a2 = vload16(0, r2), a3 = vload16(0, r3);
+        const uchar16 b0 = vload16(1, r0), b1 = vload16(1, r1), b2 = vload16(1, r2), b3 = vload16(1, r3);
+        const uchar16 mask = (uchar16)(PAIR_BITS(a0, 0) | PAIR_BITS(a1, 2) | PAIR_BITS(a2, 4) | PAIR_BITS(a3, 6),
+                                       PAIR_BITS(b0, 0) | PAIR_BITS(b1, 2) | PAIR_BITS(b2, 4) | PAIR_BITS(b3, 6));
+        vstore16(mask, 0, masks + at);
+        vstore16(select((uchar16)(DIST_CAP), (uchar16)(0), mask != (uchar16)(0)), 0, dist + at);
         return;
     }
-#endif
     /* The general case: group by group, cells past the grid's far edges left out (groups past it are empty). */
     for (int q = 0; q < 16; ++q) {
         const int xa = x0 + (q << GROUP_LOG);
-        uchar occupied = 0;
-        for (int z = z0; z < min(z0 + (1 << GROUP_LOG), n.z); ++z)
-            for (int y = y0; y < min(y0 + (1 << GROUP_LOG), n.y); ++y)
-                for (int x = xa; x < min(xa + (1 << GROUP_LOG), n.x); ++x)
-                    occupied |= vol[((size_t)z * n.y + y) * n.x + x];
-        out[q] = occupied ? 0 : DIST_CAP;
+        uchar mask = 0;
+        for (int z = z0; z < min(z0 + 2, n.z); ++z)
+            for (int y = y0; y < min(y0 + 2, n.y); ++y)
+                for (int x = xa; x < min(xa + 2, n.x); ++x)
+                    mask |= (vol[((size_t)z * n.y + y) * n.x + x] != 0) << ((x - xa) + 2 * (y - y0) + 4 * (z - z0));
+        masks[at + q] = mask;
+        dist[at + q] = mask ? 0 : DIST_CAP;
     }
 }
 
 /*
  * chessboard_pass_kernel (AXIS 0, 1 or 2: x, y or z): one work-item per 16 consecutive groups of a row.
- *   global size (GWP / 16, GH + 1, GD * B); gd as mark_groups_kernel's; in, out: fields (from their leads on)
+ *   global size (GWP / 16, GH + 1, GD * B); gd as mark_groups_kernel's; in, out: d (uchar, from their leads on)
  *   out(p) = min over |m| <= DIST_CAP of max(|m|, in(p + m e_AXIS)); outside the field reads DIST_CAP (along x the
- *   lead and gaps, which only the x pass reads, so only mark_groups_kernel writes them).
+ *   lead and gaps, which only the x pass reads, so only mark_groups_kernel writes them). The z pass writes the
+ *   field instead, out (ushort) = d << 8 | masks.
  */
+#if AXIS == 2
+__kernel void chessboard_pass_kernel(__global const uchar* in, __global const uchar* masks, __global ushort* out,
+                                     const int4 gd)
+#else
 __kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* out, const int4 gd)
+#endif
 {
     const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
     const size_t base = FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
@@ -149,6 +169,7 @@ __kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* o
 #pragma unroll
     for (int m = 1; m <= DIST_CAP; ++m)
         best = min(best, max((uchar16)(m), min(vload16(0, in + base - m), vload16(0, in + base + m))));
+    vstore16(best, 0, out + base);
 #else
 #if AXIS == 1
     const int p = gy, len = gd.y;
@@ -163,6 +184,10 @@ __kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* o
         const uchar16 hi = p + m < len ? vload16(0, in + base + m * stride) : (uchar16)(DIST_CAP);
         best = min(best, max((uchar16)(m), min(lo, hi)));
     }
-#endif
+#if AXIS == 1
     vstore16(best, 0, out + base);
+#else
+    vstore16(convert_ushort16(best) << (ushort)8 | convert_ushort16(vload16(0, masks + base)), 0, out + base);
+#endif
+#endif
 }

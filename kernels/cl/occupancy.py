@@ -1,11 +1,12 @@
-"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its distance field, and the
+"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its field, and the
 traversal's build options and arguments that depend on them.
 
 Float scores are turned into labels once per call by :file:`occupancy.cl` (SPEC section 2's rule), so the
-traversal's inner loop only ever tests a byte. The distance field (per group of ``GROUP^3`` cells, the chessboard
-distance to the nearest group holding an occupied cell, capped at :data:`DIST_CAP`) is rebuilt on every call from
-the labels: it is cheap next to the traversal, and no index cache survives a call. :file:`walk.h` jumps with it out
-of empty cubes of groups (kernels/traversal.py, "Empty-space skipping").
+traversal's inner loop only ever tests a byte. The field (per group of ``GROUP^3`` cells, the chessboard
+distance to the nearest group holding an occupied cell, capped at :data:`DIST_CAP`, and which of the group's cells
+are occupied) is rebuilt on every call from the labels: it is cheap next to the traversal, and no index cache
+survives a call. :file:`walk.h` jumps with it out of empty cubes of groups (kernels/traversal.py, "Empty-space
+skipping") and tests cells with it.
 
 The traversal's build options and arguments live here too: they depend on the field's layout, and :mod:`.first_hit`,
 :mod:`.shell` and :mod:`.soft_first_hit` all build the traversal.
@@ -13,7 +14,8 @@ The traversal's build options and arguments live here too: they depend on the fi
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,16 +28,18 @@ from ..inputs import MAX_LABEL, VolumeError, VolumeSpec
 from .runtime import Runtime, defines, source
 
 GROUP_LOG = 1
-"""log2 of the edge, in cells, of a group of the distance field (2: groups of 2 x 2 x 2 cells). Smaller groups
-skip closer to surfaces and cost more to build; 2 measured best on the benchmark scenes (benchmarks/PERF_NOTES.md)."""
+"""log2 of the edge, in cells, of a group of the field: groups of 2 x 2 x 2 cells, whose 8 cells fit the field's
+occupancy mask (the kernels require 1). Groups of 1 cell skip 14 % fewer iterations on the room but cost 8 times
+the building, groups of 4 take 60 % more iterations (benchmarks/PERF_NOTES.md)."""
 DIST_CAP = 15
 """Largest distance (in groups) the field records: each axis pass looks this far. 0 turns skipping off (every group
 reads 0, every iteration is a plain step), which tests use to check that skipping changes nothing."""
 TILE = 4
 """Edge, in pixels, of the square tile of rays one work-item of the first-hit walk traces (16 rays, one per vector
 lane; :file:`walk.h` lays them out for 4)."""
-TILE_LOCAL = (4, 4)
-"""Work-group shape of the tile kernels, in tiles along x, y: 16 tiles (256 pixels) per work-group."""
+TILE_LOCAL = (16, 1)
+"""Work-group shape of the tile kernels, in tiles along x, y: a row of 16 tiles (64 x 4 pixels) per work-group
+(4 x 4 tiles measured 4 % slower, 2 x 2 8 %)."""
 TRACE_LOCAL = (16, 4)
 """Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
 loop, so a tile of neighbouring rays shares cache lines of the volume."""
@@ -66,8 +70,9 @@ def field_layout(grid: FruxelGrid) -> np.ndarray:
     return np.array([gwp + FIELD_GAP, -(-grid.height // g) + 1, -(-grid.depth // g), 1], np.int32)
 
 
-def field_bytes(grid: FruxelGrid, batch: int) -> int:
-    """Bytes of the distance field of ``batch`` volumes (lead included)."""
+def field_elements(grid: FruxelGrid, batch: int) -> int:
+    """Elements of the field of ``batch`` volumes, lead included (bytes for the passes' distances, ushorts for the
+    field the walk reads)."""
     gd = field_layout(grid)
     return FIELD_LEAD + batch * int(gd[0]) * int(gd[1]) * int(gd[2])
 
@@ -78,12 +83,13 @@ class DeviceVolume:
 
     labels: Any
     """uint8 ``(B, D, H, W)`` device buffer: 0 = empty, else the label."""
-    distance: Any = None
-    """Its distance field (:func:`build_field`; layout :func:`field_layout`), or None when not built."""
+    field: Any = None
+    """Its field for the first-hit walk (:func:`build_field`; layout :func:`field_layout`), or None when not
+    built."""
     data: Any = None
     """A device view of the host array the call was given (after :func:`runtime.host_array`) when one was made
     (float scores, uint8 labels), else None."""
-    keep: list[Any] = field(default_factory=list)
+    keep: list[Any] = dataclasses.field(default_factory=list)
     """Host arrays the device may still read; they must outlive the call's kernels."""
 
 
@@ -108,8 +114,8 @@ def check_spec(spec: VolumeSpec) -> None:
 
 
 def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid,
-                     distance: bool = True) -> DeviceVolume:
-    """Put a validated volume on the device as uint8 labels and build its distance field (all enqueued, no wait).
+                     walk: bool = True) -> DeviceVolume:
+    """Put a validated volume on the device as uint8 labels and build its field (all enqueued, no wait).
 
     Args:
         rt: the device runtime (its lock held by the caller).
@@ -117,8 +123,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
             values in [0, 255], or scores ``(B, C, D, H, W)`` float16/32/64 (see :func:`runtime.host_array`).
         spec: :func:`fruxel.kernels.inputs.inspect_volume`'s description of the volume.
         grid: the volume's grid.
-        distance: build the distance field (only the first-hit walk needs it); without,
-            :attr:`DeviceVolume.distance` is None.
+        walk: build the field (only the first-hit walk needs it); without, :attr:`DeviceVolume.field` is None.
 
     The caller has checked ``spec`` with :func:`check_spec`.
     """
@@ -151,29 +156,33 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         keep.append(lab)
         labels = rt.input("labels", lab)
         data = labels if lab is arr else None
-    dist = build_field(rt, labels, grid, b) if distance else None
-    return DeviceVolume(labels=labels, distance=dist, data=data, keep=keep)
+    walk_field = build_field(rt, labels, grid, b) if walk else None
+    return DeviceVolume(labels=labels, field=walk_field, data=data, keep=keep)
 
 
 def _options(**values: int) -> tuple[str, ...]:
-    """Build options of :file:`occupancy.cl`: ``values`` and the distance field's constants."""
+    """Build options of :file:`occupancy.cl`: ``values`` and the field's constants."""
     return defines(**values, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP, FIELD_LEAD=FIELD_LEAD, FIELD_GAP=FIELD_GAP)
 
 
 def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
-    """Enqueue the distance field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the
-    occupied groups, then one pass per axis, between two pooled buffers. Returns the field's buffer."""
+    """Enqueue the field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the occupied groups
+    and their masks, then one distance pass per axis between pooled buffers, the last writing the ushort field.
+    Returns the field's buffer (layout :func:`field_layout`, :func:`field_elements` ushorts)."""
     gd = field_layout(grid)
-    nbytes = field_bytes(grid, batch)
-    a = rt.scratch("field", nbytes)
-    tmp = rt.scratch("field_tmp", nbytes)
+    count = field_elements(grid, batch)
+    a, b, masks = (rt.scratch(name, count) for name in ("field_a", "field_b", "field_masks"))
+    field = rt.scratch("field", 2 * count)
     rows = (int(gd[0] - FIELD_GAP) // _FIELD_VECTOR, int(gd[1]), int(gd[2]) * batch)
-    k = rt.kernel(_SOURCE, "mark_groups_kernel", _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=0))
-    k(rt.queue, (rows[0] + 1, *rows[1:]), None, labels, a, cell_counts(grid), gd)
-    for axis, (src, dst) in enumerate(((a, tmp), (tmp, a), (a, tmp))):
-        k = rt.kernel(_SOURCE, "chessboard_pass_kernel", _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis))
-        k(rt.queue, rows, None, src, dst, gd)
-    return tmp
+
+    def kernel(name: str, axis: int) -> Any:
+        return rt.kernel(_SOURCE, name, _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis))
+
+    kernel("mark_groups_kernel", 0)(rt.queue, (rows[0] + 1, *rows[1:]), None, labels, a, masks, cell_counts(grid), gd)
+    kernel("chessboard_pass_kernel", 0)(rt.queue, rows, None, a, b, gd)
+    kernel("chessboard_pass_kernel", 1)(rt.queue, rows, None, b, a, gd)
+    kernel("chessboard_pass_kernel", 2)(rt.queue, rows, None, a, masks, field, gd)
+    return field
 
 
 def ray_options() -> tuple[str, ...]:

@@ -11,10 +11,10 @@
 
 /*
  * mark_shell_kernel: one work-item per tile of TILE x TILE pixels of one viewing camera and batch item b; sets the
- * mask at the tile's first hits. Global and local sizes, and all arguments but the last, as first_hit's
- * (first_hit.cl).
+ * mask at the tile's first hits. Global and local sizes, and all arguments but the first (first_hit's labels) and
+ * the last, as first_hit's (first_hit.cl).
  */
-__kernel void mark_shell_kernel(__global const uchar* labels, __global const uchar* dist, const int4 gd,
+__kernel void mark_shell_kernel(__global const ushort* field, const int4 gd,
                                 const float8 grid, const float16 cam, const int4 n, const int w, const int h,
                                 const int max_iter, __global uchar* mask)
 {
@@ -22,8 +22,8 @@ __kernel void mark_shell_kernel(__global const uchar* labels, __global const uch
     if (x0 >= w || y0 >= h) return;
     const size_t cells = (size_t)n.x * n.y * n.z;
     TileHits th;
-    if (!trace_tile(x0, y0, w, h, labels + b * cells, dist + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n,
-                    max_iter, &th))
+    if (!trace_tile(x0, y0, w, h, field + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
+                    &th))
         return;
     const cell_v cell = walk_cell(th.i, th.j, th.k, n);
     __global uchar* m = mask + b * cells;

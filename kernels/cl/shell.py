@@ -1,6 +1,6 @@
 """OpenCL ``shell``: the VMS simplification (SPEC section 4) of a label or score volume.
 
-Per call: labels (and their distance field) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
+Per call: labels (and their field) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
 launch per camera marking each pixel's first-hit cell (:file:`shell.cl`'s ``mark_shell_kernel``; the grid's own
 camera at native resolution takes ``mark_columns_kernel``, one work-item per column), then one launch that writes the
 output from the input, the mask and the canonical empty cell. Nothing is cached across calls but device buffers.
@@ -74,10 +74,10 @@ def empty_bits(spec: VolumeSpec, dtype: np.dtype) -> tuple[Any, Any]:
 
 
 def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams: list[Camera]) -> np.ndarray:
-    """Enqueue labels, distance field, one marking launch per camera and the output launch for host volume ``arr``,
+    """Enqueue labels, field, one marking launch per camera and the output launch for host volume ``arr``,
     and wait for the result: an array like ``arr`` (same shape and dtype)."""
     own = [traversal.is_own_view(cam, grid) for cam in cams]
-    vol = occupancy.labels_from_host(rt, arr, spec, grid, distance=not all(own))
+    vol = occupancy.labels_from_host(rt, arr, spec, grid, walk=not all(own))
     b, cells = spec.batch, grid.n_cells
     opts = occupancy.trace_options(cells)
     mask = rt.scratch("shell_mask", b * cells)
@@ -90,7 +90,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
               vol.labels, n, mask)
         else:
             k = rt.kernel(_SOURCE, "mark_shell_kernel", opts)
-            k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.distance,
+            k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.field,
               *occupancy.trace_args(grid, cam), mask)
 
     out = np.empty_like(arr)

@@ -5,9 +5,10 @@
  *
  * The walk keeps each ray in exactly the plain loop's state (traversal.py step 5): its cell (i, j, k), the depth
  * t_entry where it entered the cell and the family it entered through. Each iteration, per ray:
- *   - the cell's group (GROUP^3 cells, GROUP = 1 << GROUP_LOG) has chessboard distance d to the nearest group
- *     holding an occupied cell (the distance field of occupancy.cl, capped; 0: the group holds one);
- *   - d = 0: if the cell is occupied, it is the hit; else the box to leave is the cell itself (a plain step);
+ *   - the cell's group (2 x 2 x 2 cells) has chessboard distance d to the nearest group holding an occupied cell
+ *     (the field of occupancy.cl, capped; 0: the group holds one);
+ *   - d = 0: if the cell is occupied (the group's mask in the field says), it is the hit; else the box to leave is
+ *     the cell itself (a plain step);
  *   - d > 0: the box to leave is the cube of groups of radius d - 1 around the cell's group, all empty, clipped to
  *     the grid;
  *   - the ray leaves the box where the first of its three families crosses the box's far boundary (t_x, ties
@@ -24,9 +25,8 @@
  * WIDE_INDEX (1 when a volume has 2^31 cells or more: cell offsets in 64 bits).
  *
  * Layouts:
- *   labels uchar (D, H, W): 0 = empty (this batch item's)
- *   dist   uchar (GD, gd.y, gd.x): the distance field of this batch item, gd = (row length, rows per slice, slices)
- *          (rows and slices may be padded; see occupancy.py)
+ *   field  ushort (GD, gd.y, gd.x): this batch item's field, d << 8 | mask per group, gd = (row length, rows per
+ *          slice, slices) (rows and slices padded; see occupancy.cl)
  */
 #define RAY_W 16
 #include "ray.h"
@@ -37,6 +37,9 @@
 #define WALK_LX ((ri)(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3))
 #define WALK_LY ((ri)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
 #define WALK_LANES(G) G(s0) G(s1) G(s2) G(s3) G(s4) G(s5) G(s6) G(s7) G(s8) G(s9) G(sa) G(sb) G(sc) G(sd) G(se) G(sf)
+#if GROUP_LOG != 1
+#error "walk.h reads the field of 2 x 2 x 2 groups: GROUP_LOG must be 1"
+#endif
 #define GL GROUP_LOG
 
 #if WIDE_INDEX
@@ -81,9 +84,9 @@ typedef struct {
  * the rays that hit, the rest of th. Returns 0 when no ray of the tile enters the frustum (th->hit all clear).
  * max_iter bounds the walk (every iteration moves one family at least a cell on).
  */
-RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, __global const uchar* labels,
-                          __global const uchar* dist, const int4 gd, const float8 g, const float16 c, const int4 n,
-                          const int max_iter, TileHits* th)
+RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, __global const ushort* field,
+                          const int4 gd, const float8 g, const float16 c, const int4 n, const int max_iter,
+                          TileHits* th)
 {
     const ri xs = x0 + WALK_LX, ys = y0 + WALK_LY;
     Rays r;
@@ -110,18 +113,14 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
 
     for (int it = 0; it < max_iter; ++it) {
         if (!walk_any(active)) break;
-        /* The distance of the cell's group, and the cell's label where the group holds an occupied cell. */
-        const ri goff = ((iz >> GL) * gd.y + (iv >> GL)) * gd.x + (iu >> GL);
-        ri d;
-#define G(l) d.l = dist[(uint)goff.l];
+        /* The cell's group in the field: its distance d and its mask, where the cell's bit says if it is occupied. */
+        const ri goff = ((iz >> 1) * gd.y + (iv >> 1)) * gd.x + (iu >> 1);
+        ri f;
+#define G(l) f.l = field[(uint)goff.l];
         WALK_LANES(G)
 #undef G
-        const cell_v coff = walk_cell(iu, iv, iz, n);
-        ri lab;
-#define G(l) lab.l = labels[d.l == 0 ? coff.l : 0];
-        WALK_LANES(G)
-#undef G
-        const ri h0 = active & (d == 0) & (lab != 0);
+        const ri d = f >> 8;
+        const ri h0 = active & (((f >> ((iu & 1) | ((iv & 1) << 1) | ((iz & 1) << 2))) & 1) != 0);
         hit |= h0;
         active &= ~h0;
 

@@ -121,7 +121,7 @@ def test_first_hit_matches_dense_sampling(seed: int) -> None:
 
 @pytest.mark.parametrize("width", [37, 64])
 def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch, width: int) -> None:
-    """The distance field only skips: without it (every iteration a plain step), with short jumps and with the
+    """The field's distances only skip: without them (every iteration a plain step), with short jumps and with the
     default ones, every output is bit-identical. Width 64 takes the field's vector path, 37 its general one."""
     grid = FruxelGrid(width=width, height=21, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
     lab = _scene(grid, 7)
@@ -142,10 +142,11 @@ def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch, wid
 
 
 @pytest.mark.parametrize("shape", [(45, 21, 64), (9, 13, 37), (4, 3, 2)])
-def test_distance_field_is_the_chessboard_distance(shape: tuple[int, int, int]) -> None:
-    """The field (occupancy.build_field) against scipy's chessboard distance transform of the occupied groups,
-    capped; two batch items (the vector path for width 64, the general one otherwise). Cells at the grid's far
-    corners and edges check that the field's padding reads as empty to the passes."""
+def test_field_is_the_chessboard_distance_and_the_masks(shape: tuple[int, int, int]) -> None:
+    """The walk's field (occupancy.build_field) against scipy's chessboard distance transform of the occupied 2 x 2
+    x 2 groups, capped, and each group's mask against its cells; two batch items (the vector path for width 64, the
+    general one otherwise). Cells at the grid's far corners and edges check that the field's padding reads as
+    empty to the passes."""
     ndimage = pytest.importorskip("scipy.ndimage")
     import pyopencl
 
@@ -163,18 +164,29 @@ def test_distance_field_is_the_chessboard_distance(shape: tuple[int, int, int]) 
     rt = get_runtime(None)
     with rt.lock:
         vol = occupancy.labels_from_host(rt, lab, inspect_volume(lab, grid), grid)
-        raw = np.empty(occupancy.field_bytes(grid, 2), np.uint8)
-        pyopencl.enqueue_copy(rt.queue, raw, vol.distance)
+        raw = np.empty(occupancy.field_elements(grid, 2), np.uint16)
+        pyopencl.enqueue_copy(rt.queue, raw, vol.field)
     gd = occupancy.field_layout(grid)
     field = raw[occupancy.FIELD_LEAD:].reshape(2, gd[2], gd[1], gd[0])
-    g = 1 << occupancy.GROUP_LOG
+    gw = -(-w // 2)
     for b in range(2):
-        pad = np.zeros((gd[2] * g, (gd[1] - 1) * g, -(-w // g) * g), bool)
-        pad[:d, :h, :w] = lab[b] != 0
-        occ = pad.reshape(gd[2], g, gd[1] - 1, g, -1, g).any(axis=(1, 3, 5))
+        cells = np.zeros((gd[2] * 2, (gd[1] - 1) * 2, gw * 2), bool)
+        cells[:d, :h, :w] = lab[b] != 0
+        # (z, y, x) in the group flattened is 4 z + 2 y + x: the mask's bit of that cell
+        weights = 1 << np.arange(8)
+        bits = cells.reshape(gd[2], 2, gd[1] - 1, 2, gw, 2).transpose(0, 2, 4, 1, 3, 5).reshape(gd[2], gd[1] - 1, gw, 8)
+        mask = (bits * weights).sum(-1)
+        occ = mask != 0
         want = ndimage.distance_transform_cdt(~occ, metric="chessboard") if occ.any() else np.full(occ.shape, 999)
-        got = field[b, :, :-1, :occ.shape[2]]
-        np.testing.assert_array_equal(got, np.minimum(want, occupancy.DIST_CAP))
+        got = field[b, :, :-1, :gw]
+        np.testing.assert_array_equal(got >> 8, np.minimum(want, occupancy.DIST_CAP))
+        # the mask's bits of cells past the grid are free (never read): compare those of cells inside it
+        inside = np.zeros(cells.shape, bool)
+        inside[:d, :h, :w] = True
+        ibits = inside.reshape(gd[2], 2, gd[1] - 1, 2, gw, 2).transpose(0, 2, 4, 1, 3, 5).reshape(gd[2], gd[1] - 1,
+                                                                                                 gw, 8)
+        valid = (ibits * weights).sum(-1)
+        np.testing.assert_array_equal(got & valid, mask)
 
 
 def test_shell_is_the_union_of_first_hits() -> None:
