@@ -10,7 +10,10 @@
  *   rf, ri           float / int, or float16 / int16 (one lane per ray)
  *   RAY_CVF, RAY_CVI conversions to rf / ri
  *   Rays             the rays' constants: direction, step signs, origin and the grid's constants
- *   rays_setup()     steps 0-3; returns the mask of rays that enter the frustum
+ *   rays_clip()      steps 0-1; returns the mask of rays that enter the frustum
+ *   rays_entry()     steps 2-3 for the rays rays_clip() let in
+ *   rays_setup()     both
+ *   ray_any()        whether any lane of a mask is set
  *   cross_u/v/z()    step 4 for one family: the crossing of boundary m, +inf when the ray does not cross it
  *   cross_f()        the same for a family chosen at run time (scalar width only)
  * Masks are ri values: 1 / 0 at width 1, -1 / 0 (all bits) at width 16, as OpenCL's comparisons give them;
@@ -94,14 +97,27 @@ RAY_INLINE float cross_f(const Rays* r, const int f, const int m)
 }
 #endif
 
+#if RAY_W == 1
+RAY_INLINE int ray_any(const ri m) { return m != 0; }
+#else
+/* True when any lane of a mask is set (an or-reduction: PoCL's any() on int16 reduces lane by lane). */
+RAY_INLINE int ray_any(const ri m)
+{
+    const int8 a = m.lo | m.hi;
+    const int4 b = a.lo | a.hi;
+    const int2 c = b.lo | b.hi;
+    return (c.x | c.y) < 0;
+}
+#endif
+
 /*
- * Steps 0-3 for the rays through pixels (x, y) (pixel coordinates as rf): fills r, the clip interval [t_lo, t_hi),
- * the entry plane (0..5: left, right, top, bottom, near, far; -1 when the camera is inside the frustum) and the
- * entry cell (the entry plane's own family set exactly). Returns the mask of rays that enter the frustum; the other
- * outputs of a ray that misses are unspecified.
+ * Steps 0 and 1 for the rays through pixels (x, y) (pixel coordinates as rf): fills r's direction, origin and grid
+ * constants (not its signs: rays_entry() sets them), the clip interval [t_lo, t_hi) and the entry plane (0..5:
+ * left, right, top, bottom, near, far; -1 when the camera is inside the frustum). Returns the mask of rays that
+ * enter the frustum; the other outputs of a ray that misses are unspecified.
  */
-RAY_INLINE ri rays_setup(const rf x, const rf y, const float8 g, const float16 c, const int4 n, Rays* r,
-                         rf* t_lo_out, rf* t_hi_out, ri* plane_out, ri* iu, ri* iv, ri* iz)
+RAY_INLINE ri rays_clip(const rf x, const rf y, const float8 g, const float16 c, Rays* r, rf* t_lo_out,
+                        rf* t_hi_out, ri* plane_out)
 {
     const rf px = (x + 0.5f - c.s2) / c.s0;
     const rf py = (y + 0.5f - c.s3) / c.s1;
@@ -111,45 +127,9 @@ RAY_INLINE ri rays_setup(const rf x, const rf y, const float8 g, const float16 c
     const float ox = c.sd, oy = c.se, oz = c.sf;
     const float u0 = g.s0, v0 = g.s1, zn = g.s4, zf = g.s6;
     const float uw = -u0, vh = -v0;
-
-    /* Cyrus-Beck: a = n . d, b = n . o + c for left, right, top, bottom, near, far; candidates t = -b / a. */
-    rf t_lo = 0.0f, t_hi = INFINITY;
-    ri plane = -1;
-    ri ok = (ri)(1) == (ri)(1);
-#define RAY_CLIP(P, A, B)                                                                                          \
-    {                                                                                                            \
-        const rf a_ = (A);                                                                                       \
-        const float b_ = (B);                                                                                    \
-        const rf t_ = -b_ / a_;                                                                                  \
-        if (b_ < 0.0f) ok &= (a_ != 0.0f);                                                                       \
-        const ri raise_ = (a_ > 0.0f) & (t_ > t_lo);                                                             \
-        plane = raise_ ? (ri)(P) : plane;                                                                        \
-        t_lo = raise_ ? t_ : t_lo;                                                                               \
-        t_hi = ((a_ < 0.0f) & (t_ < t_hi)) ? t_ : t_hi;                                                          \
-    }
-    RAY_CLIP(0, dx - u0 * dz, ox - u0 * oz)
-    RAY_CLIP(1, -dx + uw * dz, -ox + uw * oz)
-    RAY_CLIP(2, dy - v0 * dz, oy - v0 * oz)
-    RAY_CLIP(3, -dy + vh * dz, -oy + vh * oz)
-    RAY_CLIP(4, dz, oz - zn)
-    RAY_CLIP(5, -dz, -oz + zf)
-#undef RAY_CLIP
-
-    /* Entry cell from the entry point, clamped; the entry plane's own family is set exactly. */
-    const rf ex = ox + t_lo * dx, ey = oy + t_lo * dy, ez = oz + t_lo * dz;
-    ri i = ray_clamp_floor((ex / ez - u0) / g.s2, n.x - 1);
-    ri j = ray_clamp_floor((ey / ez - v0) / g.s3, n.y - 1);
-    ri k = ray_clamp_floor((ez - zn) / g.s5, n.z - 1);
-    *iu = (plane == 0) ? (ri)(0) : ((plane == 1) ? (ri)(n.x - 1) : i);
-    *iv = (plane == 2) ? (ri)(0) : ((plane == 3) ? (ri)(n.y - 1) : j);
-    *iz = (plane == 4) ? (ri)(0) : ((plane == 5) ? (ri)(n.z - 1) : k);
-
     r->dx = dx;
     r->dy = dy;
     r->dz = dz;
-    r->su = ray_sign(dx * oz - dz * ox);
-    r->sv = ray_sign(dy * oz - dz * oy);
-    r->sz = ray_sign(dz);
     r->ox = ox;
     r->oy = oy;
     r->oz = oz;
@@ -159,8 +139,69 @@ RAY_INLINE ri rays_setup(const rf x, const rf y, const float8 g, const float16 c
     r->dv = g.s3;
     r->zn = zn;
     r->dzc = g.s5;
+    *t_lo_out = 0.0f;
+    *t_hi_out = 0.0f;
+    *plane_out = -1;
+
+    /* Cyrus-Beck: a = n . d, b = n . o + c for left, right, top, bottom, near, far; candidates t = -b / a. */
+    const rf a0 = dx - u0 * dz, a1 = -dx + uw * dz, a2 = dy - v0 * dz, a3 = -dy + vh * dz, a4 = dz, a5 = -dz;
+    const float b0 = ox - u0 * oz, b1 = -ox + uw * oz, b2 = oy - v0 * oz, b3 = -oy + vh * oz, b4 = oz - zn,
+                b5 = -oz + zf;
+    /* Every ray misses when one half-space holds neither the origin (b < 0) nor any direction into it (a <= 0 for
+     * all of them): the divisions below would give each a == 0 with b < 0, or t_hi < 0. */
+#define RAY_OUTSIDE(A, B) ((B) < 0.0f && !ray_any(((A) <= 0.0f) == 0))
+    if (RAY_OUTSIDE(a0, b0) || RAY_OUTSIDE(a1, b1) || RAY_OUTSIDE(a2, b2) || RAY_OUTSIDE(a3, b3) ||
+        RAY_OUTSIDE(a4, b4) || RAY_OUTSIDE(a5, b5))
+        return (ri)(0);
+#undef RAY_OUTSIDE
+    rf t_lo = 0.0f, t_hi = INFINITY;
+    ri plane = -1;
+    ri ok = (ri)(1) == (ri)(1);
+#define RAY_CLIP(P, A, B)                                                                                          \
+    {                                                                                                            \
+        const rf t_ = -(B) / (A);                                                                                \
+        if ((B) < 0.0f) ok &= ((A) != 0.0f);                                                                     \
+        const ri raise_ = ((A) > 0.0f) & (t_ > t_lo);                                                            \
+        plane = raise_ ? (ri)(P) : plane;                                                                        \
+        t_lo = raise_ ? t_ : t_lo;                                                                               \
+        t_hi = (((A) < 0.0f) & (t_ < t_hi)) ? t_ : t_hi;                                                         \
+    }
+    RAY_CLIP(0, a0, b0)
+    RAY_CLIP(1, a1, b1)
+    RAY_CLIP(2, a2, b2)
+    RAY_CLIP(3, a3, b3)
+    RAY_CLIP(4, a4, b4)
+    RAY_CLIP(5, a5, b5)
+#undef RAY_CLIP
     *t_lo_out = t_lo;
     *t_hi_out = t_hi;
     *plane_out = plane;
     return ok & (t_lo < t_hi);
+}
+
+/*
+ * Steps 2 and 3 after rays_clip(): the entry cell at t_lo (clamped; the entry plane's own family set exactly) and
+ * the step signs (into r).
+ */
+RAY_INLINE void rays_entry(Rays* r, const rf t_lo, const ri plane, const int4 n, ri* iu, ri* iv, ri* iz)
+{
+    const rf ex = r->ox + t_lo * r->dx, ey = r->oy + t_lo * r->dy, ez = r->oz + t_lo * r->dz;
+    const ri i = ray_clamp_floor((ex / ez - r->u0) / r->du, n.x - 1);
+    const ri j = ray_clamp_floor((ey / ez - r->v0) / r->dv, n.y - 1);
+    const ri k = ray_clamp_floor((ez - r->zn) / r->dzc, n.z - 1);
+    *iu = (plane == 0) ? (ri)(0) : ((plane == 1) ? (ri)(n.x - 1) : i);
+    *iv = (plane == 2) ? (ri)(0) : ((plane == 3) ? (ri)(n.y - 1) : j);
+    *iz = (plane == 4) ? (ri)(0) : ((plane == 5) ? (ri)(n.z - 1) : k);
+    r->su = ray_sign(r->dx * r->oz - r->dz * r->ox);
+    r->sv = ray_sign(r->dy * r->oz - r->dz * r->oy);
+    r->sz = ray_sign(r->dz);
+}
+
+/* Steps 0-3: rays_clip() then rays_entry(). Returns the mask of rays that enter the frustum. */
+RAY_INLINE ri rays_setup(const rf x, const rf y, const float8 g, const float16 c, const int4 n, Rays* r,
+                         rf* t_lo, rf* t_hi, ri* plane, ri* iu, ri* iv, ri* iz)
+{
+    const ri enter = rays_clip(x, y, g, c, r, t_lo, t_hi, plane);
+    rays_entry(r, *t_lo, *plane, n, iu, iv, iz);
+    return enter;
 }

@@ -56,15 +56,6 @@ typedef int16 cell_v;
 #define ENTRY_INSIDE (-1)
 #define ENTRY_PLANE 3
 
-/* True when any lane of a mask is set (an or-reduction: PoCL's any() on int16 reduces lane by lane). */
-RAY_INLINE int walk_any(const ri m)
-{
-    const int8 a = m.lo | m.hi;
-    const int4 b = a.lo | a.hi;
-    const int2 c = b.lo | b.hi;
-    return (c.x | c.y) < 0;
-}
-
 /* The flat cell index of (i, j, k) in a (D, H, W) volume. */
 RAY_INLINE cell_v walk_cell(const ri i, const ri j, const ri k, const int4 n)
 {
@@ -91,17 +82,18 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
     const ri xs = x0 + WALK_LX, ys = y0 + WALK_LY;
     Rays r;
     rf t_lo, t_hi;
-    ri plane, iu, iv, iz;
-    ri active = rays_setup(RAY_CVF(xs), RAY_CVF(ys), g, c, n, &r, &t_lo, &t_hi, &plane, &iu, &iv, &iz);
-    active &= (xs < w) & (ys < h);
-    th->r = r;
+    ri plane, iu = 0, iv = 0, iz = 0;
+    ri active = rays_clip(RAY_CVF(xs), RAY_CVF(ys), g, c, &r, &t_lo, &t_hi, &plane) & (xs < w) & (ys < h);
     th->hit = 0;
-    th->i = iu;
-    th->j = iv;
-    th->k = iz;
+    th->i = th->j = th->k = 0;
     th->t_entry = t_lo;
     th->entry = ENTRY_INSIDE;
-    if (!walk_any(active)) return 0;
+    if (!ray_any(active)) {
+        th->r = r;
+        return 0;
+    }
+    rays_entry(&r, t_lo, plane, n, &iu, &iv, &iz);
+    th->r = r;
 
     const ri su = RAY_CVI(r.su), sv = RAY_CVI(r.sv), sz = RAY_CVI(r.sz);
     const ri fwu = su > 0, fwv = sv > 0, fwz = sz > 0; /* masks: the boundary ahead of cell m is m + 1 */
@@ -112,7 +104,7 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
     ri hit = 0;
 
     for (int it = 0; it < max_iter; ++it) {
-        if (!walk_any(active)) break;
+        if (!ray_any(active)) break;
         /* The cell's group in the field: its distance d and its mask, where the cell's bit says if it is occupied. */
         const ri goff = ((iz >> 1) * gd.y + (iv >> 1)) * gd.x + (iu >> 1);
         ri f;
@@ -146,7 +138,7 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
                       (cz < n.z);
         active = go;
         const ri jump = go & big;
-        if (walk_any(jump)) {
+        if (ray_any(jump)) {
             /* The other families' cells at t_x: estimated from the exit point, kept between the current cell and
              * the box's last one, then verified. */
             const rf qx = r.ox + tx * r.dx, qy = r.oy + tx * r.dy, qz = r.oz + tx * r.dz;
@@ -172,7 +164,7 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
                 const ri backu = mu & (cu != iu) & ~(tie_u ? (bu_ <= tx) : (bu_ < tx));
                 const ri backv = mv & (cv != iv) & ~(tie_v ? (bv_ <= tx) : (bv_ < tx));
                 const ri backz = mz & (cz != iz) & ~(bz_ < tx);
-                if (!walk_any(onu | onv | onz | backu | backv | backz)) break;
+                if (!ray_any(onu | onv | onz | backu | backv | backz)) break;
                 cu += (onu & su) - (backu & su);
                 cv += (onv & sv) - (backv & sv);
                 cz += (onz & sz) - (backz & sz);
