@@ -34,8 +34,7 @@ RAY_INLINE void store_row(const int4 label, const long4 cell, const float4 depth
  * camera and batch item b = get_global_id(2).
  *   global size (ceil(ceil(w / TILE) / lx) lx, ceil(ceil(h / TILE) / ly) ly, B), local size (lx, ly, 1);
  *   work-items past the image do nothing.
- * Inputs: labels uchar (B, D, H, W); field ushort, the fields of the batch (occupancy.cl: FIELD_LEAD elements,
- *   then (B, gd.z, gd.y, gd.x)).
+ * Inputs: labels uchar (B, D, H, W); field ushort (B, gd.z, gd.y, gd.x), the walk's fields (occupancy.cl).
  * Outputs, (B, h, w) row-major, pixel index (b * h + y) * w + x:
  *   label  int32   label of the first occupied cell, 0 on a miss
  *   cell   int64   flat cell index (k * H + j) * W + i, -1 on a miss
@@ -53,7 +52,7 @@ __kernel void trace_first_hit_kernel(__global const uchar* labels, __global cons
     const size_t pix0 = ((size_t)b * h + y0) * w + x0;
     const int whole = x0 + TILE <= w && y0 + TILE <= h;
     TileHits th;
-    if (!trace_tile(x0, y0, w, h, field + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
+    if (!trace_tile(x0, y0, w, h, field + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
                     &th) && whole) {
         /* No ray of the tile enters the frustum. */
         for (int row = 0; row < TILE; ++row) {

@@ -5,7 +5,7 @@
  * Build options (-D):
  *   SCORE_HALF / SCORE_FLOAT / SCORE_DOUBLE   the scores' element type (exactly one is defined)
  *   NUM_CHANNELS, MODE                        channel count C and occupancy rule of label_scores_kernel
- *   GROUP_LOG, DIST_CAP, FIELD_LEAD, FIELD_GAP, AXIS   the distance field's (below)
+ *   GROUP_LOG, DIST_CAP, FIELD_GAP, AXIS       the walk's field (below)
  */
 
 #ifdef SCORE_DOUBLE
@@ -78,17 +78,20 @@ __kernel void label_scores_kernel(__global const SCORE_T* scores, __global uchar
  * stored as one ushort, d << 8 | mask, so that the walk reads both with one load. Built on every call from the
  * labels: one kernel marks occupied groups (and their masks), then three separable passes, one per axis, each
  * d(p) = min over |m| <= DIST_CAP of max(|m|, d_in(p + m e_axis)) (the chessboard distance is the largest of the
- * per-axis offsets, so the passes compose exactly); the last pass writes the ushorts.
+ * per-axis offsets, so the passes compose exactly); the last pass writes the field.
  *
- * Layout (occupancy.py's field_layout), in elements (uchar for the passes' d, ushort for the field): FIELD_LEAD
- * elements, then per batch item GD slices of GH + 1 rows of gd.x = GWP + FIELD_GAP elements: GD = ceil(D / 2),
- * GH = ceil(H / 2), GWP = ceil(W / 2) rounded up to a multiple of 16 (whole uchar16 vectors). Everything but the
- * GH x ceil(W / 2) groups of a slice is padding that reads as empty: the lead and each row's gap let the x pass load
- * a row's neighbours unaligned without masks, and the extra row keeps the slices of a z pass off a 4 KiB stride
- * (loads a multiple of 4 KiB apart compete for the same L1 cache sets).
+ * Layouts (occupancy.py's field_layout), per batch item, in elements: GD slices of gd.y = GH + 1 rows of
+ * gd.x = GWP + FIELD_GAP elements: GD = ceil(D / 2), GH = ceil(H / 2), GWP = ceil(W / 2) rounded up to a multiple
+ * of 16. The field (ushort) starts at the first row. The passes' buffers (uchar: the distances so far, the masks)
+ * have `lead` elements before the first row and as many after the last: a pass loads its neighbours DIST_CAP rows
+ * or slices away unconditionally (memory the buffer owns) and keeps DIST_CAP where they lie outside the field, so
+ * PoCL vectorises the passes across work-items. Everything but the GH x ceil(W / 2) groups of a slice is padding
+ * that reads as empty: each row's gap (and the lead's last FIELD_GAP elements) lets the x pass load a row's
+ * neighbours without masks, and the extra row keeps the slices of a z pass off a 4 KiB stride (loads a multiple
+ * of 4 KiB apart compete for the same L1 cache sets).
  *
- * Build options (-D): GROUP_LOG (1), DIST_CAP (0 turns skipping off: every group reads d = 0), FIELD_LEAD,
- * FIELD_GAP (>= DIST_CAP), and AXIS (of chessboard_pass_kernel).
+ * Build options (-D): GROUP_LOG (1), DIST_CAP (0 turns skipping off: every group reads d = 0), FIELD_GAP
+ * (>= DIST_CAP), and AXIS (1 or 2, of chessboard_yz_kernel).
  */
 #if GROUP_LOG != 1
 #error "the field's masks hold the 8 cells of a 2 x 2 x 2 group: GROUP_LOG must be 1"
@@ -101,16 +104,16 @@ __kernel void label_scores_kernel(__global const SCORE_T* scores, __global uchar
 /*
  * mark_groups_kernel: one work-item per 16 consecutive groups of a row, plus one per row for its gap.
  *   global size (GWP / 16 + 1, GH + 1, GD * B); n int4 (W, H, D, 1), gd int4 (GWP + FIELD_GAP, GH + 1, GD, 1)
- *   labels uchar (B, D, H, W) in; out, from their leads on: dist (uchar) 0 where the group holds an occupied cell,
- *   DIST_CAP elsewhere and in the padding; masks (uchar) the groups' masks (0 in the padding).
+ *   labels uchar (B, D, H, W) in; out (passes' layout): dist 0 where the group holds an occupied cell, DIST_CAP
+ *   elsewhere and in the padding; masks the groups' masks (0 in the padding).
  */
 __kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* dist, __global uchar* masks,
-                                 const int4 n, const int4 gd)
+                                 const int4 n, const int4 gd, const int lead)
 {
     const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
     const int gz = gzb % gd.z, b = gzb / gd.z;
-    if (gx == 0 && gy == 0 && gzb == 0) vstore16((uchar16)(DIST_CAP), 0, dist);
-    const size_t at = FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
+    if (gx == 0 && gy == 0 && gzb == 0) vstore16((uchar16)(DIST_CAP), 0, dist + lead - FIELD_GAP);
+    const size_t at = lead + ((size_t)gzb * gd.y + gy) * gd.x + gx;
     const int x0 = gx << GROUP_LOG, y0 = gy << GROUP_LOG, z0 = gz << GROUP_LOG;
     if (y0 >= n.y || gx + 16 > gd.x - FIELD_GAP) {
         /* the padding: the extra row, the gap */
@@ -149,28 +152,36 @@ __kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* d
 }
 
 /*
- * chessboard_pass_kernel (AXIS 0, 1 or 2: x, y or z): one work-item per 16 consecutive groups of a row.
- *   global size (GWP / 16, GH + 1, GD * B); gd as mark_groups_kernel's; in, out: d (uchar, from their leads on)
- *   out(p) = min over |m| <= DIST_CAP of max(|m|, in(p + m e_AXIS)); outside the field reads DIST_CAP (along x the
- *   lead and gaps, which only the x pass reads, so only mark_groups_kernel writes them). The z pass writes the
- *   field instead, out (ushort) = d << 8 | masks.
+ * chessboard_x_kernel: the x pass, one work-item per group (PoCL vectorises the work-items of a row).
+ *   global size (GWP, GH + 1, GD * B); in, out uchar (passes' layout):
+ *   out(p) = min over |m| <= DIST_CAP of max(|m|, in(p +- m)); the row's gap and the lead read DIST_CAP.
+ */
+__kernel void chessboard_x_kernel(__global const uchar* in, __global uchar* out, const int4 gd, const int lead)
+{
+    const size_t at = lead + ((size_t)get_global_id(2) * gd.y + get_global_id(1)) * gd.x + get_global_id(0);
+    uchar best = in[at];
+#pragma unroll
+    for (int m = 1; m <= DIST_CAP; ++m) best = min(best, max((uchar)m, (uchar)min(in[at - m], in[at + m])));
+    out[at] = best;
+}
+
+/*
+ * chessboard_yz_kernel (AXIS 1: y, 2: z): the pass along y or z, one work-item per group.
+ *   global size (GWP, GH + 1, GD * B); in uchar (passes' layout): out(p) = min over |m| <= DIST_CAP of
+ *   max(|m|, in(p +- m e_AXIS)), where a neighbour outside the slice (y) or the batch item's field (z) reads
+ *   DIST_CAP. The y pass writes out (uchar, passes' layout); the z pass writes the field (ushort, from its first row)
+ *   d << 8 | masks.
  */
 #if AXIS == 2
-__kernel void chessboard_pass_kernel(__global const uchar* in, __global const uchar* masks, __global ushort* out,
-                                     const int4 gd)
+__kernel void chessboard_yz_kernel(__global const uchar* in, __global const uchar* masks, __global ushort* field,
+                                   const int4 gd, const int lead)
 #else
-__kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* out, const int4 gd)
+__kernel void chessboard_yz_kernel(__global const uchar* in, __global uchar* out, const int4 gd, const int lead)
 #endif
 {
-    const int gx = get_global_id(0) * 16, gy = get_global_id(1), gzb = get_global_id(2);
-    const size_t base = FIELD_LEAD + ((size_t)gzb * gd.y + gy) * gd.x + gx;
-    uchar16 best = vload16(0, in + base);
-#if AXIS == 0
-#pragma unroll
-    for (int m = 1; m <= DIST_CAP; ++m)
-        best = min(best, max((uchar16)(m), min(vload16(0, in + base - m), vload16(0, in + base + m))));
-    vstore16(best, 0, out + base);
-#else
+    const int gy = get_global_id(1), gzb = get_global_id(2);
+    const size_t row = ((size_t)gzb * gd.y + gy) * gd.x + get_global_id(0);
+    const size_t at = lead + row;
 #if AXIS == 1
     const int p = gy, len = gd.y;
     const size_t stride = gd.x;
@@ -178,16 +189,17 @@ __kernel void chessboard_pass_kernel(__global const uchar* in, __global uchar* o
     const int p = gzb % gd.z, len = gd.z;
     const size_t stride = (size_t)gd.x * gd.y;
 #endif
+    uchar best = in[at];
 #pragma unroll
     for (int m = 1; m <= DIST_CAP; ++m) {
-        const uchar16 lo = p - m >= 0 ? vload16(0, in + base - m * stride) : (uchar16)(DIST_CAP);
-        const uchar16 hi = p + m < len ? vload16(0, in + base + m * stride) : (uchar16)(DIST_CAP);
-        best = min(best, max((uchar16)(m), min(lo, hi)));
+        /* loaded whatever they hold (within the buffer's lead and tail), kept only inside the field */
+        const uchar lo = in[at - m * stride], hi = in[at + m * stride];
+        const uchar near = (uchar)(p - m >= 0 ? lo : DIST_CAP), far = (uchar)(p + m < len ? hi : DIST_CAP);
+        best = min(best, max((uchar)m, min(near, far)));
     }
 #if AXIS == 1
-    vstore16(best, 0, out + base);
+    out[at] = best;
 #else
-    vstore16(convert_ushort16(best) << (ushort)8 | convert_ushort16(vload16(0, masks + base)), 0, out + base);
-#endif
+    field[row] = (ushort)(best << 8 | masks[at]);
 #endif
 }

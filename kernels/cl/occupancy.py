@@ -43,17 +43,15 @@ TILE_LOCAL = (16, 1)
 TRACE_LOCAL = (16, 4)
 """Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
 loop, so a tile of neighbouring rays shares cache lines of the volume."""
-FIELD_LEAD = 16
-"""Bytes before a distance field's first row: the x pass reads up to :data:`DIST_CAP` groups before a row."""
 FIELD_GAP = 16
-"""Bytes between two rows of a field, read as empty (the same for the row's end)."""
+"""Elements after each row of the field (and before the first): the x pass reads them as empty neighbours."""
 _FIELD_VECTOR = 16
 """Groups per work-item of the field kernels (one uchar16): rows are padded to a multiple of it."""
 _LOCAL_CELLS = 256
 """Work-group size of label_scores_kernel (PoCL vectorises its straight-line body across work-items)."""
 
-if not 0 <= DIST_CAP <= min(FIELD_LEAD, FIELD_GAP, 255):  # pragma: no cover - guards a future edit
-    raise ImportError(f"DIST_CAP must lie in [0, {min(FIELD_LEAD, FIELD_GAP, 255)}], got {DIST_CAP}")
+if not 0 <= DIST_CAP <= min(FIELD_GAP, 255):  # pragma: no cover - guards a future edit
+    raise ImportError(f"DIST_CAP must lie in [0, {min(FIELD_GAP, 255)}], got {DIST_CAP}")
 
 _SOURCE = source(__file__)
 
@@ -71,10 +69,15 @@ def field_layout(grid: FruxelGrid) -> np.ndarray:
 
 
 def field_elements(grid: FruxelGrid, batch: int) -> int:
-    """Elements of the field of ``batch`` volumes, lead included (bytes for the passes' distances, ushorts for the
-    field the walk reads)."""
+    """Elements (ushorts) of the walk's fields of ``batch`` volumes: ``(B, GD, GH + 1, GWP + FIELD_GAP)``."""
     gd = field_layout(grid)
-    return FIELD_LEAD + batch * int(gd[0]) * int(gd[1]) * int(gd[2])
+    return batch * int(gd[0]) * int(gd[1]) * int(gd[2])
+
+
+def _pass_lead(gd: np.ndarray) -> int:
+    """Elements of the passes' buffers before the first row (and after the last): the z pass's reach, DIST_CAP
+    slices, and at least the x pass's, FIELD_GAP."""
+    return max(DIST_CAP * int(gd[0]) * int(gd[1]), FIELD_GAP)
 
 
 @dataclass
@@ -138,7 +141,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         kind = _SCORE_TYPES[scores.dtype]
         mode = 0 if spec.threshold is None else (2 if spec.probs else 1)
         k = rt.kernel(_SOURCE, "label_scores_kernel",
-                      _options(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode, AXIS=0))
+                      _options(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode))
         real = np.float64 if kind == "SCORE_DOUBLE" else np.float32
         labels = rt.scratch("labels", b * cells)
         data = rt.input("scores", scores)
@@ -161,27 +164,34 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
 
 
 def _options(**values: int) -> tuple[str, ...]:
-    """Build options of :file:`occupancy.cl`: ``values`` and the field's constants."""
-    return defines(**values, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP, FIELD_LEAD=FIELD_LEAD, FIELD_GAP=FIELD_GAP)
+    """Build options of :file:`occupancy.cl`: ``values`` (AXIS 1 unless given) and the field's constants."""
+    return defines(**{"AXIS": 1, **values}, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP, FIELD_GAP=FIELD_GAP)
 
 
 def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
-    """Enqueue the field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the occupied groups
-    and their masks, then one distance pass per axis between pooled buffers, the last writing the ushort field.
-    Returns the field's buffer (layout :func:`field_layout`, :func:`field_elements` ushorts)."""
+    """Enqueue the walk's field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the occupied
+    groups and their masks, then one distance pass per axis between pooled buffers, the last writing the ushort
+    field. Returns the field's buffer (layout :func:`field_layout`, :func:`field_elements` ushorts)."""
     gd = field_layout(grid)
+    lead = _pass_lead(gd)
     count = field_elements(grid, batch)
-    a, b, masks = (rt.scratch(name, count) for name in ("field_a", "field_b", "field_masks"))
+    a, b, masks = (rt.scratch(name, count + 2 * lead) for name in ("field_a", "field_b", "field_masks"))
     field = rt.scratch("field", 2 * count)
-    rows = (int(gd[0] - FIELD_GAP) // _FIELD_VECTOR, int(gd[1]), int(gd[2]) * batch)
+    gwp = int(gd[0]) - FIELD_GAP
+    groups = (gwp, int(gd[1]), int(gd[2]) * batch)
+    # Work-groups of whole rows (PoCL vectorises the work-items of a work-group): the longest that divides GWP.
+    local = (next(m for m in (64, 32, 16) if gwp % m == 0), 1, 1)
+    n, lead_arg = cell_counts(grid), np.int32(lead)
 
     def kernel(name: str, axis: int) -> Any:
         return rt.kernel(_SOURCE, name, _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis))
 
-    kernel("mark_groups_kernel", 0)(rt.queue, (rows[0] + 1, *rows[1:]), None, labels, a, masks, cell_counts(grid), gd)
-    kernel("chessboard_pass_kernel", 0)(rt.queue, rows, None, a, b, gd)
-    kernel("chessboard_pass_kernel", 1)(rt.queue, rows, None, b, a, gd)
-    kernel("chessboard_pass_kernel", 2)(rt.queue, rows, None, a, masks, field, gd)
+    # A work-group per row of groups (PoCL's own choice of work-group split the kernel unevenly over its threads).
+    row = gwp // _FIELD_VECTOR + 1
+    kernel("mark_groups_kernel", 1)(rt.queue, (row, *groups[1:]), (row, 1, 1), labels, a, masks, n, gd, lead_arg)
+    kernel("chessboard_x_kernel", 1)(rt.queue, groups, local, a, b, gd, lead_arg)
+    kernel("chessboard_yz_kernel", 1)(rt.queue, groups, local, b, a, gd, lead_arg)
+    kernel("chessboard_yz_kernel", 2)(rt.queue, groups, local, a, masks, field, gd, lead_arg)
     return field
 
 
@@ -193,8 +203,7 @@ def ray_options() -> tuple[str, ...]:
 def trace_options(cells: int) -> tuple[str, ...]:
     """``-D`` build options of the tile walk (:file:`walk.h`, :file:`ray.h`); ``cells`` (per volume) decides
     whether cell offsets need 64 bits."""
-    return ray_options() + defines(TILE=TILE, GROUP_LOG=GROUP_LOG, FIELD_LEAD=FIELD_LEAD,
-                                   WIDE_INDEX=int(cells >= 2**31))
+    return ray_options() + defines(TILE=TILE, GROUP_LOG=GROUP_LOG, WIDE_INDEX=int(cells >= 2**31))
 
 
 def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:

@@ -334,10 +334,12 @@ class Runtime:
         if not pairs:
             return
         if self.zero_copy:
-            # Mapping a USE_HOST_PTR buffer is the OpenCL way to make device writes visible in the host array;
-            # the blocking maps also wait for the kernels that wrote them. PoCL maps in place (no copy).
+            # Mapping a USE_HOST_PTR buffer is the OpenCL way to make device writes visible in the host array (PoCL
+            # maps in place, no copy). The maps are enqueued behind the kernels and waited for together: one
+            # blocking map each costs a round trip to the driver's thread per output.
             maps = [cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, arr.shape, arr.dtype,
-                                          is_blocking=True)[0] for buf, arr in pairs]
+                                          is_blocking=False)[0] for buf, arr in pairs]
+            self.queue.finish()  # the maps are complete: the kernels wrote the arrays
             for m in maps:
                 m.base.release(self.queue)
         else:

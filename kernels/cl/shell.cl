@@ -22,7 +22,7 @@ __kernel void mark_shell_kernel(__global const ushort* field, const int4 gd,
     if (x0 >= w || y0 >= h) return;
     const size_t cells = (size_t)n.x * n.y * n.z;
     TileHits th;
-    if (!trace_tile(x0, y0, w, h, field + FIELD_LEAD + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
+    if (!trace_tile(x0, y0, w, h, field + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
                     &th))
         return;
     const cell_v cell = walk_cell(th.i, th.j, th.k, n);

@@ -167,7 +167,7 @@ def test_field_is_the_chessboard_distance_and_the_masks(shape: tuple[int, int, i
         raw = np.empty(occupancy.field_elements(grid, 2), np.uint16)
         pyopencl.enqueue_copy(rt.queue, raw, vol.field)
     gd = occupancy.field_layout(grid)
-    field = raw[occupancy.FIELD_LEAD:].reshape(2, gd[2], gd[1], gd[0])
+    field = raw.reshape(2, gd[2], gd[1], gd[0])
     gw = -(-w // 2)
     for b in range(2):
         cells = np.zeros((gd[2] * 2, (gd[1] - 1) * 2, gw * 2), bool)
