@@ -41,18 +41,40 @@ float cross_z(const float zn, const float dzc, const int m, const float oz, cons
     return ((float)s * dz > 0.0f) ? (z - oz) / dz : INFINITY;
 }
 
+/* The entry-face normal (grid frame, unit, facing the camera) of family f entered with sign s through the boundary
+ * of value b (u or v; unused for z): kernels/traversal.py. */
+void face_normal(const int f, const float s, const float b, __global float* nrm)
+{
+    if (f == 2) {
+        nrm[0] = 0.0f;
+        nrm[1] = 0.0f;
+        nrm[2] = -s;
+        return;
+    }
+    const float inv = 1.0f / sqrt(1.0f + b * b);
+    nrm[0] = f == 0 ? -s * inv : 0.0f;
+    nrm[1] = f == 1 ? -s * inv : 0.0f;
+    nrm[2] = s * b * inv;
+}
+
 /*
- * plain_first_hit_kernel: one work-item per pixel (x, y), global size the image rounded up to the local size.
- *   labels uchar (D, H, W), 0 = empty; label int32 (h, w), 0 on a miss; cell int64 (h, w), -1 on a miss.
+ * plain_first_hit_kernel: one work-item per pixel (x, y), global size the image rounded up to the local size. The
+ * outputs of first_hit (kernels/cl/first_hit.cl), (h, w) row-major:
+ *   labels uchar (D, H, W), 0 = empty; label int32, 0 on a miss; cell int64, -1 on a miss; depth float32 (the entry
+ *   point's z in the viewing camera), 0 on a miss; normal float32 (h, w, 3) entry-face normal, 0 on a miss.
  */
 __kernel void plain_first_hit_kernel(__global const uchar* labels, const float8 g, const float16 c, const int4 n,
-                                     const int w, const int h, __global int* out_label, __global long* out_cell)
+                                     const int w, const int h, __global int* out_label, __global long* out_cell,
+                                     __global float* out_depth, __global float* out_normal)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const size_t pix = (size_t)y * w + x;
+    __global float* nrm = out_normal + 3 * pix;
     out_label[pix] = 0;
     out_cell[pix] = -1;
+    out_depth[pix] = 0.0f;
+    nrm[0] = nrm[1] = nrm[2] = 0.0f;
 
     /* Ray in the grid frame; t is the depth in the viewing camera. */
     const float px = ((float)x + 0.5f - c.s2) / c.s0, py = ((float)y + 0.5f - c.s3) / c.s1;
@@ -102,7 +124,10 @@ __kernel void plain_first_hit_kernel(__global const uchar* labels, const float8 
     float tj = cross_uv(v0, dv, j + (sj > 0), oz, oy, dy, dz, sj);
     float tk = cross_z(zn, dzc, k + (sk > 0), oz, dz, sk);
 
-    /* 5. Cell by cell: test, then step the family with the nearest crossing (ties u, v, z). */
+    /* 5. Cell by cell: test, then step the family with the nearest crossing (ties u, v, z). The entry face: the
+     * family of the last step (-1 before any) and the value of the boundary it crossed. */
+    float t_entry = t_lo, face_b = 0.0f;
+    int face = -1;
     const int max_steps = n.x + n.y + n.z + 3;
     for (int it = 0; it < max_steps; ++it) {
         const size_t cell = ((size_t)k * n.y + j) * n.x + i;
@@ -110,20 +135,42 @@ __kernel void plain_first_hit_kernel(__global const uchar* labels, const float8 
         if (v) {
             out_label[pix] = v;
             out_cell[pix] = (long)cell;
+            out_depth[pix] = t_entry;
+            if (face >= 0) {
+                face_normal(face, (float)(face == 0 ? si : (face == 1 ? sj : sk)), face_b, nrm);
+            } else if (plane >= 0) {
+                /* the clip plane: left, top, near are entered forwards (+1), right, bottom, far backwards */
+                const float side = (plane & 1) ? -1.0f : 1.0f;
+                face_normal(plane >> 1, side, side * ((plane >> 1) == 0 ? u0 : v0), nrm);
+            } else {
+                /* a camera inside an occupied cell hits it at t = 0, facing the ray */
+                const float dn = sqrt(dx * dx + dy * dy + dz * dz);
+                nrm[0] = -dx / dn;
+                nrm[1] = -dy / dn;
+                nrm[2] = -dz / dn;
+            }
             return;
         }
         if (ti <= tj && ti <= tk) {
             if (!(ti < t_hi)) return;
+            t_entry = ti;
+            face = 0;
+            face_b = u0 + (float)(i + (si > 0)) * du;
             i += si;
             if (i < 0 || i >= n.x) return;
             ti = cross_uv(u0, du, i + (si > 0), oz, ox, dx, dz, si);
         } else if (tj <= tk) {
             if (!(tj < t_hi)) return;
+            t_entry = tj;
+            face = 1;
+            face_b = v0 + (float)(j + (sj > 0)) * dv;
             j += sj;
             if (j < 0 || j >= n.y) return;
             tj = cross_uv(v0, dv, j + (sj > 0), oz, oy, dy, dz, sj);
         } else {
             if (!(tk < t_hi)) return;
+            t_entry = tk;
+            face = 2;
             k += sk;
             if (k < 0 || k >= n.z) return;
             tk = cross_z(zn, dzc, k + (sk > 0), oz, dz, sk);

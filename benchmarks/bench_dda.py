@@ -1,9 +1,9 @@
 """OpenCL on the CPU: ``first_hit`` against a plain DDA, on a room and on a sparse scene, with Warp on the CPU too.
 
 The peer is :file:`bench_dda.cl`, a plain single-level DDA (one work-item per pixel stepping cell by cell, no
-empty-space skipping), run on the same OpenCL device in the same run; it must find the same label and cell as
-``first_hit`` on every pixel, so both answer the same question. Scenes, both 128^3 (:func:`fruxel.data.rooms.room_grid`)
-seen by :func:`fruxel.data.rooms.oblique_camera` at 512 x 512:
+empty-space skipping) with first_hit's four outputs (label, cell, depth, entry-face normal), run on the same OpenCL
+device in the same run; it must agree with ``first_hit`` on every pixel, so both do the same job. Scenes, both
+128^3 (:func:`fruxel.data.rooms.room_grid`) seen by :func:`fruxel.data.rooms.oblique_camera` at 512 x 512:
 
 * ``room``: :func:`fruxel.data.rooms.room_volume` (25 % occupied: walls, floor, furniture, a sculpture);
 * ``sparse``: a floor slab, a back wall and a dozen 20^3 boxes (:func:`sparse_volume`, about 8 % occupied): long
@@ -69,8 +69,9 @@ def sparse_volume(n: int = 128, boxes: int = 12, edge: int = 20, seed: int = 0) 
     return lab, grid
 
 
-def plain_first_hit(rt: Any, labels: np.ndarray, grid: FruxelGrid, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """First hits by the peer, :file:`bench_dda.cl`, on runtime ``rt`` (an :class:`fruxel.kernels.cl.runtime.Runtime`).
+def plain_first_hit(rt: Any, labels: np.ndarray, grid: FruxelGrid, camera: Camera) -> tuple[np.ndarray, ...]:
+    """First hits by the peer, :file:`bench_dda.cl`, on runtime ``rt`` (an :class:`fruxel.kernels.cl.runtime.Runtime`):
+    the same four outputs as ``first_hit``.
 
     Args:
         rt: the OpenCL device's runtime.
@@ -79,24 +80,26 @@ def plain_first_hit(rt: Any, labels: np.ndarray, grid: FruxelGrid, camera: Camer
         camera: the viewing camera.
 
     Returns:
-        label ``(h, w)`` int32 (0 on a miss) and cell ``(h, w)`` int64 (flat index, -1 on a miss).
+        label ``(h, w)`` int32 (0 on a miss), cell ``(h, w)`` int64 (flat index, -1 on a miss), depth ``(h, w)``
+        float32 (z in the viewing camera, 0 on a miss) and normal ``(h, w, 3)`` float32 (entry face, grid frame, 0
+        on a miss).
     """
     from fruxel.kernels import traversal
     from fruxel.kernels.cl import occupancy
 
     lab = np.ascontiguousarray(labels, dtype=np.uint8)
     h, w = camera.height, camera.width
-    label = np.empty((h, w), np.int32)
-    cell = np.empty((h, w), np.int64)
+    out = (np.empty((h, w), np.int32), np.empty((h, w), np.int64), np.empty((h, w), np.float32),
+           np.empty((h, w, 3), np.float32))
     lx, ly = occupancy.TRACE_LOCAL  # the per-pixel kernels' work-group shape
     with rt.lock:
         k = rt.kernel(SOURCE.read_text(encoding="utf-8"), "plain_first_hit_kernel")
-        outs = [(rt.output("plain_label", label), label), (rt.output("plain_cell", cell), cell)]
+        outs = [(rt.output(f"plain_{i}", a), a) for i, a in enumerate(out)]
         k(rt.queue, (occupancy.round_up(w, lx), occupancy.round_up(h, ly)), (lx, ly), rt.input("plain_labels", lab),
           traversal.grid_params(grid), traversal.camera_params(camera), occupancy.cell_counts(grid), np.int32(w),
           np.int32(h), *(buf for buf, _ in outs))
         rt.fetch(outs)  # the call's one synchronisation: the results go to the caller
-    return label, cell
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- measuring
@@ -133,10 +136,11 @@ def measure_scene(name: str, labels: np.ndarray, grid: FruxelGrid, backends: lis
     row: dict[str, Any] = {"scene": name, "occupancy": float(np.mean(labels != 0)), "times": interleaved(fns, repeat)}
     if "opencl" in backends:
         hits = first_hit(labels, grid, cam, backend="opencl")
-        label, cell = plain_first_hit(rt, labels, grid, cam)
+        label, cell, depth, normal = plain_first_hit(rt, labels, grid, cam)
         row["pixels"] = int(cell.size)
         row["hit_fraction"] = float(np.mean(hits.cell >= 0))
         row["plain_mismatches"] = int(np.sum((label != hits.label) | (cell != hits.cell)))
+        row["plain_same_depth_normal"] = bool(np.array_equal(depth, hits.depth) and np.array_equal(normal, hits.normal))
         t = row["times"]
         row["ratio"] = t["plain DDA (OpenCL)"]["median_ms"] / t["first_hit (OpenCL)"]["median_ms"]
         row["ratio_min"] = t["plain DDA (OpenCL)"]["min_ms"] / t["first_hit (OpenCL)"]["min_ms"]
@@ -216,11 +220,12 @@ def section(results: list[dict[str, Any]]) -> str:
     parts = [SECTION, "",
              "`python benchmarks/bench_dda.py` (see its docstring). `first_hit` on OpenCL against a plain "
              "single-level DDA on the same device in the same run (`benchmarks/bench_dda.cl`: one work-item per "
-             "pixel stepping cell by cell), on two 128^3 scenes seen by `oblique_camera` at 512 x 512: `room` "
+             "pixel stepping cell by cell, with first_hit's four outputs), on two 128^3 scenes seen by "
+             "`oblique_camera` at 512 x 512: `room` "
              "(`rooms.room_volume`) and `sparse` (a floor slab, a back wall and a dozen 20^3 boxes, "
-             "`bench_dda.sparse_volume`). The methods are timed in interleaved rounds; the plain DDA finds the same "
-             "label and cell as `first_hit` on every pixel (checked each run). Warp on the CPU is the other "
-             "backend's `first_hit`. Target: `first_hit` at least 5x the plain DDA on both scenes.", ""]
+             "`bench_dda.sparse_volume`). The methods are timed in interleaved rounds; the plain DDA gives the "
+             "same label, cell, depth and normal as `first_hit` on every pixel (checked each run). Warp on the CPU "
+             "is the other backend's `first_hit`. Target: `first_hit` at least 5x the plain DDA on both scenes.", ""]
     for res in results:
         m = res["machine"]
         parts += [f"### {m['cpu']}, {m['cores']} cores, {m.get('opencl_platform', 'no OpenCL')} ({m['date']})", ""]
@@ -236,7 +241,8 @@ def section(results: list[dict[str, Any]]) -> str:
         for row in res["scenes"]:
             if "plain_mismatches" in row:
                 c = (f"{row['scene']}: plain DDA and first_hit differ on {row['plain_mismatches']} of "
-                     f"{row['pixels']:,} pixels ({row['hit_fraction']:.1%} hit)")
+                     f"{row['pixels']:,} pixels ({row['hit_fraction']:.1%} hit), depths and normals "
+                     f"{'bit-identical' if row.get('plain_same_depth_normal') else 'differ'}")
                 if "warp_same_cell" in row:
                     c += f", Warp names the same cell on {row['warp_same_cell']:.4%}"
                 checks.append(c)
@@ -283,7 +289,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"{name:7s} {method:22s} median {t['median_ms']:8.2f} ms  min {t['min_ms']:8.2f} ms")
         if "ratio" in row:
             print(f"{name:7s} plain DDA / first_hit: {row['ratio']:.2f}x (min/min {row['ratio_min']:.2f}x); "
-                  f"{row['plain_mismatches']} pixels differ")
+                  f"{row['plain_mismatches']} pixels differ; depths and normals identical: "
+                  f"{row['plain_same_depth_normal']}")
     result["machine"]["load_average_1min_at_end"] = common.load_average()
     print()
     print(table(result))
