@@ -142,14 +142,27 @@ def _probe(device: Any) -> str | None:
         rt = _runtime_for(device)
         out = np.zeros(4, np.float32)
         buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        prg = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS))
-        prg.probe_kernel(rt.queue, (4,), None, buf)
+        kernel = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS)).probe_kernel
+        kernel(rt.queue, (4,), None, buf)
         cl.enqueue_copy(rt.queue, out, buf)  # blocking: the probe's only synchronisation
     except Exception as e:  # noqa: BLE001 - whatever the driver raises, the device is unusable
         return _one_line(str(e)) or type(e).__name__
     want = (np.arange(4, dtype=np.float32) + 1 + 4) / np.float32(3)
     if not np.array_equal(out, want):
         return f"the probe kernel ran but computed {out.tolist()} instead of {want.tolist()}"
+    if rt.zero_copy:
+        # Does the device write host arrays in place? Tried on an array aligned to 4 bytes only, the least any
+        # result array has.
+        raw = np.zeros(32, np.uint8)
+        start = (-raw.ctypes.data) % 64 + 4
+        host = raw[start:start + 16].view(np.float32)
+        try:
+            buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+            kernel(rt.queue, (4,), None, buf)
+            rt.queue.finish()  # the kernel is done; no map
+            rt.writes_in_place = bool(np.array_equal(host, want))
+        except Exception:  # noqa: BLE001 - then results are mapped, as OpenCL asks
+            rt.writes_in_place = False
     return None
 
 
@@ -265,6 +278,9 @@ class Runtime:
     """In-order command queue; every call enqueues on it and blocks once, at the end, for its results."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     """Held by each operation for its whole call."""
+    writes_in_place: bool = False
+    """True when the device's kernels write a USE_HOST_PTR buffer straight into its host array (seen by the probe,
+    :func:`_probe`, as PoCL does on the CPU): results then need only the queue's completion, no map."""
     _programs: dict[tuple[str, tuple[str, ...]], Any] = field(default_factory=dict)
     _kernels: dict[tuple[int, str], Any] = field(default_factory=dict)
     _pool: dict[str, Any] = field(default_factory=dict)
@@ -333,7 +349,9 @@ class Runtime:
         for every command of the call (the only host synchronisation of an operation)."""
         if not pairs:
             return
-        if self.zero_copy:
+        if self.zero_copy and self.writes_in_place:
+            pass  # the kernels write the arrays themselves: waiting for the queue (below) is enough
+        elif self.zero_copy:
             # Mapping a USE_HOST_PTR buffer is the OpenCL way to make device writes visible in the host array (PoCL
             # maps in place, no copy). The maps are enqueued behind the kernels and waited for together: one
             # blocking map each costs a round trip to the driver's thread per output.
