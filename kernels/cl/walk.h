@@ -15,9 +15,10 @@
  *     u, v, z as the plain loop): a miss if t_x >= t_hi or the family leaves the grid, else that family enters
  *     the next cell, and every other family is put where the plain loop has it at that moment: past each of its
  *     boundaries crossed before t_x (at t_x too for families before the exit family in the tie order, which the
- *     plain loop steps first). That cell is estimated from the exit point and then verified against the
- *     family's crossings (the boundary behind passed, the one ahead not), so it is the plain loop's cell whenever
- *     a family's crossings are monotone in their index, as the plain loop and traversal.py's skipping assume.
+ *     plain loop steps first). In a box of one group (d = 1) that is one crossing per family, the group's middle
+ *     boundary; in a larger box the cell is estimated from the exit point and then verified against the family's
+ *     crossings (the boundary behind passed, the one ahead not), so it is the plain loop's cell whenever a
+ *     family's crossings are monotone in their index, as the plain loop and traversal.py's skipping assume.
  * Every cell the plain loop visits inside the box is empty, so the first occupied cell, its entry depth and its
  * entry face are the plain loop's, bit for bit.
  *
@@ -138,7 +139,16 @@ RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, 
                       (cz < n.z);
         active = go;
         const ri jump = go & big;
-        if (ray_any(jump)) {
+        if (ray_any(jump) && !ray_any(jump & (d > 1))) {
+            /* Every jump leaves the cell's own group (d = 1): another family has at most the group's middle
+             * boundary, the one ahead of the cell, before t_x (its far boundary is not passed: that family did not
+             * exit), so one crossing each puts it in place. */
+            const ri tie_u = xv | xz, tie_v = xz; /* families before the exit family in the tie order */
+            const rf au_ = cross_u(&r, iu + pu), av_ = cross_v(&r, iv + pv), az_ = cross_z(&r, iz + pz);
+            cu = (jump & ~xu & (tie_u ? (au_ <= tx) : (au_ < tx))) ? iu + su : cu;
+            cv = (jump & ~xv & (tie_v ? (av_ <= tx) : (av_ < tx))) ? iv + sv : cv;
+            cz = (jump & ~xz & (az_ < tx)) ? iz + sz : cz;
+        } else if (ray_any(jump)) {
             /* The other families' cells at t_x: estimated from the exit point, kept between the current cell and
              * the box's last one, then verified. */
             const rf qx = r.ox + tx * r.dx, qy = r.oy + tx * r.dy, qz = r.oz + tx * r.dz;
