@@ -81,10 +81,10 @@ def main() -> None:
     def kernel_only(cam: Camera) -> Callable[[], None]:
         vol = occupancy.labels_from_host(rt, host_array(lab), spec, g)
         outs = [rt.scratch(f"prof{i}", cam.width * cam.height * s) for i, s in enumerate((4, 8, 4, 12))]
-        k = rt.kernel(first_hit_module._SOURCE, "trace_first_hit_kernel", occupancy.trace_options(g.n_cells))
+        k = rt.kernel(first_hit_module._SOURCE, "trace_first_hit_kernel", occupancy.trace_options(g.n_cells, rt.lanes))
 
         def run() -> None:
-            k(rt.queue, occupancy.tile_global(cam, 1), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
+            k(rt.queue, occupancy.tile_global(cam, 1, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
               *occupancy.trace_args(g, cam), *outs)
             rt.queue.finish()  # timing: wait for the kernel
 

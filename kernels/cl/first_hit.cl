@@ -1,6 +1,6 @@
 /*
- * first_hit: the first occupied cell along each pixel's ray (kernels/traversal.py), 16 rays at a time by
- * walk.h's trace_tile(), then each pixel's label, cell, depth and entry-face normal.
+ * first_hit: the first occupied cell along each pixel's ray (kernels/traversal.py), a tile of LANES rays at a time
+ * by walk.h's trace_tile(), then each pixel's label, cell, depth and entry-face normal.
  *
  * Build options (-D, from kernels/cl/occupancy.py): those of walk.h and ray.h.
  */
@@ -30,9 +30,9 @@ RAY_INLINE void store_row(const int4 label, const long4 cell, const float4 depth
 }
 
 /*
- * trace_first_hit_kernel: one work-item per tile of TILE x TILE pixels (x0, y0) = TILE (gx, gy) of the viewing
- * camera and batch item b = get_global_id(2).
- *   global size (ceil(ceil(w / TILE) / lx) lx, ceil(ceil(h / TILE) / ly) ly, B), local size (lx, ly, 1);
+ * trace_first_hit_kernel: one work-item per tile of TILE x TILE_H pixels (x0, y0) = (TILE gx, TILE_H gy) of the
+ * viewing camera and batch item b = get_global_id(2).
+ *   global size (ceil(ceil(w / TILE) / lx) lx, ceil(ceil(h / TILE_H) / ly) ly, B), local size (lx, ly, 1);
  *   work-items past the image do nothing.
  * Inputs: labels uchar (B, D, H, W); field ushort (B, gd.z, gd.y, gd.x), the walk's fields (occupancy.cl).
  * Outputs, (B, h, w) row-major, pixel index (b * h + y) * w + x:
@@ -46,16 +46,16 @@ __kernel void trace_first_hit_kernel(__global const uchar* labels, __global cons
                                      const int max_iter, __global int* out_label, __global long* out_cell,
                                      __global float* out_depth, __global float* out_normal)
 {
-    const int x0 = get_global_id(0) * TILE, y0 = get_global_id(1) * TILE, b = get_global_id(2);
+    const int x0 = get_global_id(0) * TILE, y0 = get_global_id(1) * TILE_H, b = get_global_id(2);
     if (x0 >= w || y0 >= h) return;
     __global const uchar* m0 = labels + (size_t)b * n.x * n.y * n.z;
     const size_t pix0 = ((size_t)b * h + y0) * w + x0;
-    const int whole = x0 + TILE <= w && y0 + TILE <= h;
+    const int whole = x0 + TILE <= w && y0 + TILE_H <= h;
     TileHits th;
     if (!trace_tile(x0, y0, w, h, field + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
                     &th) && whole) {
         /* No ray of the tile enters the frustum. */
-        for (int row = 0; row < TILE; ++row) {
+        for (int row = 0; row < TILE_H; ++row) {
             const size_t p = pix0 + (size_t)row * w;
             store_row((int4)(0), (long4)(-1), (float4)(0.0f), (float4)(0.0f), (float4)(0.0f), (float4)(0.0f), p,
                       out_label, out_cell, out_depth, out_normal);
@@ -90,38 +90,44 @@ __kernel void trace_first_hit_kernel(__global const uchar* labels, __global cons
     nz = hit ? (inside ? -r->dz / dn : nz) : (rf)(0.0f);
     const rf depth = hit ? th.t_entry : (rf)(0.0f);
     label = hit ? label : (ri)(0);
-    const long16 cellout = convert_long16(hit) ? convert_long16(cell) : (long16)(-1);
+    /* -1 where no hit (kept narrow: vectors of 64-bit lanes wider than the target's made PoCL 3.0 drop the kernel
+     * when it reloaded it from its cache) */
+#if WIDE_INDEX
+    const cell_v cellout = RAY_CVL(hit) ? cell : (cell_v)(-1);
+#else
+    const cell_v cellout = hit ? cell : (cell_v)(-1);
+#endif
 
     if (whole) {
-        store_row(label.s0123, cellout.s0123, depth.s0123, nx.s0123, ny.s0123, nz.s0123, pix0, out_label, out_cell,
-                  out_depth, out_normal);
-        store_row(label.s4567, cellout.s4567, depth.s4567, nx.s4567, ny.s4567, nz.s4567, pix0 + w, out_label,
-                  out_cell, out_depth, out_normal);
-        store_row(label.s89ab, cellout.s89ab, depth.s89ab, nx.s89ab, ny.s89ab, nz.s89ab, pix0 + 2 * w, out_label,
-                  out_cell, out_depth, out_normal);
-        store_row(label.scdef, cellout.scdef, depth.scdef, nx.scdef, ny.scdef, nz.scdef, pix0 + 3 * w, out_label,
-                  out_cell, out_depth, out_normal);
+#define ROW(q, r)                                                                                                \
+    store_row(label.q, convert_long4(cellout.q), depth.q, nx.q, ny.q, nz.q, pix0 + (r) * w, out_label, out_cell,   \
+              out_depth, out_normal);
+        ROW(s0123, 0)
+        ROW(s4567, 1)
+#if LANES == 16
+        ROW(s89ab, 2)
+        ROW(scdef, 3)
+#endif
+#undef ROW
         return;
     }
     /* A tile cut by the image's edge: the pixels inside it one by one. */
-    int lab_[16];
-    long cell_[16];
-    float dep_[16], nx_[16], ny_[16], nz_[16];
-    vstore16(label, 0, lab_);
-    vstore16(cellout, 0, cell_);
-    vstore16(depth, 0, dep_);
-    vstore16(nx, 0, nx_);
-    vstore16(ny, 0, ny_);
-    vstore16(nz, 0, nz_);
-    for (int l = 0; l < 16; ++l) {
-        const int x = x0 + (l & 3), y = y0 + (l >> 2);
-        if (x >= w || y >= h) continue;
-        const size_t pix = ((size_t)b * h + y) * w + x;
-        out_label[pix] = lab_[l];
-        out_cell[pix] = cell_[l];
-        out_depth[pix] = dep_[l];
-        out_normal[3 * pix] = nx_[l];
-        out_normal[3 * pix + 1] = ny_[l];
-        out_normal[3 * pix + 2] = nz_[l];
+#define EDGE(l, q)                                                                                               \
+    {                                                                                                            \
+        const int x = x0 + ((q) & 3), y = y0 + ((q) >> 2);                                                      \
+        if (x < w && y < h) {                                                                                    \
+            const size_t pix = ((size_t)b * h + y) * w + x;                                                      \
+            out_label[pix] = label.l;                                                                            \
+            out_cell[pix] = (long)cellout.l;                                                                     \
+            out_depth[pix] = depth.l;                                                                            \
+            out_normal[3 * pix] = nx.l;                                                                          \
+            out_normal[3 * pix + 1] = ny.l;                                                                      \
+            out_normal[3 * pix + 2] = nz.l;                                                                      \
+        }                                                                                                        \
     }
+    EDGE(s0, 0) EDGE(s1, 1) EDGE(s2, 2) EDGE(s3, 3) EDGE(s4, 4) EDGE(s5, 5) EDGE(s6, 6) EDGE(s7, 7)
+#if LANES == 16
+    EDGE(s8, 8) EDGE(s9, 9) EDGE(sa, 10) EDGE(sb, 11) EDGE(sc, 12) EDGE(sd, 13) EDGE(se, 14) EDGE(sf, 15)
+#endif
+#undef EDGE
 }

@@ -74,8 +74,8 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: 
     normal = np.empty((b, h, w, 3), np.float32)
     outs = [(rt.output(name, a), a) for name, a in
             (("hit_label", label), ("hit_cell", cell), ("hit_depth", depth), ("hit_normal", normal))]
-    k = rt.kernel(_SOURCE, "trace_first_hit_kernel", occupancy.trace_options(grid.n_cells))
-    k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
+    k = rt.kernel(_SOURCE, "trace_first_hit_kernel", occupancy.trace_options(grid.n_cells, rt.lanes))
+    k(rt.queue, occupancy.tile_global(cam, b, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
       *occupancy.trace_args(grid, cam), *(buf for buf, _ in outs))
     # The call's one synchronisation: the results go to the caller next.
     rt.fetch(outs)

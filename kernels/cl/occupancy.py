@@ -35,8 +35,8 @@ DIST_CAP = 15
 """Largest distance (in groups) the field records: each axis pass looks this far. 0 turns skipping off (every group
 reads 0, every iteration is a plain step), which tests use to check that skipping changes nothing."""
 TILE = 4
-"""Edge, in pixels, of the square tile of rays one work-item of the first-hit walk traces (16 rays, one per vector
-lane; :file:`walk.h` lays them out for 4)."""
+"""Width, in pixels, of the tile of rays one work-item of the first-hit walk traces, one ray per vector lane: 4 x 4
+pixels for 16 lanes, 4 x 2 for 8 (:attr:`.runtime.Runtime.lanes`; :file:`walk.h` lays them out for 4)."""
 TILE_LOCAL = (16, 1)
 """Work-group shape of the tile kernels, in tiles along x, y: a row of 16 tiles (64 x 4 pixels) per work-group
 (4 x 4 tiles measured 4 % slower, 2 x 2 8 %)."""
@@ -200,10 +200,10 @@ def ray_options() -> tuple[str, ...]:
     return defines(FAMILY_U=traversal.FAMILY_U, FAMILY_V=traversal.FAMILY_V, FAMILY_Z=traversal.FAMILY_Z)
 
 
-def trace_options(cells: int) -> tuple[str, ...]:
-    """``-D`` build options of the tile walk (:file:`walk.h`, :file:`ray.h`); ``cells`` (per volume) decides
-    whether cell offsets need 64 bits."""
-    return ray_options() + defines(TILE=TILE, GROUP_LOG=GROUP_LOG, WIDE_INDEX=int(cells >= 2**31))
+def trace_options(cells: int, lanes: int) -> tuple[str, ...]:
+    """``-D`` build options of the tile walk (:file:`walk.h`, :file:`ray.h`): ``cells`` (per volume) decides
+    whether cell offsets need 64 bits, ``lanes`` is the rays per work-item (:attr:`.runtime.Runtime.lanes`)."""
+    return ray_options() + defines(LANES=lanes, TILE=TILE, GROUP_LOG=GROUP_LOG, WIDE_INDEX=int(cells >= 2**31))
 
 
 def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:
@@ -214,10 +214,11 @@ def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:
             np.int32(camera.width), np.int32(camera.height), np.int32(traversal.max_steps(grid)))
 
 
-def tile_global(camera: Camera, batch: int) -> tuple[int, int, int]:
-    """NDRange of the tile kernels: the image's tiles rounded up to whole work-groups, times the batch."""
+def tile_global(camera: Camera, batch: int, lanes: int) -> tuple[int, int, int]:
+    """NDRange of the tile kernels: the image's tiles of ``TILE x lanes / TILE`` pixels rounded up to whole
+    work-groups, times the batch."""
     lx, ly = TILE_LOCAL
-    return (round_up(-(-camera.width // TILE), lx), round_up(-(-camera.height // TILE), ly), batch)
+    return (round_up(-(-camera.width // TILE), lx), round_up(-(-camera.height // (lanes // TILE)), ly), batch)
 
 
 def trace_global(camera: Camera, batch: int) -> tuple[int, int, int]:

@@ -1,13 +1,13 @@
 /*
  * ray.h: the part of kernels/traversal.py that every OpenCL walk shares, written once for a vector width:
  * a pixel's ray (step 0), its clip to the frustum (step 1), its entry cell (step 2), its step signs (step 3) and
- * the crossing of a plane by index (step 4). first_hit.cl and shell.cl use it 16 rays at a time (through
+ * the crossing of a plane by index (step 4). first_hit.cl and shell.cl use it 8 or 16 rays at a time (through
  * walk.h), soft_first_hit.cl one ray at a time.
  *
  * Include it once per program (runtime.source() resolves the #include) after defining
- *   RAY_W   1 (scalar: one ray per work-item) or 16 (one ray per lane of float16 / int16)
+ *   RAY_W   1 (scalar: one ray per work-item), 8 or 16 (one ray per lane of float8 / int8 or float16 / int16)
  * It defines, for that width:
- *   rf, ri           float / int, or float16 / int16 (one lane per ray)
+ *   rf, ri           float / int, or floatN / intN (one lane per ray)
  *   RAY_CVF, RAY_CVI conversions to rf / ri
  *   Rays             the rays' constants: direction, step signs, origin and the grid's constants
  *   rays_clip()      steps 0-1; returns the mask of rays that enter the frustum
@@ -16,8 +16,8 @@
  *   ray_any()        whether any lane of a mask is set
  *   cross_u/v/z()    step 4 for one family: the crossing of boundary m, +inf when the ray does not cross it
  *   cross_f()        the same for a family chosen at run time (scalar width only)
- * Masks are ri values: 1 / 0 at width 1, -1 / 0 (all bits) at width 16, as OpenCL's comparisons give them;
- * combine them with & | and !, never ~, so that both widths read them alike.
+ * Masks are ri values: 1 / 0 at width 1, -1 / 0 (all bits) for vectors, as OpenCL's comparisons give them;
+ * combine them with & | and !, never ~, so that every width reads them alike.
  *
  * Build options (-D, from kernels/cl/occupancy.py, all from kernels/traversal.py): FAMILY_U, FAMILY_V, FAMILY_Z.
  *
@@ -38,13 +38,18 @@ typedef float rf;
 typedef int ri;
 #define RAY_CVF(x) ((float)(x))
 #define RAY_CVI(x) ((int)(x))
+#elif RAY_W == 8
+typedef float8 rf;
+typedef int8 ri;
+#define RAY_CVF convert_float8
+#define RAY_CVI convert_int8
 #elif RAY_W == 16
 typedef float16 rf;
 typedef int16 ri;
 #define RAY_CVF convert_float16
 #define RAY_CVI convert_int16
 #else
-#error "RAY_W must be 1 or 16"
+#error "RAY_W must be 1, 8 or 16"
 #endif
 
 /* PoCL leaves calls that are not forced inline as calls: every helper is always_inline. */
@@ -97,10 +102,17 @@ RAY_INLINE float cross_f(const Rays* r, const int f, const int m)
 }
 #endif
 
+/* True when any lane of a mask is set (vectors: an or-reduction; PoCL's any() reduces lane by lane). */
 #if RAY_W == 1
 RAY_INLINE int ray_any(const ri m) { return m != 0; }
+#elif RAY_W == 8
+RAY_INLINE int ray_any(const ri m)
+{
+    const int4 b = m.lo | m.hi;
+    const int2 c = b.lo | b.hi;
+    return (c.x | c.y) < 0;
+}
 #else
-/* True when any lane of a mask is set (an or-reduction: PoCL's any() on int16 reduces lane by lane). */
 RAY_INLINE int ray_any(const ri m)
 {
     const int8 a = m.lo | m.hi;

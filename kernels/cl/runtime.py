@@ -60,8 +60,18 @@ __kernel void probe_kernel(__global float* out)
     const float4 v = (float4)((float)i, 1.0f, 2.0f, 3.0f) + 1.0f;
     out[i] = (v.x + v.w) / 3.0f;
 }
+
+__kernel void lanes_kernel(__global int* out)
+{
+#if defined(__AVX512F__)
+    out[0] = 16;
+#else
+    out[0] = 8;
+#endif
+}
 """
-"""The kernel every candidate device must build (with :data:`BUILD_OPTIONS`) and run correctly before it is used."""
+"""The kernel every candidate device must build (with :data:`BUILD_OPTIONS`) and run correctly before it is used,
+and one that says how many float lanes the device's compiler makes vector code of (:attr:`Runtime.lanes`)."""
 
 # ---------------------------------------------------------------------------------------------- devices
 @dataclass(frozen=True)
@@ -142,9 +152,15 @@ def _probe(device: Any) -> str | None:
         rt = _runtime_for(device)
         out = np.zeros(4, np.float32)
         buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        kernel = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS)).probe_kernel
+        prg = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS))
+        kernel = prg.probe_kernel
         kernel(rt.queue, (4,), None, buf)
+        lanes = np.zeros(1, np.int32)
+        lanes_buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, lanes.nbytes)
+        prg.lanes_kernel(rt.queue, (1,), None, lanes_buf)
+        cl.enqueue_copy(rt.queue, lanes, lanes_buf)
         cl.enqueue_copy(rt.queue, out, buf)  # blocking: the probe's only synchronisation
+        rt.lanes = int(lanes[0])
     except Exception as e:  # noqa: BLE001 - whatever the driver raises, the device is unusable
         return _one_line(str(e)) or type(e).__name__
     want = (np.arange(4, dtype=np.float32) + 1 + 4) / np.float32(3)
@@ -278,6 +294,10 @@ class Runtime:
     """In-order command queue; every call enqueues on it and blocks once, at the end, for its results."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     """Held by each operation for its whole call."""
+    lanes: int = 8
+    """Rays per work-item of the first-hit walk: 16 where the device's compiler targets AVX-512 (float16 is one
+    register), else 8; set by the probe. (Vectors wider than the target's also made PoCL 3.0 lose the kernels of a
+    program it reloaded from its cache.)"""
     writes_in_place: bool = False
     """True when the device's kernels write a USE_HOST_PTR buffer straight into its host array (seen by the probe,
     :func:`_probe`, as PoCL does on the CPU): results then need only the queue's completion, no map."""

@@ -10,7 +10,7 @@
 #include "walk.h"
 
 /*
- * mark_shell_kernel: one work-item per tile of TILE x TILE pixels of one viewing camera and batch item b; sets the
+ * mark_shell_kernel: one work-item per tile of TILE x TILE_H pixels of one viewing camera and batch item b; sets the
  * mask at the tile's first hits. Global and local sizes, and all arguments but the first (first_hit's labels) and
  * the last, as first_hit's (first_hit.cl).
  */
@@ -18,7 +18,7 @@ __kernel void mark_shell_kernel(__global const ushort* field, const int4 gd,
                                 const float8 grid, const float16 cam, const int4 n, const int w, const int h,
                                 const int max_iter, __global uchar* mask)
 {
-    const int x0 = get_global_id(0) * TILE, y0 = get_global_id(1) * TILE, b = get_global_id(2);
+    const int x0 = get_global_id(0) * TILE, y0 = get_global_id(1) * TILE_H, b = get_global_id(2);
     if (x0 >= w || y0 >= h) return;
     const size_t cells = (size_t)n.x * n.y * n.z;
     TileHits th;

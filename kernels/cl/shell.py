@@ -79,7 +79,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
     own = [traversal.is_own_view(cam, grid) for cam in cams]
     vol = occupancy.labels_from_host(rt, arr, spec, grid, walk=not all(own))
     b, cells = spec.batch, grid.n_cells
-    opts = occupancy.trace_options(cells)
+    opts = occupancy.trace_options(cells, rt.lanes)
     mask = rt.scratch("shell_mask", b * cells)
     rt.zero(mask, b * cells)
     n = occupancy.cell_counts(grid)
@@ -90,7 +90,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
               vol.labels, n, mask)
         else:
             k = rt.kernel(_SOURCE, "mark_shell_kernel", opts)
-            k(rt.queue, occupancy.tile_global(cam, b), (*occupancy.TILE_LOCAL, 1), vol.field,
+            k(rt.queue, occupancy.tile_global(cam, b, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.field,
               *occupancy.trace_args(grid, cam), mask)
 
     out = np.empty_like(arr)

@@ -1,7 +1,8 @@
 /*
- * walk.h: the first-hit walk of kernels/traversal.py for a tile of TILE x TILE pixels, one ray per lane of
- * float16 / int16, with exact empty-space skipping by jumps out of empty boxes. Shared by first_hit.cl (which writes
- * each pixel's hit) and shell.cl (which marks the hit cells). The ray set-up and crossings come from ray.h.
+ * walk.h: the first-hit walk of kernels/traversal.py for a tile of TILE x TILE_H pixels (TILE_H = LANES / TILE),
+ * one ray per lane of floatN / intN (N = LANES: 16 where the compiler targets AVX-512, else 8), with exact
+ * empty-space skipping by jumps out of empty boxes. Shared by first_hit.cl (which writes each pixel's hit) and
+ * shell.cl (which marks the hit cells). The ray set-up and crossings come from ray.h.
  *
  * The walk keeps each ray in exactly the plain loop's state (traversal.py step 5): its cell (i, j, k), the depth
  * t_entry where it entered the cell and the family it entered through. Each iteration, per ray:
@@ -22,32 +23,46 @@
  * Every cell the plain loop visits inside the box is empty, so the first occupied cell, its entry depth and its
  * entry face are the plain loop's, bit for bit.
  *
- * Build options (-D, from kernels/cl/occupancy.py): those of ray.h, TILE (4: the lane layout below), GROUP_LOG,
- * WIDE_INDEX (1 when a volume has 2^31 cells or more: cell offsets in 64 bits).
+ * Build options (-D, from kernels/cl/occupancy.py): those of ray.h, LANES (8 or 16: rays per work-item, the
+ * device's native vector width, runtime.py's probe), TILE (4: the lane layout below), GROUP_LOG, WIDE_INDEX (1 when
+ * a volume has 2^31 cells or more: cell offsets in 64 bits).
  *
  * Layouts:
  *   field  ushort (GD, gd.y, gd.x): this batch item's field, d << 8 | mask per group, gd = (row length, rows per
  *          slice, slices) (rows and slices padded; see occupancy.cl)
  */
-#define RAY_W 16
+#define RAY_W LANES
 #include "ray.h"
 
 #if TILE != 4
-#error "walk.h lays 16 rays out as 4 x 4 pixels: TILE must be 4"
+#error "walk.h lays a tile's rays out 4 pixels wide: TILE must be 4"
 #endif
+#define TILE_H (LANES / TILE)
+#if LANES == 16
 #define WALK_LX ((ri)(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3))
 #define WALK_LY ((ri)(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3))
 #define WALK_LANES(G) G(s0) G(s1) G(s2) G(s3) G(s4) G(s5) G(s6) G(s7) G(s8) G(s9) G(sa) G(sb) G(sc) G(sd) G(se) G(sf)
+typedef long16 rl;
+#define RAY_CVL convert_long16
+#elif LANES == 8
+#define WALK_LX ((ri)(0, 1, 2, 3, 0, 1, 2, 3))
+#define WALK_LY ((ri)(0, 0, 0, 0, 1, 1, 1, 1))
+#define WALK_LANES(G) G(s0) G(s1) G(s2) G(s3) G(s4) G(s5) G(s6) G(s7)
+typedef long8 rl;
+#define RAY_CVL convert_long8
+#else
+#error "LANES must be 8 or 16"
+#endif
 #if GROUP_LOG != 1
 #error "walk.h reads the field of 2 x 2 x 2 groups: GROUP_LOG must be 1"
 #endif
 #define GL GROUP_LOG
 
 #if WIDE_INDEX
-typedef long16 cell_v;
-#define CELL_CV convert_long16
+typedef rl cell_v;
+#define CELL_CV RAY_CVL
 #else
-typedef int16 cell_v;
+typedef ri cell_v;
 #define CELL_CV
 #endif
 
@@ -72,8 +87,8 @@ typedef struct {
 } TileHits;
 
 /*
- * The first hits of the tile of pixels x0 .. x0 + 3, y0 .. y0 + 3 (pixels past w, h are misses): th->hit and, for
- * the rays that hit, the rest of th. Returns 0 when no ray of the tile enters the frustum (th->hit all clear).
+ * The first hits of the tile of pixels x0 .. x0 + 3, y0 .. y0 + TILE_H - 1 (pixels past w, h are misses): th->hit
+ * and, for the rays that hit, the rest of th. Returns 0 when no ray of the tile enters the frustum (th->hit all clear).
  * max_iter bounds the walk (every iteration moves one family at least a cell on).
  */
 RAY_INLINE int trace_tile(const int x0, const int y0, const int w, const int h, __global const ushort* field,

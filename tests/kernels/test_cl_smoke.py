@@ -189,6 +189,27 @@ def test_field_is_the_chessboard_distance_and_the_masks(shape: tuple[int, int, i
         np.testing.assert_array_equal(got & valid, mask)
 
 
+def test_both_walk_widths_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The walk traces 16 rays per work-item where the compiler targets AVX-512 and 8 elsewhere: both give the same
+    bits. Only the narrower width is tried besides the native one (a wider one is what PoCL 3.0 mishandles)."""
+    from fruxel.kernels.cl.runtime import get_runtime
+
+    rt = get_runtime(None)
+    if rt.lanes == 8:
+        pytest.skip("the device's native width is the narrower one")
+    grid = FruxelGrid(width=37, height=22, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
+    lab = _scene(grid, 9)
+    cams = _cameras(grid)
+    native = [cl.first_hit(lab, grid, cam) for cam in cams]
+    native_shell = cl.shell(lab, grid, cams)
+    monkeypatch.setattr(rt, "lanes", 8)
+    for cam, a in zip(cams, native, strict=True):
+        b = cl.first_hit(lab, grid, cam)
+        for name in ("label", "cell", "depth", "normal"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(cl.shell(lab, grid, cams), native_shell)
+
+
 def test_shell_is_the_union_of_first_hits() -> None:
     lab = np.stack([_scene(GRID, 3), _scene(GRID, 4)]).astype(np.int16)
     cams = _cameras(GRID)
