@@ -151,6 +151,10 @@ __kernel void mark_groups_kernel(__global const uchar* labels, __global uchar* d
     }
 }
 
+/* min and max of uchars as selects: PoCL 3.0 calls its min / max builtins out of line in these kernels, per element */
+#define UMIN(a, b) ((a) < (b) ? (a) : (b))
+#define UMAX(a, b) ((a) > (b) ? (a) : (b))
+
 /*
  * chessboard_x_kernel: the x pass, one work-item per group (PoCL vectorises the work-items of a row).
  *   global size (GWP, GH + 1, GD * B); in, out uchar (passes' layout):
@@ -161,7 +165,11 @@ __kernel void chessboard_x_kernel(__global const uchar* in, __global uchar* out,
     const size_t at = lead + ((size_t)get_global_id(2) * gd.y + get_global_id(1)) * gd.x + get_global_id(0);
     uchar best = in[at];
 #pragma unroll
-    for (int m = 1; m <= DIST_CAP; ++m) best = min(best, max((uchar)m, (uchar)min(in[at - m], in[at + m])));
+    for (int m = 1; m <= DIST_CAP; ++m) {
+        const uchar near = UMIN(in[at - m], in[at + m]);
+        const uchar far = UMAX((uchar)m, near);
+        best = UMIN(best, far);
+    }
     out[at] = best;
 }
 
@@ -195,7 +203,9 @@ __kernel void chessboard_yz_kernel(__global const uchar* in, __global uchar* out
         /* loaded whatever they hold (within the buffer's lead and tail), kept only inside the field */
         const uchar lo = in[at - m * stride], hi = in[at + m * stride];
         const uchar near = (uchar)(p - m >= 0 ? lo : DIST_CAP), far = (uchar)(p + m < len ? hi : DIST_CAP);
-        best = min(best, max((uchar)m, min(near, far)));
+        const uchar either = UMIN(near, far);
+        const uchar apart = UMAX((uchar)m, either);
+        best = UMIN(best, apart);
     }
 #if AXIS == 1
     out[at] = best;
