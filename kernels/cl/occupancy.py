@@ -43,6 +43,8 @@ TILE_LOCAL = (16, 1)
 TRACE_LOCAL = (16, 4)
 """Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
 loop, so a tile of neighbouring rays shares cache lines of the volume."""
+PASS_WIDE_FROM = 2**31
+"""Elements of the passes' buffers from which their offsets are computed in 64 bits (PASS_WIDE; tests lower it)."""
 FIELD_GAP = 16
 """Elements after each row of the field (and before the first): the x pass reads them as empty neighbours."""
 _FIELD_VECTOR = 16
@@ -164,8 +166,10 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
 
 
 def _options(**values: int) -> tuple[str, ...]:
-    """Build options of :file:`occupancy.cl`: ``values`` (AXIS 1 unless given) and the field's constants."""
-    return defines(**{"AXIS": 1, **values}, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP, FIELD_GAP=FIELD_GAP)
+    """Build options of :file:`occupancy.cl`: ``values`` (AXIS 1 and PASS_WIDE 0 unless given) and the field's
+    constants."""
+    return defines(**{"AXIS": 1, "PASS_WIDE": 0, **values}, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP,
+                   FIELD_GAP=FIELD_GAP)
 
 
 def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
@@ -184,7 +188,8 @@ def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
     n, lead_arg = cell_counts(grid), np.int32(lead)
 
     def kernel(name: str, axis: int) -> Any:
-        return rt.kernel(_SOURCE, name, _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis))
+        return rt.kernel(_SOURCE, name, _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis,
+                                                  PASS_WIDE=int(count + 2 * lead >= PASS_WIDE_FROM)))
 
     # A work-group per row of groups (PoCL's own choice of work-group split the kernel unevenly over its threads).
     row = gwp // _FIELD_VECTOR + 1

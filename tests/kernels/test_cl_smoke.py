@@ -141,18 +141,22 @@ def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch, wid
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
-@pytest.mark.parametrize("shape", [(45, 21, 64), (9, 13, 37), (4, 3, 2)])
-def test_field_is_the_chessboard_distance_and_the_masks(shape: tuple[int, int, int]) -> None:
+@pytest.mark.parametrize(("shape", "wide"), [((45, 21, 64), False), ((9, 13, 37), False), ((4, 3, 2), False),
+                                           ((45, 21, 64), True)])
+def test_field_is_the_chessboard_distance_and_the_masks(monkeypatch: pytest.MonkeyPatch,
+                                                        shape: tuple[int, int, int], wide: bool) -> None:
     """The walk's field (occupancy.build_field) against scipy's chessboard distance transform of the occupied 2 x 2
     x 2 groups, capped, and each group's mask against its cells; two batch items (the vector path for width 64, the
     general one otherwise). Cells at the grid's far corners and edges check that the field's padding reads as
-    empty to the passes."""
+    empty to the passes. ``wide``: the passes with 64-bit offsets (used from 2^31 elements)."""
     ndimage = pytest.importorskip("scipy.ndimage")
     import pyopencl
 
     from fruxel.kernels.cl.runtime import get_runtime
     from fruxel.kernels.inputs import inspect_volume
 
+    if wide:
+        monkeypatch.setattr(occupancy, "PASS_WIDE_FROM", 0)
     d, h, w = shape
     grid = FruxelGrid(width=w, height=h, depth=d, z_near=0.3, z_far=6.0, hfov=80.0)
     rng = np.random.default_rng(3)
