@@ -205,9 +205,20 @@ def _chosen(index: int) -> bool:
     return not want or want in DeviceStatus(_platform_devices()[0][index], "", None).description
 
 
+_chosen_by: dict[tuple[tuple[str, ...], str], Any] = {}
+""":func:`_first_working`'s answers by kinds and :data:`DEVICE_ENV` value (every call asks it, several times)."""
+
+
 def _first_working(kinds: tuple[str, ...]) -> Any | None:
     """The first device in probe order of one of ``kinds`` (in that order of preference) whose probe succeeds,
     probing candidates only until one does (only those :data:`DEVICE_ENV` admits)."""
+    key = (kinds, os.environ.get(DEVICE_ENV, ""))
+    if key not in _chosen_by:
+        _chosen_by[key] = _search(kinds)
+    return _chosen_by[key]
+
+
+def _search(kinds: tuple[str, ...]) -> Any | None:
     devs = _platform_devices()[0]
     for kind in kinds:
         for i, d in enumerate(devs):
@@ -225,6 +236,7 @@ def forget_devices() -> None:
     """Forget the device list and probe results (tests that swap the platforms use it)."""
     _platform_devices.cache_clear()
     _status.clear()
+    _chosen_by.clear()
 
 
 def is_available() -> bool:
