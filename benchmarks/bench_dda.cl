@@ -2,8 +2,10 @@
  * The peer of benchmarks/bench_dda.py: a plain single-level DDA, kernels/traversal.py steps 1-5 written the
  * straightforward way (one work-item per pixel, scalar code, one cell per step, a branch per family, no empty-space
  * skipping). Not a product path, and deliberately not built on kernels/cl/ray.h: it is what one would write
- * without fruxel. Of the plain versions tried it is the fastest on PoCL (per-family private arrays indexed by the
- * stepped family ran 4x slower, float4 lanes per family 2x slower: benchmarks/PERF_NOTES.md).
+ * without fruxel. Of the scalar plain versions tried it is the fastest on PoCL (per-family private arrays indexed
+ * by the stepped family ran about 4.7x slower, float4 lanes per family about 2x slower). Written as first_hit's
+ * walk is, 16 rays per work-item in vector lanes, a plain DDA ran 2.7x faster than this one: that layout is part of
+ * what first_hit gains over it (benchmarks/PERF_NOTES.md).
  *
  * Arithmetic: IEEE float32 without contraction, every crossing from its boundary index with traversal.py's
  * formulas (t = (u o_z - o_x) / (d_x - u d_z) for u, likewise v, t = (z - o_z) / d_z for z), so its cells are

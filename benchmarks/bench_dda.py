@@ -225,7 +225,10 @@ def section(results: list[dict[str, Any]]) -> str:
              "(`rooms.room_volume`) and `sparse` (a floor slab, a back wall and a dozen 20^3 boxes, "
              "`bench_dda.sparse_volume`). The methods are timed in interleaved rounds; the plain DDA gives the "
              "same label, cell, depth and normal as `first_hit` on every pixel (checked each run). Warp on the CPU "
-             "is the other backend's `first_hit`. Target: `first_hit` at least 5x the plain DDA on both scenes.", ""]
+             "is the other backend's `first_hit`. Target: `first_hit` at least 5x the plain DDA on both scenes. The "
+             "peer is scalar code, as one writes a DDA; the same plain DDA over 16-ray tiles in vector lanes (the "
+             "layout of `first_hit`'s walk, not kept) ran 2.7x faster than it, so that layout is part of the ratio "
+             "and the empty-space skipping the rest (`benchmarks/PERF_NOTES.md`).", ""]
     for res in results:
         m = res["machine"]
         parts += [f"### {m['cpu']}, {m['cores']} cores, {m.get('opencl_platform', 'no OpenCL')} ({m['date']})", ""]
