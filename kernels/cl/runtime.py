@@ -41,16 +41,18 @@ from ..registry import BackendError, BackendUnavailable, no_device_message
 
 try:
     import pyopencl as cl
+    import pyopencl.cltypes as cl_types
 
     _IMPORT_ERROR: str | None = None
 except ImportError as _e:  # pragma: no cover - exercised only without pyopencl
-    cl = None
+    cl = cl_types = None
     _IMPORT_ERROR = str(_e)
 
-BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
+BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt", "-cl-kernel-arg-info")
 """Options every fruxel program is built with: correctly rounded division and square root on every device (GPU
 compilers otherwise approximate them), so that crossings are the float32 values kernels/traversal.py describes;
-never ``-cl-fast-relaxed-math`` or ``-cl-mad-enable``, which would change results."""
+never ``-cl-fast-relaxed-math`` or ``-cl-mad-enable``, which would change results. The kernels' argument types
+are kept (``-cl-kernel-arg-info``) so that :meth:`Runtime.kernel` can give pyopencl their types."""
 
 
 PROBE_SOURCE = """
@@ -339,6 +341,9 @@ class Runtime:
         k = self._kernels.get(kkey)
         if k is None:
             k = getattr(prg, name)
+            types = _arg_dtypes(k)
+            if types is not None:
+                k.set_scalar_arg_dtypes(types)
             self._kernels[kkey] = k
         return k
 
@@ -398,6 +403,28 @@ class Runtime:
         # Results are handed to the caller right after this: wait for the copies and unmaps, and thereby for
         # every kernel of the call, so that the input wrappers may be released too.
         self.queue.finish()
+
+
+_SCALAR_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16, "int": np.int32,
+                 "uint": np.uint32, "long": np.int64, "ulong": np.uint64, "float": np.float32, "double": np.float64}
+
+
+def _arg_dtypes(kernel: Any) -> list[Any] | None:
+    """The numpy dtypes of a kernel's by-value arguments (None for buffers and anything else), from its argument
+    info, for ``set_scalar_arg_dtypes``: pyopencl then packs each argument directly instead of trying it as every
+    kind of argument in turn (20 us of C++ exceptions per launch on PoCL). None when the driver keeps no
+    argument info."""
+    try:
+        out: list[Any] = []
+        for i in range(kernel.num_args):
+            private = kernel.get_arg_info(i, cl.kernel_arg_info.ADDRESS_QUALIFIER) == \
+                cl.kernel_arg_address_qualifier.PRIVATE
+            name = kernel.get_arg_info(i, cl.kernel_arg_info.TYPE_NAME).strip()
+            vector = getattr(cl_types, name, None) if re.fullmatch(r"[a-z]+(2|3|4|8|16)", name) else None
+            out.append(None if not private else _SCALAR_TYPES.get(name, vector))
+        return out
+    except cl.Error:
+        return None
 
 
 @cache
