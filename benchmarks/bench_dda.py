@@ -154,14 +154,9 @@ def machine_info(rt: Any) -> dict[str, Any]:
     """CPU, cores, load, the OpenCL device and PoCL version, package versions."""
     info = common.machine_info(("numpy", "pyopencl", "pocl-binary-distribution", "warp-lang"))
     info["load_average_1min_at_start"] = info.pop("load_average")
+    info["cpu_id"] = common.cpu_id()
     if rt is not None:
-        from fruxel.kernels.cl import runtime
-
-        info["opencl_device"] = rt.device.name.strip()
-        info["opencl_platform"] = runtime.platform_version(rt.device)
-        info["opencl_driver"] = rt.device.driver_version
-        info["opencl_devices_probed"] = [f"{st.description}: {'works' if st.error is None else st.error}"
-                                         for st in runtime.device_report()]
+        info.update(common.opencl_device())
     return info
 
 
@@ -231,7 +226,8 @@ def section(results: list[dict[str, Any]]) -> str:
              "and the empty-space skipping the rest (`benchmarks/PERF_NOTES.md`).", ""]
     for res in results:
         m = res["machine"]
-        parts += [f"### {m['cpu']}, {m['cores']} cores, {m.get('opencl_platform', 'no OpenCL')} ({m['date']})", ""]
+        cpu = f"{m['cpu']} ({m['cpu_id']})" if m.get("cpu_id") else m["cpu"]
+        parts += [f"### {cpu}, {m['cores']} cores, {m.get('opencl_platform', 'no OpenCL')} ({m['date']})", ""]
         parts += [f"OpenCL device `{m.get('opencl_device')}` ({m.get('opencl_platform')}, driver "
                   f"{m.get('opencl_driver')}); devices probed: " + "; ".join(m.get("opencl_devices_probed", [])) + ". "
                   f"1-minute load average {m['load_average_1min_at_start']:.1f} at the start and "
