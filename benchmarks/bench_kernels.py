@@ -81,6 +81,8 @@ def machine_info() -> dict[str, Any]:
                                 "trimesh", "torch"))
     info["load_average_1min_at_start"] = info.pop("load_average")
     info["opencl_devices"] = cl_device
+    info["cpu_id"] = common.cpu_id()
+    info.update(common.opencl_device())
     return info
 
 
@@ -330,7 +332,8 @@ def section(results: list[dict[str, Any]]) -> str:
     for res in results:
         m = res["machine"]
         gpu = f", GPU {m['gpu']}" if m.get("gpu") else ""
-        parts += [f"### {m['cpu']}, {m['cores']} cores{gpu} ({m['date']})", ""]
+        cpu = f"{m['cpu']} ({m['cpu_id']})" if m.get("cpu_id") else m["cpu"]
+        parts += [f"### {cpu}, {m['cores']} cores{gpu} ({m['date']})", ""]
         if "load_average_1min_at_start" in m:
             parts += [f"1-minute load average {m['load_average_1min_at_start']:.1f} at the start and "
                       f"{m.get('load_average_1min_at_end', float('nan')):.1f} at the end of the run (the machine is "
@@ -358,6 +361,9 @@ def section(results: list[dict[str, Any]]) -> str:
                 parts.append("")
         v = m.get("versions", {})
         parts += ["Versions: " + ", ".join(f"{k} {val}" for k, val in v.items() if val) + ".", ""]
+        if m.get("opencl_device"):
+            parts += [f"OpenCL ran on `{m['opencl_device']}` ({m['opencl_platform']}); devices probed: "
+                      + "; ".join(m.get("opencl_devices_probed", [])) + ".", ""]
         chart = res.get("chart")
         if chart:
             parts += [f"![kernel benchmark]({chart})", ""]

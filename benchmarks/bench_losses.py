@@ -91,6 +91,9 @@ def machine(device: str) -> dict[str, Any]:
     if device.startswith("cuda"):
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     info.update({k: v for k, v in m["versions"].items() if v})
+    cl = common.opencl_device()
+    if cl:
+        info["opencl"] = f"{cl['opencl_device']} ({cl['opencl_platform']})"
     return info
 
 
@@ -242,7 +245,8 @@ def section(results: list[dict[str, Any]]) -> str:
         where = m.get("gpu") or f"{m['cpu']}, {m['cores']} cores"
         out += [f"### {where}, B = {res['batch']}, {res['logits']} logits", "",
                 f"{m['date']}; device {res['device']}; torch {m['torch']} ({m['torch_threads']} threads), "
-                f"warp {m.get('warp', '-')}, pyopencl {m.get('pyopencl', '-')}; load average at start "
+                f"warp {m.get('warp', '-')}, pyopencl {m.get('pyopencl', '-')}"
+                + (f" on `{m['opencl']}`" if m.get("opencl") else "") + "; load average at start "
                 f"{m['load_average']:.1f}." + (f" {res['note']}" if res.get("note") else ""), "",
                 table(res), ""]
         if res.get("png"):

@@ -45,6 +45,23 @@ def cpu_model() -> str:
     return m.group(1).strip() if m else platform.processor() or platform.machine()
 
 
+def cpu_id() -> str:
+    """The CPU's vendor family and model numbers and its widest vector extension, from ``lscpu`` (e.g.
+    ``"family 25 model 17, AVX-512"``): what decides which LLVM (so which PoCL) knows the CPU, and the OpenCL walk's
+    width. Empty when ``lscpu`` says nothing."""
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+    family = re.search(r"^CPU family:\s*(\d+)$", out, re.MULTILINE)
+    model = re.search(r"^Model:\s*(\d+)$", out, re.MULTILINE)
+    found = re.search(r"^Flags:\s*(.+)$", out, re.MULTILINE)
+    flags = set(found.group(1).split()) if found else set()
+    vector = "AVX-512" if "avx512f" in flags else ("AVX2" if "avx2" in flags else "")
+    parts = [f"family {family.group(1)} model {model.group(1)}" if family and model else "", vector]
+    return ", ".join(p for p in parts if p)
+
+
 def usable_cores() -> int:
     """The cores this process may run on (its CPU affinity where the platform has one, else all of them)."""
     if hasattr(os, "sched_getaffinity"):
@@ -128,6 +145,23 @@ def machine_info(packages: Iterable[str] | Mapping[str, str] = ()) -> dict[str, 
         "load_average": load_average(),
         "versions": package_versions(packages),
     }
+
+
+def opencl_device() -> dict[str, Any]:
+    """The OpenCL device fruxel's calls run on by default, and every candidate's probe result
+    (:mod:`fruxel.kernels.cl.runtime`): ``{"opencl_device": name, "opencl_platform": e.g. "OpenCL 3.0 PoCL
+    3.1+debian", "opencl_driver": version, "opencl_devices_probed": ["name (platform): works" or the failure]}``;
+    empty where OpenCL does not run."""
+    try:
+        from fruxel.kernels.cl import runtime
+
+        rt = runtime.get_runtime(None)
+        return {"opencl_device": rt.device.name.strip(), "opencl_platform": runtime.platform_version(rt.device),
+                "opencl_driver": rt.device.driver_version,
+                "opencl_devices_probed": [f"{st.description}: {'works' if st.error is None else st.error}"
+                                          for st in runtime.device_report()]}
+    except Exception:  # noqa: BLE001 - no OpenCL here, whatever the reason
+        return {}
 
 
 # ---------------------------------------------------------------------------------------------- timing, charts

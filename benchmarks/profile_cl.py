@@ -7,15 +7,17 @@ float32 logits.
 
 Each measurement runs once to build and warm up, then ``--repeat`` times; it reports the median and the minimum
 wall time and the median process CPU time (all threads; on an otherwise idle machine wall ~ CPU / cores).
-Parts: the pyramid build alone, the traversal kernel alone (enqueue + wait), and the host overhead (whole call
-minus device parts).
+Parts: the labels and their field alone, the traversal kernel alone (enqueue + wait), and the host overhead
+(whole call minus device parts). ``--caps`` repeats everything for other distance caps (0: no skipping, every
+iteration a plain step).
 
-Usage: ``python benchmarks/profile_cl.py [--repeat 15] [--levels 1 2 3]``
+Usage: ``python benchmarks/profile_cl.py [--repeat 15] [--caps 0 4 15]``
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import time
 from collections.abc import Callable
 
@@ -28,6 +30,9 @@ from fruxel.kernels import orbit_cameras
 from fruxel.kernels.cl import first_hit, occupancy, shell
 from fruxel.kernels.cl.runtime import get_runtime, host_array
 from fruxel.kernels.inputs import inspect_volume
+
+first_hit_module = importlib.import_module("fruxel.kernels.cl.first_hit")
+"""The module (the package attribute ``first_hit`` is its function): its program source."""
 
 
 def above(g: FruxelGrid, size: int = 512) -> Camera:
@@ -55,7 +60,8 @@ def fmt(name: str, m: dict[str, float]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=15)
-    ap.add_argument("--levels", type=int, nargs="*", default=[occupancy.LEVELS])
+    ap.add_argument("--caps", type=int, nargs="*", default=[occupancy.DIST_CAP],
+                    help="distance caps of the field (occupancy.DIST_CAP; 0 = no skipping)")
     ap.add_argument("--skip-scores", action="store_true", help="skip the (4, 7, 128^3) logits shell")
     args = ap.parse_args()
 
@@ -66,35 +72,35 @@ def main() -> None:
     orbit = orbit_cameras(g, 6)
     spec = inspect_volume(lab, g)
 
-    def pyramid_only() -> None:
+    def field_only() -> None:
         with rt.lock:
             vol = occupancy.labels_from_host(rt, host_array(lab), spec, g)
-            rt.queue.finish()  # timing: wait for the pyramid kernels
+            rt.queue.finish()  # timing: wait for the field kernels
             del vol
 
     def kernel_only(cam: Camera) -> Callable[[], None]:
         vol = occupancy.labels_from_host(rt, host_array(lab), spec, g)
         outs = [rt.scratch(f"prof{i}", cam.width * cam.height * s) for i, s in enumerate((4, 8, 4, 12))]
-        k = rt.kernel(occupancy.TRACE_SOURCE, "trace_first_hit_kernel", occupancy.trace_options())
+        k = rt.kernel(first_hit_module._SOURCE, "trace_first_hit_kernel", occupancy.trace_options(g.n_cells, rt.lanes))
 
         def run() -> None:
-            k(rt.queue, occupancy.trace_global(cam, 1), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,
+            k(rt.queue, occupancy.tile_global(cam, 1, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
               *occupancy.trace_args(g, cam), *outs)
             rt.queue.finish()  # timing: wait for the kernel
 
         return run
 
-    for levels in args.levels:
-        occupancy.LEVELS = levels
-        print(f"--- LEVELS = {levels}")
-        print(fmt("labels upload + pyramid", measure(pyramid_only, args.repeat)))
+    for cap in args.caps:
+        occupancy.DIST_CAP = cap
+        print(f"--- DIST_CAP = {cap}")
+        print(fmt("labels upload + field", measure(field_only, args.repeat)))
         for name, cam in (("oblique", cam_ob), ("above", cam_up)):
             hits = first_hit(lab, g, cam)
             whole = measure(lambda cam=cam: first_hit(lab, g, cam), args.repeat)
             kern = measure(kernel_only(cam), args.repeat)
             print(fmt(f"first_hit {name} 512^2 (hit {np.mean(hits.hit):.2f})", whole))
             print(fmt(f"  traversal kernel only ({name})", kern))
-            print(f"  host + pyramid overhead ~ {whole['median'] - kern['median']:.2f} ms (median difference)")
+            print(f"  host + field overhead ~ {whole['median'] - kern['median']:.2f} ms (median difference)")
         print(fmt("shell 6 orbit cameras 512^2", measure(lambda: shell(lab, g, orbit), args.repeat)))
         print(fmt("shell own view labels (128^3)", measure(lambda: shell(lab, g, g.camera()), args.repeat)))
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 import types
+import warnings
 from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
@@ -66,6 +67,8 @@ class BackendInfo:
     """Module implementing :data:`OPERATIONS`."""
     install_hint: str
     """What to run when the backend is missing."""
+    device_hint: str = ""
+    """What to install when the backend imports but finds no device it can run on (empty: nothing helps)."""
 
 
 BACKENDS: dict[str, BackendInfo] = {
@@ -74,6 +77,8 @@ BACKENDS: dict[str, BackendInfo] = {
         "opencl",
         "fruxel.kernels.cl",
         "pip install 'fruxel[opencl]'  (pyopencl plus pocl-binary-distribution, PoCL's CPU OpenCL driver)",
+        "a PoCL whose LLVM knows this CPU, on Debian or Ubuntu: sudo apt-get install -y --no-install-recommends "
+        "pocl-opencl-icd (scripts/setup_env.sh does it when run as root)",
     ),
 }
 
@@ -101,8 +106,14 @@ def get_backend(name: str) -> ModuleType:
         raise BackendError(f"unknown backend {name!r}; choose one of {sorted(BACKENDS)}")
     mod = _load(name)
     if not mod.is_available():
-        raise BackendUnavailable(f"backend {name!r} found no usable device. {mod.unavailable_reason()}")
+        raise BackendUnavailable(no_device_message(name, mod.unavailable_reason()))
     return mod
+
+
+def no_device_message(name: str, cause: str) -> str:
+    """The one-line error of backend ``name`` finding no usable device: the cause and the fix."""
+    hint = BACKENDS[name].device_hint
+    return f"backend {name!r} found no usable device: {cause}" + (f". Fix: install {hint}" if hint else "")
 
 
 def _try(name: str) -> ModuleType | None:
@@ -150,8 +161,9 @@ def resolve(backend: str | None, device: str | None, volume: Any = None) -> tupl
     """Pick the backend module and Warp device for a call.
 
     ``backend=None`` takes the best available: Warp on CUDA when a GPU is present, else OpenCL, else Warp on
-    the CPU (single-threaded, hence last). ``device=None`` follows the data: a CUDA tensor stays on its device;
-    other data goes to CUDA when the chosen backend is Warp and a GPU is present, else to the CPU.
+    the CPU (single-threaded, hence last); an OpenCL that is installed but has no working device is skipped with
+    one warning per process, naming the cause and the fix. ``device=None`` follows the data: a CUDA tensor stays
+    on its device; other data goes to CUDA when the chosen backend is Warp and a GPU is present, else to the CPU.
 
     Returns:
         (module, device): device is a Warp device string (``"cpu"``, ``"cuda:0"``) for Warp, or the OpenCL
@@ -167,6 +179,7 @@ def resolve(backend: str | None, device: str | None, volume: Any = None) -> tupl
         elif _try("opencl") is not None:
             backend = "opencl"
         elif wp is not None and wp.cpu_available():
+            _warn_skipped("opencl", "Warp on the CPU")
             backend = "warp"
         else:
             raise BackendUnavailable(
@@ -177,6 +190,24 @@ def resolve(backend: str | None, device: str | None, volume: Any = None) -> tupl
     if device is None and is_cuda_data(volume):
         device = str(volume.device)
     return mod, mod.resolve_device(device)
+
+
+_warned: set[str] = set()
+"""Backends whose fallback warning was given (once per process)."""
+
+
+def _warn_skipped(name: str, instead: str) -> None:
+    """Warn, once per process, that backend ``name`` is installed but cannot run here, so that ``instead`` runs; a
+    backend that is simply not installed is skipped silently."""
+    if name in _warned:
+        return
+    try:
+        mod = _load(name)
+    except BackendUnavailable:
+        return
+    _warned.add(name)
+    warnings.warn(f"{no_device_message(name, mod.unavailable_reason())}; {instead} runs instead", RuntimeWarning,
+                  stacklevel=3)
 
 
 def describe(backend: str | None = None, device: str | None = None, volume: Any = None) -> str:

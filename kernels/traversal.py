@@ -49,12 +49,18 @@ Entry-face normal (grid frame, unit, facing the camera, i.e. ``dot(n, d) < 0``)
     inside an occupied cell hits it at ``t = 0`` with normal ``-d / |d|``.
 
 Empty-space skipping
-    Backends may skip empty space with a coarse occupancy pyramid of ``BLOCK``-cell cubes (in index space; the
-    block boundaries are fine planes, so the block is itself a trapezoid cell). Skipping must give the same
-    hits as the plain loop above: when the current block is empty, find the crossing ``t_exit`` where the ray
-    leaves the block, and advance each family past all of its fine crossings below ``t_exit`` with the same
-    formulas as step 4 (at most ``BLOCK`` per family), then continue. Results may differ from the plain loop
-    only for rays that pass exactly through a cell edge.
+    Backends may skip empty space in whole boxes of cells: any box of indices (``i0 <= i < i1``, likewise j, k)
+    that holds the current cell and no occupied one. Its boundaries are cell planes, so the box is itself a
+    trapezoid cell. Skipping must give the same hits as the plain loop above: find the crossing ``t_exit``
+    where the ray leaves the box (each family's far boundary by step 4's formula; the first of them, ties u, v,
+    z), step that family into the next cell as the plain loop would, and put every other family past all of its
+    crossings below ``t_exit`` (at ``t_exit`` too for families before the exiting one in the tie order), then
+    continue. Warp takes its boxes from a coarse occupancy pyramid of ``BLOCK``-cell cubes and advances each
+    family crossing by crossing (at most ``BLOCK`` per family); OpenCL takes them from a chessboard distance field
+    over small groups of cells (the cube of empty groups around the current one) and puts each family where the
+    exit point lies, verified against the crossings on either side. Both rely on a family's crossings growing
+    with the boundary index, as they do wherever consecutive crossings differ by more than float32 rounding.
+    Results may differ from the plain loop only for rays that pass exactly through a cell edge.
 
 Precision
     Kernels compute in float32. Backends and the float64 test reference agree on labels and cells except for

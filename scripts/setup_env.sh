@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Creates .venv when missing and installs fruxel with every extra at the pinned versions (constraints.txt).
 # Re-running is cheap: the install is skipped while pyproject.toml and constraints.txt are unchanged.
-# Also checks for Mesa's EGL (headless OpenGL for pyrender): installs it when running as root, else prints
-# the command to run.
+# Also checks for Mesa's EGL (headless OpenGL for pyrender) and Debian's PoCL (OpenCL on the CPU): installs them
+# when running as root with apt, else prints the command to run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -23,21 +23,48 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "$want" > "$stamp"
 fi
 
-# Mesa's EGL vendor library and DRI drivers give pyrender a headless OpenGL context (llvmpipe on a CPU).
+# System packages, installed when running as root with apt, else named with the command to run:
+# - Mesa's EGL vendor library and DRI drivers give pyrender a headless OpenGL context (llvmpipe on a CPU);
+#   required.
+# - Debian's PoCL (pocl-opencl-icd: PoCL 3.1 on LLVM 15, its kernel library tied to known target CPUs) is the
+#   OpenCL CPU driver that compiles on current x86-64 CPUs. The PyPI pocl-binary-distribution that pyopencl brings
+#   (LLVM 14) fails to build any kernel on CPUs newer than its LLVM (AMD Zen 5: "unknown target CPU 'generic'").
+#   pyopencl's bundled ICD loader also reads /etc/OpenCL/vendors, so both are visible; fruxel's OpenCL runtime
+#   probes each device and prefers the newer PoCL (kernels/cl/runtime.py). Without it OpenCL may still work, or
+#   fruxel falls back to Warp with a warning: recommended, not required.
 have_egl() {
   # No pipes into grep -q here: with pipefail, the early exit of grep would count as a failure.
   local libs
   libs=$(ldconfig -p 2>/dev/null || true)
   [[ $libs == *libEGL_mesa.so.0* && $libs == *libEGL.so.1* ]] && compgen -G '/usr/lib/*/dri/swrast_dri.so' >/dev/null
 }
-if ! have_egl; then
-  pkgs="libegl-mesa0 libgl1-mesa-dri libegl1"
+have_pocl() {
+  [ -f /etc/OpenCL/vendors/pocl.icd ]
+}
+egl_pkgs="libegl-mesa0 libgl1-mesa-dri libegl1"
+pocl_pkgs="pocl-opencl-icd"
+if ! have_egl || ! have_pocl; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "installing Mesa EGL for headless rendering: $pkgs"
-    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $pkgs
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    if ! have_egl; then
+      echo "installing Mesa EGL for headless rendering: $egl_pkgs"
+      apt-get install -y -qq $egl_pkgs
+    fi
+    if ! have_pocl; then
+      # Without recommends: PoCL needs clang-15 and LLVM 15, not the 32-bit libraries that clang recommends.
+      echo "installing Debian's PoCL (OpenCL on the CPU): $pocl_pkgs"
+      apt-get install -y -qq --no-install-recommends $pocl_pkgs
+    fi
   else
-    echo "Mesa EGL (headless OpenGL) is missing. Install it with:" >&2
-    echo "  sudo apt-get install -y $pkgs" >&2
-    exit 1
+    if ! have_pocl; then
+      echo "Debian's PoCL (OpenCL on current CPUs) is missing; without it OpenCL may fall back to Warp. Install it with:" >&2
+      echo "  sudo apt-get install -y --no-install-recommends $pocl_pkgs" >&2
+    fi
+    if ! have_egl; then
+      echo "Mesa EGL (headless OpenGL) is missing. Install it with:" >&2
+      echo "  sudo apt-get install -y $egl_pkgs" >&2
+      exit 1
+    fi
   fi
 fi

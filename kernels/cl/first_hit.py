@@ -1,7 +1,7 @@
 """OpenCL ``first_hit``: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
 
-One work-item per pixel and batch item runs :file:`first_hit.cl`'s traversal over the uint8 labels with the
-coarse pyramid of :mod:`.occupancy` for empty-space skipping.
+One work-item per tile of 4 x 4 pixels and batch item runs :file:`first_hit.cl`'s walk over the uint8 labels, one
+ray per vector lane, with the field of :mod:`.occupancy` for empty-space skipping.
 """
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ from fruxel.grid import FruxelGrid
 
 from ..inputs import Hits, VolumeSpec, check_camera, inspect_volume
 from . import occupancy
-from .runtime import Runtime, get_runtime, host_array, to_caller
+from .runtime import Runtime, get_runtime, host_array, source, to_caller
+
+_SOURCE = source(__file__)
 
 
 def first_hit(
@@ -62,7 +64,7 @@ def first_hit(
 
 
 def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: Camera) -> tuple[np.ndarray, ...]:
-    """Enqueue labels, pyramid and traversal for host volume ``arr`` and wait for the results: label
+    """Enqueue labels, field and traversal for host volume ``arr`` and wait for the results: label
     ``(B, h, w)`` int32, cell ``(B, h, w)`` int64, depth ``(B, h, w)`` float32, normal ``(B, h, w, 3)`` float32."""
     vol = occupancy.labels_from_host(rt, arr, spec, grid)
     b, h, w = spec.batch, cam.height, cam.width
@@ -72,8 +74,8 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cam: 
     normal = np.empty((b, h, w, 3), np.float32)
     outs = [(rt.output(name, a), a) for name, a in
             (("hit_label", label), ("hit_cell", cell), ("hit_depth", depth), ("hit_normal", normal))]
-    k = rt.kernel(occupancy.TRACE_SOURCE, "trace_first_hit_kernel", occupancy.trace_options())
-    k(rt.queue, occupancy.trace_global(cam, b), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,
+    k = rt.kernel(_SOURCE, "trace_first_hit_kernel", occupancy.trace_options(grid.n_cells, rt.lanes))
+    k(rt.queue, occupancy.tile_global(cam, b, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.labels, vol.field,
       *occupancy.trace_args(grid, cam), *(buf for buf, _ in outs))
     # The call's one synchronisation: the results go to the caller next.
     rt.fetch(outs)

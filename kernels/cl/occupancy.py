@@ -1,18 +1,21 @@
-"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its coarse pyramid, and the
-traversal's build options and arguments that depend on it.
+"""Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its field, and the
+traversal's build options and arguments that depend on them.
 
 Float scores are turned into labels once per call by :file:`occupancy.cl` (SPEC section 2's rule), so the
-traversal's inner loop only ever tests a byte. The pyramid (blocks of ``BLOCK`` cells a side from
-:mod:`fruxel.kernels.traversal`, and a second level of super-blocks ``BLOCK^2`` cells a side) is rebuilt on every
-call from the labels: it is cheap next to the traversal, and no index cache survives a call.
+traversal's inner loop only ever tests a byte. The field (per group of ``GROUP^3`` cells, the chessboard
+distance to the nearest group holding an occupied cell, capped at :data:`DIST_CAP`, and which of the group's cells
+are occupied) is rebuilt on every call from the labels: it is cheap next to the traversal, and no index cache
+survives a call. :file:`walk.h` jumps with it out of empty cubes of groups (kernels/traversal.py, "Empty-space
+skipping") and tests cells with it.
 
-The traversal's source (:file:`first_hit.cl`), build options and arguments live here too: they depend on the
-pyramid's levels, and both :mod:`.first_hit` and :mod:`.shell` launch the traversal.
+The traversal's build options and arguments live here too: they depend on the field's layout, and :mod:`.first_hit`,
+:mod:`.shell` and :mod:`.soft_first_hit` all build the traversal.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,34 +27,59 @@ from .. import traversal
 from ..inputs import MAX_LABEL, VolumeError, VolumeSpec
 from .runtime import Runtime, defines, source
 
-LEVELS = 3
-"""Pyramid levels used by the traversal: cells, blocks of ``BLOCK`` cells a side and super-blocks of ``BLOCK^2``
-cells a side (1 gives the plain loop, 2 blocks only)."""
-
-LOG_BLOCK = traversal.BLOCK.bit_length() - 1
-if 1 << LOG_BLOCK != traversal.BLOCK:  # pragma: no cover - guards a future edit of traversal.BLOCK
-    raise ImportError(f"the OpenCL pyramid needs traversal.BLOCK to be a power of two, got {traversal.BLOCK}")
-
-_SOURCE = source(__file__)
-TRACE_SOURCE = source(__file__, "first_hit")
-"""The traversal source, :file:`first_hit.cl`; :file:`shell.cl` is compiled after it."""
-
+GROUP_LOG = 1
+"""log2 of the edge, in cells, of a group of the field: groups of 2 x 2 x 2 cells, whose 8 cells fit the field's
+occupancy mask (the kernels require 1). Groups of 1 cell skip 14 % fewer iterations on the room but cost 8 times
+the building, groups of 4 take 60 % more iterations (benchmarks/PERF_NOTES.md)."""
+DIST_CAP = 15
+"""Largest distance (in groups) the field records: each axis pass looks this far. 0 turns skipping off (every group
+reads 0, every iteration is a plain step), which tests use to check that skipping changes nothing."""
+TILE = 4
+"""Width, in pixels, of the tile of rays one work-item of the first-hit walk traces, one ray per vector lane: 4 x 4
+pixels for 16 lanes, 4 x 2 for 8 (:attr:`.runtime.Runtime.lanes`; :file:`walk.h` lays them out for 4)."""
+TILE_LOCAL = (16, 1)
+"""Work-group shape of the tile kernels, in tiles along x, y: a row of 16 tiles (64 x 4 pixels) per work-group
+(4 x 4 tiles measured 4 % slower, 2 x 2 8 %)."""
 TRACE_LOCAL = (16, 4)
-"""Work-group shape of the per-pixel traversal kernels (pixels along x, y): PoCL runs a work-group as one loop,
-so a tile of neighbouring rays shares cache lines of the label volume."""
+"""Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
+loop, so a tile of neighbouring rays shares cache lines of the volume."""
+PASS_WIDE_FROM = 2**31
+"""Elements of the passes' buffers from which their offsets are computed in 64 bits (PASS_WIDE; tests lower it)."""
+FIELD_GAP = 16
+"""Elements after each row of the field (and before the first): the x pass reads them as empty neighbours."""
+_FIELD_VECTOR = 16
+"""Groups per work-item of the field kernels (one uchar16): rows are padded to a multiple of it."""
 _LOCAL_CELLS = 256
 """Work-group size of label_scores_kernel (PoCL vectorises its straight-line body across work-items)."""
-_LOCAL_PYRAMID = 16
-"""Work-group width of pyramid (coarse cells along x)."""
+
+if not 0 <= DIST_CAP <= min(FIELD_GAP, 255):  # pragma: no cover - guards a future edit
+    raise ImportError(f"DIST_CAP must lie in [0, {min(FIELD_GAP, 255)}], got {DIST_CAP}")
+
+_SOURCE = source(__file__)
 
 _SCORE_TYPES = {np.dtype(np.float16): "SCORE_HALF", np.dtype(np.float32): "SCORE_FLOAT",
                 np.dtype(np.float64): "SCORE_DOUBLE"}
 
 
-def level_shape(grid: FruxelGrid, level: int) -> tuple[int, int, int]:
-    """``(D, H, W)`` of pyramid level ``level`` (0 = cells): each axis ``ceil(n / BLOCK^level)``."""
-    s = traversal.BLOCK**level
-    return tuple(-(-n // s) for n in grid.shape)  # type: ignore[return-value]
+def field_layout(grid: FruxelGrid) -> np.ndarray:
+    """The distance field's row length, rows per slice and slices, as the kernels' int4 ``gd``:
+    ``(GWP + FIELD_GAP, GH + 1, GD, 1)`` with ``GD, GH = ceil((D, H) / GROUP)`` and ``GWP = ceil(W / GROUP)`` rounded
+    up to a multiple of 16 (see :file:`occupancy.cl`)."""
+    g = 1 << GROUP_LOG
+    gwp = round_up(-(-grid.width // g), _FIELD_VECTOR)
+    return np.array([gwp + FIELD_GAP, -(-grid.height // g) + 1, -(-grid.depth // g), 1], np.int32)
+
+
+def field_elements(grid: FruxelGrid, batch: int) -> int:
+    """Elements (ushorts) of the walk's fields of ``batch`` volumes: ``(B, GD, GH + 1, GWP + FIELD_GAP)``."""
+    gd = field_layout(grid)
+    return batch * int(gd[0]) * int(gd[1]) * int(gd[2])
+
+
+def _pass_lead(gd: np.ndarray) -> int:
+    """Elements of the passes' buffers before the first row (and after the last): the z pass's reach, DIST_CAP
+    slices, and at least the x pass's, FIELD_GAP."""
+    return max(DIST_CAP * int(gd[0]) * int(gd[1]), FIELD_GAP)
 
 
 @dataclass
@@ -60,13 +88,13 @@ class DeviceVolume:
 
     labels: Any
     """uint8 ``(B, D, H, W)`` device buffer: 0 = empty, else the label."""
-    levels: list[Any]
-    """Pyramid buffers: level 1 ``(B, *level_shape(grid, 1))`` uint8, level 2 likewise (a 1-byte dummy when the
-    traversal uses fewer levels); empty when not built."""
+    field: Any = None
+    """Its field for the first-hit walk (:func:`build_field`; layout :func:`field_layout`), or None when not
+    built."""
     data: Any = None
     """A device view of the host array the call was given (after :func:`runtime.host_array`) when one was made
     (float scores, uint8 labels), else None."""
-    keep: list[Any] = field(default_factory=list)
+    keep: list[Any] = dataclasses.field(default_factory=list)
     """Host arrays the device may still read; they must outlive the call's kernels."""
 
 
@@ -91,8 +119,8 @@ def check_spec(spec: VolumeSpec) -> None:
 
 
 def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid,
-                     pyramid: bool = True) -> DeviceVolume:
-    """Put a validated volume on the device as uint8 labels and build its pyramid (all enqueued, no wait).
+                     walk: bool = True) -> DeviceVolume:
+    """Put a validated volume on the device as uint8 labels and build its field (all enqueued, no wait).
 
     Args:
         rt: the device runtime (its lock held by the caller).
@@ -100,7 +128,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
             values in [0, 255], or scores ``(B, C, D, H, W)`` float16/32/64 (see :func:`runtime.host_array`).
         spec: :func:`fruxel.kernels.inputs.inspect_volume`'s description of the volume.
         grid: the volume's grid.
-        pyramid: build the pyramid (only the traversal needs it); without, :attr:`DeviceVolume.levels` is empty.
+        walk: build the field (only the first-hit walk needs it); without, :attr:`DeviceVolume.field` is None.
 
     The caller has checked ``spec`` with :func:`check_spec`.
     """
@@ -115,7 +143,7 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         kind = _SCORE_TYPES[scores.dtype]
         mode = 0 if spec.threshold is None else (2 if spec.probs else 1)
         k = rt.kernel(_SOURCE, "label_scores_kernel",
-                      defines(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode, BLOCK=traversal.BLOCK))
+                      _options(**{kind: 1}, NUM_CHANNELS=spec.channels, MODE=mode))
         real = np.float64 if kind == "SCORE_DOUBLE" else np.float32
         labels = rt.scratch("labels", b * cells)
         data = rt.input("scores", scores)
@@ -133,42 +161,69 @@ def labels_from_host(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: Fruxe
         keep.append(lab)
         labels = rt.input("labels", lab)
         data = labels if lab is arr else None
-    levels = build_pyramid(rt, labels, grid, b) if pyramid else []
-    return DeviceVolume(labels=labels, levels=levels, data=data, keep=keep)
+    walk_field = build_field(rt, labels, grid, b) if walk else None
+    return DeviceVolume(labels=labels, field=walk_field, data=data, keep=keep)
 
 
-def build_pyramid(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> list[Any]:
-    """Enqueue the pyramid of a uint8 ``(B, D, H, W)`` label buffer: levels 1 .. LEVELS-1 in pooled buffers,
-    padded with 1-byte dummies to two entries (the kernels always take two level buffers)."""
-    opts = defines(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, BLOCK=traversal.BLOCK)
-    k = rt.kernel(_SOURCE, "build_pyramid_kernel", opts)
-    out = []
-    fine = labels
-    for level in range(1, LEVELS):
-        nf = level_shape(grid, level - 1)
-        nc = level_shape(grid, level)
-        coarse = rt.scratch(f"pyramid{level}", batch * int(np.prod(nc)))
-        k(rt.queue, (round_up(nc[2], _LOCAL_PYRAMID), nc[1], nc[0] * batch), (_LOCAL_PYRAMID, 1, 1), fine, coarse,
-          np.array([nf[2], nf[1], nf[0], 1], np.int32), np.array([nc[2], nc[1], nc[0], 1], np.int32))
-        out.append(coarse)
-        fine = coarse
-    while len(out) < 2:
-        out.append(rt.scratch(f"pyramid{len(out) + 1}", 1))
-    return out
+def _options(**values: int) -> tuple[str, ...]:
+    """Build options of :file:`occupancy.cl`: ``values`` (AXIS 1 and PASS_WIDE 0 unless given) and the field's
+    constants."""
+    return defines(**{"AXIS": 1, "PASS_WIDE": 0, **values}, GROUP_LOG=GROUP_LOG, DIST_CAP=DIST_CAP,
+                   FIELD_GAP=FIELD_GAP)
 
 
-def trace_options() -> tuple[str, ...]:
-    """``-D`` build options of the traversal, all from :mod:`fruxel.kernels.traversal`."""
-    return defines(BLOCK=traversal.BLOCK, LOG_BLOCK=LOG_BLOCK, LEVELS=LEVELS, FAMILY_U=traversal.FAMILY_U,
-                   FAMILY_V=traversal.FAMILY_V, FAMILY_Z=traversal.FAMILY_Z)
+def build_field(rt: Runtime, labels: Any, grid: FruxelGrid, batch: int) -> Any:
+    """Enqueue the walk's field of a uint8 ``(B, D, H, W)`` label buffer (:file:`occupancy.cl`): mark the occupied
+    groups and their masks, then one distance pass per axis between pooled buffers, the last writing the ushort
+    field. Returns the field's buffer (layout :func:`field_layout`, :func:`field_elements` ushorts)."""
+    gd = field_layout(grid)
+    lead = _pass_lead(gd)
+    count = field_elements(grid, batch)
+    a, b, masks = (rt.scratch(name, count + 2 * lead) for name in ("field_a", "field_b", "field_masks"))
+    field = rt.scratch("field", 2 * count)
+    gwp = int(gd[0]) - FIELD_GAP
+    groups = (gwp, int(gd[1]), int(gd[2]) * batch)
+    # Work-groups of whole rows (PoCL vectorises the work-items of a work-group): the longest that divides GWP.
+    local = (next(m for m in (64, 32, 16) if gwp % m == 0), 1, 1)
+    n, lead_arg = cell_counts(grid), np.int32(lead)
+
+    def kernel(name: str, axis: int) -> Any:
+        return rt.kernel(_SOURCE, name, _options(SCORE_FLOAT=1, NUM_CHANNELS=2, MODE=0, AXIS=axis,
+                                                  PASS_WIDE=int(count + 2 * lead >= PASS_WIDE_FROM)))
+
+    # A work-group per row of groups (PoCL's own choice of work-group split the kernel unevenly over its threads).
+    row = gwp // _FIELD_VECTOR + 1
+    kernel("mark_groups_kernel", 1)(rt.queue, (row, *groups[1:]), (row, 1, 1), labels, a, masks, n, gd, lead_arg)
+    kernel("chessboard_x_kernel", 1)(rt.queue, groups, local, a, b, gd, lead_arg)
+    kernel("chessboard_yz_kernel", 1)(rt.queue, groups, local, b, a, gd, lead_arg)
+    kernel("chessboard_yz_kernel", 2)(rt.queue, groups, local, a, masks, field, gd, lead_arg)
+    return field
+
+
+def ray_options() -> tuple[str, ...]:
+    """``-D`` build options of :file:`ray.h`, from :mod:`fruxel.kernels.traversal`."""
+    return defines(FAMILY_U=traversal.FAMILY_U, FAMILY_V=traversal.FAMILY_V, FAMILY_Z=traversal.FAMILY_Z)
+
+
+def trace_options(cells: int, lanes: int) -> tuple[str, ...]:
+    """``-D`` build options of the tile walk (:file:`walk.h`, :file:`ray.h`): ``cells`` (per volume) decides
+    whether cell offsets need 64 bits, ``lanes`` is the rays per work-item (:attr:`.runtime.Runtime.lanes`)."""
+    return ray_options() + defines(LANES=lanes, TILE=TILE, GROUP_LOG=GROUP_LOG, WIDE_INDEX=int(cells >= 2**31))
 
 
 def trace_args(grid: FruxelGrid, camera: Camera) -> tuple[Any, ...]:
-    """The traversal kernels' scalar arguments after the three map buffers: grid (float8), camera (float16),
-    cells per family (int4 ``(W, H, D, 1)``), image width and height, and the iteration guard."""
-    return (traversal.grid_params(grid), traversal.camera_params(camera),
-            cell_counts(grid), np.int32(camera.width),
-            np.int32(camera.height), np.int32((LEVELS + 1) * traversal.max_steps(grid)))
+    """The tile kernels' arguments after the labels and field buffers: the field's layout (int4), grid (float8),
+    camera (float16), cells per family (int4 ``(W, H, D, 1)``), image width and height, and the iteration guard
+    (every iteration moves one family at least one cell on)."""
+    return (field_layout(grid), traversal.grid_params(grid), traversal.camera_params(camera), cell_counts(grid),
+            np.int32(camera.width), np.int32(camera.height), np.int32(traversal.max_steps(grid)))
+
+
+def tile_global(camera: Camera, batch: int, lanes: int) -> tuple[int, int, int]:
+    """NDRange of the tile kernels: the image's tiles of ``TILE x lanes / TILE`` pixels rounded up to whole
+    work-groups, times the batch."""
+    lx, ly = TILE_LOCAL
+    return (round_up(-(-camera.width // TILE), lx), round_up(-(-camera.height // (lanes // TILE)), ly), batch)
 
 
 def trace_global(camera: Camera, batch: int) -> tuple[int, int, int]:

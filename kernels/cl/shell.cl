@@ -1,25 +1,35 @@
 /*
  * VMS shell (SPEC section 4): mark every cell that is the first hit of some pixel of some camera, then build the
- * output volume. Compiled after first_hit.cl (same build options), whose trace_pixel() it reuses.
+ * output volume. The first hits come from walk.h's trace_tile(), as first_hit.cl's do.
+ *
+ * Build options (-D, from kernels/cl/occupancy.py): those of walk.h and ray.h.
  *
  * mask  uchar (B, D, H, W): 1 for kept cells. Set to 0 by the host, then only ever written with 1, so the races
  *       between rays that hit the same cell are benign.
  */
+#include "walk.h"
 
 /*
- * mark_shell_kernel: one work-item per pixel (x, y) of one viewing camera and batch item b; sets the mask at its first
- * hit. Global and local sizes, and all arguments but the last, as first_hit (first_hit.cl).
+ * mark_shell_kernel: one work-item per tile of TILE x TILE_H pixels of one viewing camera and batch item b; sets the
+ * mask at the tile's first hits. Global and local sizes, and all arguments but the first (first_hit's labels) and
+ * the last, as first_hit's (first_hit.cl).
  */
-__kernel void mark_shell_kernel(__global const uchar* labels, __global const uchar* pyr1, __global const uchar* pyr2,
-                         const float8 grid, const float16 cam, const int4 n, const int w, const int h,
-                         const int max_iter, __global uchar* mask)
+__kernel void mark_shell_kernel(__global const ushort* field, const int4 gd,
+                                const float8 grid, const float16 cam, const int4 n, const int w, const int h,
+                                const int max_iter, __global uchar* mask)
 {
-    const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
-    if (x >= w || y >= h) return;
-    Hit hit;
-    if (!trace_pixel(x, y, b, labels, pyr1, pyr2, grid, cam, n, max_iter, &hit)) return;
+    const int x0 = get_global_id(0) * TILE, y0 = get_global_id(1) * TILE_H, b = get_global_id(2);
+    if (x0 >= w || y0 >= h) return;
     const size_t cells = (size_t)n.x * n.y * n.z;
-    mask[b * cells + ((size_t)hit.cell.z * n.y + hit.cell.y) * n.x + hit.cell.x] = 1;
+    TileHits th;
+    if (!trace_tile(x0, y0, w, h, field + (size_t)b * gd.x * gd.y * gd.z, gd, grid, cam, n, max_iter,
+                    &th))
+        return;
+    const cell_v cell = walk_cell(th.i, th.j, th.k, n);
+    __global uchar* m = mask + b * cells;
+#define G(l) if (th.hit.l) m[cell.l] = 1;
+    WALK_LANES(G)
+#undef G
 }
 
 /*

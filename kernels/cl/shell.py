@@ -1,6 +1,6 @@
 """OpenCL ``shell``: the VMS simplification (SPEC section 4) of a label or score volume.
 
-Per call: labels (and their pyramid) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
+Per call: labels (and their field) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
 launch per camera marking each pixel's first-hit cell (:file:`shell.cl`'s ``mark_shell_kernel``; the grid's own
 camera at native resolution takes ``mark_columns_kernel``, one work-item per column), then one launch that writes the
 output from the input, the mask and the canonical empty cell. Nothing is cached across calls but device buffers.
@@ -20,7 +20,7 @@ from ..inputs import VolumeSpec, check_cameras, empty_scores, inspect_volume
 from . import occupancy
 from .runtime import Runtime, get_runtime, host_array, source, to_caller
 
-_SOURCE = occupancy.TRACE_SOURCE + "\n" + source(__file__)
+_SOURCE = source(__file__)
 _LOCAL_COLUMNS = 16
 """Work-group width of mark_columns_kernel (columns along x)."""
 _LOCAL_SELECT = 256
@@ -74,12 +74,12 @@ def empty_bits(spec: VolumeSpec, dtype: np.dtype) -> tuple[Any, Any]:
 
 
 def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams: list[Camera]) -> np.ndarray:
-    """Enqueue labels, pyramid, one marking launch per camera and the output launch for host volume ``arr``,
+    """Enqueue labels, field, one marking launch per camera and the output launch for host volume ``arr``,
     and wait for the result: an array like ``arr`` (same shape and dtype)."""
     own = [traversal.is_own_view(cam, grid) for cam in cams]
-    vol = occupancy.labels_from_host(rt, arr, spec, grid, pyramid=not all(own))
+    vol = occupancy.labels_from_host(rt, arr, spec, grid, walk=not all(own))
     b, cells = spec.batch, grid.n_cells
-    opts = occupancy.trace_options()
+    opts = occupancy.trace_options(cells, rt.lanes)
     mask = rt.scratch("shell_mask", b * cells)
     rt.zero(mask, b * cells)
     n = occupancy.cell_counts(grid)
@@ -90,7 +90,7 @@ def _run(rt: Runtime, arr: np.ndarray, spec: VolumeSpec, grid: FruxelGrid, cams:
               vol.labels, n, mask)
         else:
             k = rt.kernel(_SOURCE, "mark_shell_kernel", opts)
-            k(rt.queue, occupancy.trace_global(cam, b), (*occupancy.TRACE_LOCAL, 1), vol.labels, *vol.levels,
+            k(rt.queue, occupancy.tile_global(cam, b, rt.lanes), (*occupancy.TILE_LOCAL, 1), vol.field,
               *occupancy.trace_args(grid, cam), mask)
 
     out = np.empty_like(arr)

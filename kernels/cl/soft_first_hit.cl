@@ -3,11 +3,11 @@
  * kernels/cl/soft_first_hit.py for the outputs and the backward recursion; kernels/wp/soft_first_hit.py derives the
  * same two passes).
  *
- * Compiled after first_hit.cl, whose ray set-up (setup_ray: steps 0-3 of kernels/traversal.py), Ray, LANES,
- * pick() and FP_CONTRACT OFF it reuses, so both visit the same cells in the same order.
+ * One ray per work-item: the ray set-up and crossings are ray.h's (steps 0-4 of kernels/traversal.py, the same
+ * arithmetic as first_hit.cl's walk), so both operations visit the same cells in the same order.
  *
  * Build options (-D), set by the host:
- *   those of first_hit.cl (BLOCK, LOG_BLOCK, LEVELS, FAMILY_U/V/Z, from kernels/traversal.py)
+ *   those of ray.h (FAMILY_U/V/Z, from kernels/traversal.py)
  *   REAL_DOUBLE   1: accumulate in double (cl_khr_fp64, with cl_khr_int64_base_atomics for the scatter); 0: float
  *   NC            number of non-empty classes (C - 1): the per-ray class accumulators are a private array
  *   SPW           steps per word of the step tape (2 bits per step: the plane family crossed)
@@ -23,6 +23,13 @@
  *   log_t    real (R)                    log T after the last cell: sum of log p_m0 over cells with p_m0 > 0
  *   tape     uint (R, words)             family of each step, SPW per word
  */
+#define RAY_W 1
+#include "ray.h"
+
+/* Per-family int4 vectors: lane f is family f (x = u / column i, y = v / row j, z = slice k, w unused). */
+#define LANES ((int4)(0, 1, 2, 3))
+inline int pick(const int4 v, const int f) { return f == 0 ? v.x : (f == 1 ? v.y : v.z); }
+
 #if REAL_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
@@ -32,23 +39,6 @@ typedef double real;
 typedef float real;
 #define REAL_MIN FLT_MIN
 #endif
-
-/* Crossing of boundary nb of family f, lane f of first_hit.cl's crossings() computed alone (same expression,
- * so the same bits): +inf when the ray never crosses it from its side. */
-inline float crossing_of(const Ray* r, const int f, const int nb)
-{
-    const float base = f == 0 ? r->base.x : (f == 1 ? r->base.y : r->base.z);
-    const float step = f == 0 ? r->step.x : (f == 1 ? r->step.y : r->step.z);
-    const float A = f == 0 ? r->A.x : (f == 1 ? r->A.y : r->A.z);
-    const float C = f == 0 ? r->C.x : (f == 1 ? r->C.y : r->C.z);
-    const float E = f == 0 ? r->E.x : (f == 1 ? r->E.y : r->E.z);
-    const float F = f == 0 ? r->F.x : (f == 1 ? r->F.y : r->F.z);
-    const float sf = f == 0 ? r->sf.x : (f == 1 ? r->sf.y : r->sf.z);
-    const float b = base + (float)nb * step;
-    const float den = E - b * F;
-    const float t = (b * A - C) / den;
-    return (sf * den > 0.0f) ? t : INFINITY;
-}
 
 inline float pickf(const float4 v, const int f) { return f == 0 ? v.x : (f == 1 ? v.y : v.z); }
 
@@ -109,13 +99,14 @@ __kernel void accumulate_soft_hits_kernel(__global const real* probs, const floa
     int ncell = 0;
     int4 idx = (int4)(0);
 
-    Ray ray;
+    Rays ray;
     float t_lo, t_hi;
-    int plane;
-    if (setup_ray(x, y, grid, cam, n, &ray, &idx, &t_lo, &t_hi, &plane)) {
-        const int4 s = ray.s;
-        float4 tn = (float4)(crossing_of(&ray, 0, ahead(idx.x, s.x)), crossing_of(&ray, 1, ahead(idx.y, s.y)),
-                             crossing_of(&ray, 2, ahead(idx.z, s.z)), INFINITY);
+    int plane, iu, iv, iz;
+    if (rays_setup((float)x, (float)y, grid, cam, n, &ray, &t_lo, &t_hi, &plane, &iu, &iv, &iz)) {
+        idx = (int4)(iu, iv, iz, 0);
+        const int4 s = (int4)((int)ray.su, (int)ray.sv, (int)ray.sz, 0);
+        float4 tn = (float4)(cross_u(&ray, ahead(idx.x, s.x)), cross_v(&ray, ahead(idx.y, s.y)),
+                             cross_z(&ray, ahead(idx.z, s.z)), INFINITY);
         float t_entry = t_lo;
         uint word = 0;
         for (int it = 0; it < max_steps; ++it) {
@@ -154,7 +145,7 @@ __kernel void accumulate_soft_hits_kernel(__global const real* probs, const floa
             const int4 fm = LANES == (int4)(f);
             idx = select(idx, (int4)(nxt), fm);
             t_entry = tf;
-            tn = select(tn, (float4)(crossing_of(&ray, f, ahead(nxt, sf))), fm);
+            tn = select(tn, (float4)(cross_f(&ray, f, ahead(nxt, sf))), fm);
         }
         if (save && (ncell - 1) % SPW != 0) tape[r * words + (ncell - 1) / SPW] = word;
     }
@@ -225,12 +216,11 @@ __kernel void backpropagate_soft_hits_kernel(__global const real* probs, const f
     }
     if (!any && gm == (real)0 && gd == (real)0 && cmn == (real)0) return; /* a pixel the loss ignores */
 
-    Ray ray;
-    int4 entry;
+    Rays ray;
     float t_lo, t_hi;
-    int plane;
-    setup_ray(x, y, grid, cam, n, &ray, &entry, &t_lo, &t_hi, &plane);
-    const int4 s = ray.s;
+    int plane, iu, iv, iz;
+    rays_setup((float)x, (float)y, grid, cam, n, &ray, &t_lo, &t_hi, &plane, &iu, &iv, &iz);
+    const int4 s = (int4)((int)ray.su, (int)ray.sv, (int)ray.sz, 0);
     __global const real* pb = probs + (size_t)b * (NC + 1) * cells;
     __global real* gb = grad + (size_t)b * (NC + 1) * cells;
 
@@ -243,7 +233,7 @@ __kernel void backpropagate_soft_hits_kernel(__global const real* probs, const f
         if (m > 0) {
             const int st = m - 1;
             f = (int)((tape[r * words + st / SPW] >> (2 * (st % SPW))) & 3u);
-            t = crossing_of(&ray, f, behind(pick(idx, f), pick(s, f)));
+            t = cross_f(&ray, f, behind(pick(idx, f), pick(s, f)));
         }
         const size_t cell = ((size_t)idx.z * n.y + idx.y) * n.x + idx.x;
         const real p0 = clamp(pb[cell], (real)0, (real)1);

@@ -1,7 +1,7 @@
 """OpenCL backend of ``soft_first_hit``: the forward and backward kernels of :file:`soft_first_hit.cl`.
 
 The algorithm, its backward recursion and the step tape are those of :mod:`fruxel.kernels.wp.soft_first_hit`;
-the ray set-up is :file:`first_hit.cl`'s (compiled first), so both operations visit the same cells. The forward
+the ray set-up is :file:`ray.h`'s, as :file:`first_hit.cl`'s walk, so both operations visit the same cells. The forward
 kernel also finishes each pixel: it writes ``classes`` (the miss probability ``T_M`` in front of the class sums
 ``acc_c = sum_m T_m p_mc``), ``depth_sum`` and ``depth = depth_sum / hit`` (``hit = sum_{c>=1} acc_c``, 0 where
 ``hit`` is at most the scalar type's smallest normal number). The backward kernel folds the gradient of ``depth``
@@ -31,7 +31,7 @@ from .runtime import Runtime, cl, defines, get_runtime, source
 TAPE_STEPS_PER_WORD = 16
 """Steps per uint32 word of the step tape (2 bits each)."""
 
-_SOURCE = occupancy.TRACE_SOURCE + "\n" + source(__file__)
+_SOURCE = source(__file__)
 
 
 def torch_device(device: str | None) -> Any:
@@ -60,7 +60,7 @@ class SavedRays:
 
 
 def _kernel(rt: Runtime, name: str, real: np.dtype, nc: int) -> Any:
-    opts = occupancy.trace_options() + defines(REAL_DOUBLE=int(real == np.float64), NC=nc, SPW=TAPE_STEPS_PER_WORD)
+    opts = occupancy.ray_options() + defines(REAL_DOUBLE=int(real == np.float64), NC=nc, SPW=TAPE_STEPS_PER_WORD)
     return rt.kernel(_SOURCE, name, opts)
 
 

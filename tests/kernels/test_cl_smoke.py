@@ -119,20 +119,99 @@ def test_first_hit_matches_dense_sampling(seed: int) -> None:
         assert np.all(np.einsum("ij,ij->i", n, d[hit]) < 0)
 
 
-def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The pyramid only skips: with 1, 2 or 3 levels every output is bit-identical."""
-    grid = FruxelGrid(width=37, height=21, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
+@pytest.mark.parametrize("width", [37, 64])
+def test_skipping_is_exactly_the_plain_loop(monkeypatch: pytest.MonkeyPatch, width: int) -> None:
+    """The field's distances only skip: without them (every iteration a plain step), with short jumps and with the
+    default ones, every output is bit-identical. Width 64 takes the field's vector path, 37 its general one."""
+    grid = FruxelGrid(width=width, height=21, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
     lab = _scene(grid, 7)
     lab[:, :, 30:] = 0
     cams = _cameras(grid)[:4]
     results = {}
-    for levels in (1, 2, 3):
-        monkeypatch.setattr(occupancy, "LEVELS", levels)
-        results[levels] = [cl.first_hit(lab, grid, cam) for cam in cams]
-    for levels in (2, 3):
-        for a, b in zip(results[1], results[levels], strict=True):
+    for cap in (0, 2, occupancy.DIST_CAP):
+        monkeypatch.setattr(occupancy, "DIST_CAP", cap)
+        results[cap] = [cl.first_hit(lab, grid, cam) for cam in cams]
+        shells = cl.shell(lab, grid, cams)
+        if cap == 0:
+            plain_shell = shells
+        np.testing.assert_array_equal(shells, plain_shell)
+    for cap in (2, occupancy.DIST_CAP):
+        for a, b in zip(results[0], results[cap], strict=True):
             for name in ("label", "cell", "depth", "normal"):
                 np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+@pytest.mark.parametrize(("shape", "wide"), [((45, 21, 64), False), ((9, 13, 37), False), ((4, 3, 2), False),
+                                           ((45, 21, 64), True)])
+def test_field_is_the_chessboard_distance_and_the_masks(monkeypatch: pytest.MonkeyPatch,
+                                                        shape: tuple[int, int, int], wide: bool) -> None:
+    """The walk's field (occupancy.build_field) against scipy's chessboard distance transform of the occupied 2 x 2
+    x 2 groups, capped, and each group's mask against its cells; two batch items (the vector path for width 64, the
+    general one otherwise). Cells at the grid's far corners and edges check that the field's padding reads as
+    empty to the passes. ``wide``: the passes with 64-bit offsets (used from 2^31 elements)."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    import pyopencl
+
+    from fruxel.kernels.cl.runtime import get_runtime
+    from fruxel.kernels.inputs import inspect_volume
+
+    if wide:
+        monkeypatch.setattr(occupancy, "PASS_WIDE_FROM", 0)
+    d, h, w = shape
+    grid = FruxelGrid(width=w, height=h, depth=d, z_near=0.3, z_far=6.0, hfov=80.0)
+    rng = np.random.default_rng(3)
+    lab = np.zeros((2, *grid.shape), np.uint8)
+    lab[0][rng.random(grid.shape) < 0.002] = 4
+    lab[0, d // 2, h // 3, w // 3] = 1
+    lab[1, -1, -1, -1] = 2
+    lab[1, 0, 0, :] = 3
+    rt = get_runtime(None)
+    with rt.lock:
+        vol = occupancy.labels_from_host(rt, lab, inspect_volume(lab, grid), grid)
+        raw = np.empty(occupancy.field_elements(grid, 2), np.uint16)
+        pyopencl.enqueue_copy(rt.queue, raw, vol.field)
+    gd = occupancy.field_layout(grid)
+    field = raw.reshape(2, gd[2], gd[1], gd[0])
+    gw = -(-w // 2)
+    for b in range(2):
+        cells = np.zeros((gd[2] * 2, (gd[1] - 1) * 2, gw * 2), bool)
+        cells[:d, :h, :w] = lab[b] != 0
+        # (z, y, x) in the group flattened is 4 z + 2 y + x: the mask's bit of that cell
+        weights = 1 << np.arange(8)
+        bits = cells.reshape(gd[2], 2, gd[1] - 1, 2, gw, 2).transpose(0, 2, 4, 1, 3, 5).reshape(gd[2], gd[1] - 1, gw, 8)
+        mask = (bits * weights).sum(-1)
+        occ = mask != 0
+        want = ndimage.distance_transform_cdt(~occ, metric="chessboard") if occ.any() else np.full(occ.shape, 999)
+        got = field[b, :, :-1, :gw]
+        np.testing.assert_array_equal(got >> 8, np.minimum(want, occupancy.DIST_CAP))
+        # the mask's bits of cells past the grid are free (never read): compare those of cells inside it
+        inside = np.zeros(cells.shape, bool)
+        inside[:d, :h, :w] = True
+        ibits = inside.reshape(gd[2], 2, gd[1] - 1, 2, gw, 2).transpose(0, 2, 4, 1, 3, 5).reshape(gd[2], gd[1] - 1,
+                                                                                                 gw, 8)
+        valid = (ibits * weights).sum(-1)
+        np.testing.assert_array_equal(got & valid, mask)
+
+
+def test_both_walk_widths_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The walk traces 16 rays per work-item where the compiler targets AVX-512 and 8 elsewhere: both give the same
+    bits. Only the narrower width is tried besides the native one (a wider one is what PoCL 3.0 mishandles)."""
+    from fruxel.kernels.cl.runtime import get_runtime
+
+    rt = get_runtime(None)
+    if rt.lanes == 8:
+        pytest.skip("the device's native width is the narrower one")
+    grid = FruxelGrid(width=37, height=22, depth=45, z_near=0.3, z_far=6.0, hfov=80.0)
+    lab = _scene(grid, 9)
+    cams = _cameras(grid)
+    native = [cl.first_hit(lab, grid, cam) for cam in cams]
+    native_shell = cl.shell(lab, grid, cams)
+    monkeypatch.setattr(rt, "lanes", 8)
+    for cam, a in zip(cams, native, strict=True):
+        b = cl.first_hit(lab, grid, cam)
+        for name in ("label", "cell", "depth", "normal"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(cl.shell(lab, grid, cams), native_shell)
 
 
 def test_shell_is_the_union_of_first_hits() -> None:
