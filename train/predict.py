@@ -6,8 +6,10 @@ optical centre (the photo's centre):
 
 * its field of view is brought to the grid's: a wider photo is cropped to the grid's view, a narrower one is
   padded (the model sees grey where the photo has nothing);
-* its aspect is brought to ``H / W`` the same way: crop (``fit="crop"``, default) or pad (``fit="pad"``) rows or
-  columns, centred;
+* its aspect is brought to ``H / W``: ``fit="pad"`` pads rows or columns, centred (the view stays exact);
+  ``fit="crop"`` (default) crops instead, enlarging the photo about its centre until its rows cover the view as
+  far as its columns do (a 4:3 photo on a square grid: by 4/3), so that a narrower photo is still padded all
+  round by its field of view, and only the aspect's grey bands go;
 * then it is resized to the model's image size (area averaging when shrinking).
 
 Images are ``(h, w, 3)`` uint8 RGB arrays (rows down, columns right) until :func:`to_tensor`.
@@ -23,6 +25,7 @@ import numpy as np
 import torch
 
 from fruxel.errors import FruxelError
+from fruxel.grid import FruxelGrid
 
 from .config import ModelConfig
 
@@ -65,21 +68,69 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     return np.ascontiguousarray(rgb)
 
 
-def _crop_or_pad(img: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """Centre ``img`` in a ``rows x cols`` frame: crop where it is larger, pad with :data:`PAD_VALUE` where
-    smaller."""
+def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: float | None = None,
+                fit: str = "crop") -> np.ndarray:
+    """A photo framed to the view of a grid's own camera (see the module docstring), at any size: the model's
+    input (:func:`prepare_image`) or a picture of what the model sees.
+
+    Only the photo's part inside the frame is resized, then placed on :data:`PAD_VALUE` grey: a photo whose field of
+    view is far narrower than the grid's (a frame many times the photo's size) costs no more memory than the result.
+
+    Args:
+        img: ``(h, w, 3)`` uint8 RGB.
+        grid: the grid whose camera's view the photo is brought to.
+        size: ``(height, width)`` of the result in pixels, in the grid's aspect ``H / W``.
+        hfov: the photo's horizontal field of view, degrees (None: the grid's own).
+        fit: ``"crop"`` or ``"pad"``, how the aspect is matched.
+
+    Returns:
+        ``(height, width, 3)`` uint8 RGB.
+
+    Raises:
+        ValueError: a wrong array, field of view or fit.
+    """
+    from PIL import Image
+
+    if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"image must be an (h, w, 3) uint8 array, got {getattr(img, 'dtype', type(img))} "
+                         f"{getattr(img, 'shape', '')}")
+    if fit not in ("crop", "pad"):
+        raise ValueError(f"fit must be 'crop' or 'pad', got {fit!r}")
+    if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
+        raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
     h, w = img.shape[:2]
-    out = np.full((rows, cols, 3), PAD_VALUE, dtype=np.uint8)
+    # Pixels per unit of x/z of the photo; the grid's view spans u in [-tu, tu].
+    f = w / (2.0 * math.tan(math.radians(hfov if hfov is not None else grid.hfov) / 2.0))
+    cols = max(1, round(2.0 * grid.tu * f))
+    if fit == "crop":
+        # Too few rows for the grid's aspect: narrow the frame by the photo's share of the rows it covers against
+        # its share of the columns (rows are then cropped, not padded). A photo whose field of view is narrower
+        # than the grid's covers the frame's columns only in part: that part stays, so the field of view is kept.
+        rows_for_aspect = cols * grid.height / grid.width
+        shrink = min(1.0, (h / rows_for_aspect) / min(1.0, w / cols))
+        cols = max(1, round(cols * shrink))
+    rows = max(1, round(cols * grid.height / grid.width))
+    # The frame (rows x cols photo pixels) centred on the photo: the photo's part inside it, and where it lands.
     sy, sx = max(0, (h - rows) // 2), max(0, (w - cols) // 2)
     dy, dx = max(0, (rows - h) // 2), max(0, (cols - w) // 2)
     ch, cw = min(h, rows), min(w, cols)
-    out[dy:dy + ch, dx:dx + cw] = img[sy:sy + ch, sx:sx + cw]
+    out_h, out_w = size
+    part = Image.fromarray(np.ascontiguousarray(img[sy:sy + ch, sx:sx + cw]))
+    resample = Image.BOX if rows >= out_h else Image.BILINEAR
+    if (ch, cw) == (rows, cols):
+        return np.asarray(part.resize((out_w, out_h), resample), dtype=np.uint8)
+    y0, y1 = round(dy * out_h / rows), round((dy + ch) * out_h / rows)
+    x0, x1 = round(dx * out_w / cols), round((dx + cw) * out_w / cols)
+    out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
+    if y1 > y0 and x1 > x0:
+        out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
     return out
 
 
 def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = None, fit: str = "crop"
                   ) -> np.ndarray:
-    """A photo as the model's input image (see the module docstring).
+    """A photo as the model's input image (see the module docstring): :func:`frame_image` at the model's image
+    size.
 
     Args:
         img: ``(h, w, 3)`` uint8 RGB.
@@ -93,30 +144,7 @@ def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = Non
     Raises:
         ValueError: a wrong array, field of view or fit.
     """
-    from PIL import Image
-
-    if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"image must be an (h, w, 3) uint8 array, got {getattr(img, 'dtype', type(img))} "
-                         f"{getattr(img, 'shape', '')}")
-    if fit not in ("crop", "pad"):
-        raise ValueError(f"fit must be 'crop' or 'pad', got {fit!r}")
-    grid = config.grid
-    if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
-        raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
-    h, w = img.shape[:2]
-    # Pixels per unit of x/z of the photo; the grid's view spans u in [-tu, tu].
-    f = w / (2.0 * math.tan(math.radians(hfov if hfov is not None else grid.hfov) / 2.0))
-    cols = max(1, round(2.0 * grid.tu * f))
-    if fit == "crop":
-        rows_for_aspect = round(cols * grid.height / grid.width)
-        if rows_for_aspect > h:
-            # Too few rows for the grid's aspect: keep every row and narrow the columns instead.
-            cols = max(1, round(h * grid.width / grid.height))
-    rows = max(1, round(cols * grid.height / grid.width))
-    framed = _crop_or_pad(img, rows, cols)
-    out_h, out_w = config.image_size
-    resample = Image.BOX if rows >= out_h else Image.BILINEAR
-    return np.asarray(Image.fromarray(framed).resize((out_w, out_h), resample), dtype=np.uint8)
+    return frame_image(img, config.grid, config.image_size, hfov, fit)
 
 
 def to_tensor(images: Sequence[np.ndarray], device: torch.device | str = "cpu") -> torch.Tensor:
