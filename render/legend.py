@@ -150,12 +150,13 @@ def draw_legend(image: Any, classes: ClassTable, labels: Iterable[int],
     return _draw_on(img, (x0, y0, x0 + panel_w + 1, y0 + panel_h + 1), draw)
 
 
-def draw_caption(image: Any, text: str) -> np.ndarray:
-    """A copy of ``image`` (``(h, w, 3)`` uint8 RGB) with one line of ``text`` in its top-left corner."""
+def draw_caption(image: Any, text: str, font_size: int | None = None) -> np.ndarray:
+    """A copy of ``image`` (``(h, w, 3)`` uint8 RGB) with one line of ``text`` in its top-left corner, in
+    ``font_size`` pixels (None: scaled with the image's height, as legends are)."""
     from PIL import Image, ImageDraw
 
     img = np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3])
-    s = _scale(img.shape[0])
+    s = _scale(img.shape[0]) if font_size is None else font_size / 11
     pad = max(2, round(PAD * s))
     font = default_font(max(8, round(11 * s)))
     box = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((2 * pad, 2 * pad), text, font=font)
