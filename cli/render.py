@@ -607,7 +607,8 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         cams = orbit(inp.grid, camera, args.orbit, points=pictures.model_points())
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
         images = pictures.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
-        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix)))
+        keep = [(255, 255, 255), *inp.classes.palette()[1:]]
+        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
     else:
         image, fmt = pictures.image(camera), image_format(target)
         outputs.append((target, lambda tmp: save_image(tmp, image, fmt)))
