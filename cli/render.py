@@ -419,7 +419,14 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
 
     import fruxel
     from fruxel.render.frames import RenderInput
-    from fruxel.train.predict import default_model, frame_image, load_image, load_predictor, to_tensor
+    from fruxel.train.predict import (
+        default_model,
+        frame_image,
+        load_image,
+        load_predictor,
+        share_cpu,
+        to_tensor,
+    )
 
     _check_photo_options(args, True)
     path = Path(args.model)
@@ -430,6 +437,8 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
         truth = RenderInput(np.ascontiguousarray(t.labels), t.grid, t.classes, args.truth.stem)
     checkpoint = str(args.checkpoint) if args.checkpoint is not None else default_model()
     predictor = load_predictor(checkpoint, device=args.device, batch=1)
+    if predictor.device.type == "cpu":
+        share_cpu()
     grid, classes = predictor.config.grid, predictor.config.classes
     if truth is not None:
         if truth.grid != grid:

@@ -196,8 +196,10 @@ class RobotDemoConfig:
     checkpoint: str | None = None
     """SSZ model file (shipped ``.safetensors`` or training checkpoint); unset: the shipped model."""
     threads: int | None = None
-    """torch's CPU threads for SSZ; unset: torch's default (one per core). On a busy shared machine 1 can be
-    several times faster: two threads wait for each other whenever another process takes a core."""
+    """torch's CPU threads for SSZ; unset: half the cores (at least 1), leaving the rest to the simulator, OpenGL
+    and the kernels. torch's own default, a thread per core, stalls whenever another process takes a core (its
+    threads wait for each other): on the shared 2-core machine 2 threads gave 0.3-0.5 FPS where 1 gave 5.0-5.5
+    (:func:`fruxel.train.predict.share_cpu`)."""
     chase: ChaseView = field(default_factory=ChaseView)
     """Where the chase camera rides."""
 
@@ -242,15 +244,12 @@ class RobotDemo:
     """
 
     def __init__(self, config: RobotDemoConfig) -> None:
-        from .predict import load_predictor
+        from .predict import load_predictor, share_cpu
         from .sim.config import AugmentConfig, ImageConfig, SimConfig, TrajectoryConfig
 
         config.check()
         self.config = config
-        if config.threads is not None:
-            import torch
-
-            torch.set_num_threads(config.threads)
+        share_cpu(config.threads)
         self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1)
         mc = self.predictor.config
         self.grid, self.classes = mc.grid, mc.classes
