@@ -56,14 +56,17 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         write_video(args.video, pictures, 10)
     import torch
 
+    from fruxel.kernels import registry
     from fruxel.render.scene import gl_renderer_name
 
+    probe = torch.zeros((1, 2, 4, 4, 4), device=demo.predictor.device)
     return {
         "tag": args.tag,
         "machine": machine,
         "load_average_after": common.load_average(),
         "device": str(demo.predictor.device),
         "torch_threads": torch.get_num_threads(),
+        "kernels": registry.describe(config.backend, config.device, probe),
         "opengl": gl_renderer_name(),
         "config": {k: v for k, v in dataclasses.asdict(config).items() if k != "chase"},
         "grid": demo.grid.to_dict(),
@@ -82,10 +85,14 @@ def markdown(results: list[dict[str, Any]]) -> str:
         "end to end, from the camera image in hand to the displayed frame (input mapping, SSZ, own-view shell of "
         "the logits, greedy mesh, pyrender draw of the chase view, the composed three-panel picture); the "
         "simulator's rendering of the camera image (a stand-in for a real camera) and the ground truth are not "
-        "timed. Mean over the frames after the first; milliseconds per stage.", "",
-        "| machine | device | threads | grid | frames | FPS | ms a frame (median, p90) | input | SSZ | shell | mesh | "
-        "draw | compose | load average | target |",
-        "| --- | --- | ---: | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
+        "timed. Mean over the frames after the first; milliseconds per stage; *threads* are torch's CPU threads "
+        "for SSZ. On the shared 2-core machine another process kept about one core busy during these runs (load "
+        "average about 4): torch's two threads then wait for each other at every operation, and one thread ran 10 "
+        "to 20 times faster; fruxel-robot therefore gives SSZ half the cores by default (`--threads`).", "",
+        "| machine | SSZ device | threads | kernels | OpenGL | grid | frames | FPS | ms a frame (median, p90) | "
+        "input | SSZ | shell | mesh | draw | compose | load average | target |",
+        "| --- | --- | ---: | --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | "
+        "--- |",
     ]
     for r in results:
         s, m, g = r["summary"], r["machine"], r["grid"]
@@ -95,7 +102,8 @@ def markdown(results: list[dict[str, Any]]) -> str:
         st = s["stages_ms"]
         who = f"{m['cpu']}, {m['cores']} cores" + (f", {m['gpu']}" if m.get("gpu") else "") + f" ({m['date']})"
         lines.append(
-            f"| {who} | {r['device']} | {r['torch_threads']} | {g['width']}x{g['height']}x{g['depth']} | "
+            f"| {who} | {r['device']} | {r['torch_threads']} | {r.get('kernels', '')} | {r.get('opengl', '')} | "
+            f"{g['width']}x{g['height']}x{g['depth']} | "
             f"{s['frames']} | {s['fps_mean']:.1f} | {s['ms_median']:.0f}, {s['ms_p90']:.0f} | {st['input']:.1f} | "
             f"{st['ssz']:.1f} | {st['shell']:.1f} | {st['mesh']:.1f} | {st['draw']:.1f} | {st['compose']:.1f} | "
             f"{m['load_average']:.1f} before, {r['load_average_after']:.1f} after | {verdict} |")
@@ -111,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shell", choices=("own", "chase"), default="own", help="shell source (default own)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: CUDA when present)")
     p.add_argument("--backend", choices=("warp", "opencl"), default=None, help="kernel backend (default: best)")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: half the cores)")
     p.add_argument("--tag", default="cpu", help="name of the result (results/robot-TAG.json)")
     p.add_argument("--out", type=Path, default=None, help="results JSON (default benchmarks/results/robot-TAG.json)")
     p.add_argument("--video", type=Path, default=None, help="also write the frames to this .mp4 or .gif")
