@@ -22,6 +22,7 @@ from fruxel.classes import ClassTable
 
 from .compat import default_font
 from .frames import FrameRenderer
+from .legend import wrap_text
 
 GAP = 8
 """Pixels between panels and around the picture."""
@@ -53,17 +54,6 @@ def fit_height(image: Any, height: int) -> np.ndarray:
     width = max(1, round(w * height / h))
     resample = Image.BOX if height < h else Image.BILINEAR
     return np.asarray(Image.fromarray(img).resize((width, height), resample), dtype=np.uint8)
-
-
-def _wrap(text: str, width: int, font: Any, measure: Any) -> list[str]:
-    """``text`` broken at spaces into lines no wider than ``width`` pixels (a longer word keeps its own line)."""
-    lines: list[str] = []
-    for word in text.split():
-        if lines and measure.textlength(f"{lines[-1]} {word}", font=font) <= width:
-            lines[-1] = f"{lines[-1]} {word}"
-        else:
-            lines.append(word)
-    return lines
 
 
 def legend_strip(width: int, classes: ClassTable, labels: Iterable[int], font_size: int = 13) -> np.ndarray:
@@ -135,8 +125,8 @@ def compose(columns: Sequence[Sequence[np.ndarray]], headings: Sequence[str], cl
     line = round(size * 1.35)
     widths = [max(p.shape[1] for p in col) for col in columns]
     width = GAP + sum(w + GAP for w in widths)
-    title_lines = _wrap(title, width - 2 * GAP, font, measure) if title else []
-    heads = [_wrap(h, w, bold, measure) or [""] for h, w in zip(headings, widths, strict=True)]
+    title_lines = wrap_text(title, width - 2 * GAP, font, measure) if title else []
+    heads = [wrap_text(h, w, bold, measure) for h, w in zip(headings, widths, strict=True)]
     head_h = max(len(h) for h in heads) * line
     body_h = max(sum(p.shape[0] for p in col) + GAP * (len(col) - 1) for col in columns)
     strip = legend_strip(width, classes, labels, size) if legend else np.zeros((0, width, 3), np.uint8)
