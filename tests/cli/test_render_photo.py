@@ -18,6 +18,8 @@ from fruxel.data import PHOTO, PHOTO_TRUTH, SAMPLE_ROOM
 from fruxel.render.compare import GAP, fit_height
 from fruxel.train.predict import frame_image, load_image
 
+from .errors import assert_one_error_line
+
 ROOT = Path(__file__).resolve().parents[2]
 TRUTH = fruxel.load(PHOTO_TRUTH)
 PALETTE = TRUTH.classes.palette()
@@ -134,12 +136,7 @@ def test_wider_field_of_view_changes_the_prediction() -> None:
 
 # ---------------------------------------------------------------------------------------------------- errors
 def _one_error_line(rc: int, err: str, *words: str) -> None:
-    lines = [line for line in err.splitlines() if line.strip() and "Warp CUDA warning" not in line]
-    assert rc == 2, err
-    assert len(lines) == 1, err
-    assert lines[0].startswith("fruxel-render: error: ") and "Traceback" not in err
-    for w in words:
-        assert w in lines[0], lines[0]
+    assert_one_error_line("fruxel-render", rc, err, *words)
 
 
 @pytest.mark.parametrize(("case", "words"), [

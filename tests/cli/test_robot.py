@@ -20,6 +20,8 @@ from fruxel.render.compare import fit_height
 from fruxel.train.live import STAGES, RobotDemo, RobotDemoConfig, chase_camera, summarise
 from fruxel.train.sim.robot import CameraMount
 
+from .errors import assert_one_error_line
+
 HEAVY = ("torch", "warp", "pyrender", "pyopencl", "OpenGL")
 SIZE = 64
 """Panel height of these tests (the chase views are 85 x 64)."""
@@ -32,12 +34,7 @@ def no_display(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _one_error_line(rc: int, err: str, *words: str) -> None:
-    lines = [line for line in err.splitlines() if line.strip() and "Warp CUDA warning" not in line]
-    assert rc == 2, err
-    assert len(lines) == 1, err
-    assert lines[0].startswith("fruxel-robot: error: ") and "Traceback" not in err
-    for w in words:
-        assert w in lines[0], lines[0]
+    assert_one_error_line("fruxel-robot", rc, err, *words)
 
 
 def test_help_imports_no_heavy_module() -> None:
