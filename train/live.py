@@ -264,11 +264,13 @@ class RobotDemo:
                              splits=(("train", 1), ("test", (config.scene + 1) * config.frames)))
         self.camera_height = cam_h
         self.chase = chase_camera(self.sim.trajectory.mount, round(config.size * 4 / 3), config.size, config.chase)
-        # The kernels follow the data (the logits where SSZ ran); --device pins Warp there too.
+        # The prediction's kernels follow its logits (where SSZ ran); the truth's numpy labels go to the same device
+        # (a GPU machine may have no CPU backend: the staged Warp there has no CPU compiler).
+        where = str(self.predictor.device) if self.predictor.device.type == "cuda" else config.device
         self.prediction = ShellDisplay(self.grid, self.classes, self.chase, shell=config.shell,
                                        backend=config.backend, device=config.device)
         self.truth = ShellDisplay(self.grid, self.classes, self.chase, shell=config.shell,
-                                  backend=config.backend, device=None if config.device is None else "cpu")
+                                  backend=config.backend, device=where)
 
     @property
     def split(self) -> str:
