@@ -215,7 +215,13 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
     from fruxel.render.scene import MeshStyle, clip_range, frustum_lines, pyrender_mesh
     from fruxel.train.live import STAGES, LiveFrame, RobotDemo
 
-    pyrender = import_pyrender(headless=False)
+    try:
+        pyrender = import_pyrender(headless=False)
+    except Exception as e:  # noqa: BLE001 - PyOpenGL / pyglet raise many types when the window system is missing
+        from fruxel.render import RenderError
+
+        raise RenderError(f"cannot use the window system's OpenGL ({type(e).__name__}: {e}); write a video with "
+                          "--out FILE.mp4") from None
     config = _config(args)
     demo = RobotDemo(config)
     grid, cam = demo.grid, demo.chase
