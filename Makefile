@@ -1,5 +1,6 @@
 # The two commands of the README. Both create .venv and install the pinned dependencies when needed.
-#   make demo   renders the bundled sample model (the main job) into out/
+#   make demo   the main job on the bundled photo: SSZ predicts its model, which fruxel-render draws beside the
+#               photo and its ground truth, into out/photo_both.png
 #   make test   runs the test suite
 .PHONY: demo test env lint
 
@@ -9,7 +10,7 @@ env:
 	@bash scripts/setup_env.sh
 
 demo: env
-	.venv/bin/fruxel-render --mode both --out out
+	.venv/bin/fruxel-render fruxel/data/photo.png --truth fruxel/data/photo_truth.npz --mode both --out out
 
 test: env
 	.venv/bin/python -m pytest

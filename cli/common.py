@@ -303,7 +303,8 @@ def config_values(args: argparse.Namespace, cls: type, **given: Any) -> dict[str
 
 
 # ---------------------------------------------------------------------------------------------------- grid
-def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = True, what: str = "") -> None:
+def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = True, what: str = "",
+                     hfov_help: str = "") -> None:
     """Add ``--grid N|WxHxD``, ``--z-near``, ``--z-far`` and ``--hfov``: a :class:`fruxel.FruxelGrid`.
 
     Args:
@@ -313,6 +314,7 @@ def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = T
         size_default: False when the grid has no default size (``--grid`` given or no grid at all, see
             :func:`grid_from_args`).
         what: words appended to ``--grid``'s help, e.g. ``"of a bare logits tensor"``.
+        hfov_help: words appended to ``--hfov``'s help (another use of the option, e.g. a photo's field of view).
     """
     docs = field_docs(FruxelGrid)
     size = f"{default.width}x{default.height}x{default.depth}"
@@ -321,7 +323,8 @@ def add_grid_options(parser: Any, default: FruxelGrid, *, size_default: bool = T
                         + (f" (default: {size})" if size_default else ""))
     for name, metavar in (("z_near", "M"), ("z_far", "M"), ("hfov", "DEG")):
         parser.add_argument(f"--{name.replace('_', '-')}", dest=name, type=float, default=None, metavar=metavar,
-                            help=f"grid: {_tidy(docs.get(name, name))} (default: {getattr(default, name):g})")
+                            help=f"grid: {_tidy(docs.get(name, name))} (default: {getattr(default, name):g})"
+                            + (f"; {hfov_help}" if name == "hfov" and hfov_help else ""))
 
 
 def grid_options_given(args: argparse.Namespace) -> list[str]:

@@ -6,9 +6,10 @@ Usage::
                    [--device cpu|cuda[:N]] [-q]
 
 IMAGE is any PNG, JPEG or other image Pillow reads, of any size. Each is mapped onto the model's own camera
-(:func:`fruxel.train.predict.prepare_image`): its field of view (``--hfov``, default the grid's) is cropped or
-padded to the grid's about the centre, its aspect matched by a centred crop (``--fit crop``, default) or grey
-padding (``--fit pad``), then it is resized to the model's image size. The model (``--checkpoint``: a shipped
+(:func:`fruxel.train.predict.prepare_image`): with ``--hfov`` (the photo's horizontal field of view) it is cropped
+or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the grid's view
+and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then it is
+resized to the model's image size. The model (``--checkpoint``: a shipped
 ``.safetensors`` file or a training checkpoint ``.pt``; default the model shipped with fruxel) predicts the images
 in batches of ``--batch``.
 
@@ -68,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
                    help=f"output folder (default {DEFAULT_OUT}/)")
     p.add_argument("--fit", choices=("crop", "pad"), default="crop",
-                   help="match the model's aspect by a centred crop or by grey padding (default crop)")
+                   help="without --hfov: match the model's aspect by a centred crop or by grey padding (default crop)")
     p.add_argument("--hfov", type=field_of_view, default=None, metavar="DEG",
                    help="the photos' horizontal field of view in degrees (default: the model grid's own); a wider "
                    "photo is cropped to the grid's view, a narrower one padded")

@@ -9,6 +9,15 @@ Usage::
 
 MODEL (default: the bundled sample room, ``fruxel.data.SAMPLE_ROOM``) is one of
 
+* a photo (``.png``, ``.jpg``, ``.webp``, ``.bmp``, ``.tif``, ``.gif``, or any file that starts like one): SSZ
+  predicts its model (``--checkpoint``, default the shipped model, :func:`fruxel.train.predict.load_predictor`),
+  after the photo is brought to the view of the model's grid camera (``--hfov``: the photo's horizontal field of
+  view, default the grid's; ``--fit``: how its aspect is matched, :func:`fruxel.train.predict.frame_image`). The
+  picture then shows the photo, the predicted model and, with ``--truth FILE.npz`` (a fruxel model on the same
+  grid), the ground truth, each as the mesh, the ray cast or both (:class:`fruxel.render.compare.PhotoComparison`),
+  from one view fitted to what the models hold, and the own-view first-hit accuracy against the truth in its
+  title. ``--orbit``, ``--export``, ``--view`` and ``--benchmark`` work on the prediction;
+
 * a fruxel model file ``.npz`` (:func:`fruxel.load`);
 * a logits file ``.npz`` (:func:`fruxel.save_logits`, :func:`fruxel.load_logits`): logits ``(C, D, H, W)`` with
   their grid and classes, the format predictions are written in;
@@ -26,7 +35,8 @@ The viewing camera is ``--camera`` (a :meth:`fruxel.Camera.to_json` text, or a f
 size wins over ``--size``), else the default view.
 
 Outputs go to ``--out`` (default ``out/``): ``NAME_mesh.png``, ``NAME_raycast.png``, ``NAME_both.png`` (mesh
-and ray cast side by side) or ``NAME_MODE_orbit.gif|mp4``, written atomically; NAME is the model file's stem.
+and ray cast side by side) or ``NAME_MODE_orbit.gif|mp4``, written atomically; NAME is the model file's (or the
+photo's) stem.
 Every path written is printed. Errors are one line ``fruxel-render: error: ...`` on stderr with exit status 2
 (:func:`fruxel.cli.common.run`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
 """
@@ -37,6 +47,7 @@ import argparse
 import json
 import re
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -66,6 +77,13 @@ if TYPE_CHECKING:
 
 PROG = "fruxel-render"
 BACKENDS = ("warp", "opencl")
+FITS = ("crop", "pad")
+"""How a photo's aspect is matched to the grid's (:func:`fruxel.train.predict.frame_image`); the first is the
+default."""
+PHOTO_SIZE = (480, 360)
+"""Size ``(width, height)`` in pixels of each model panel of a photo's picture."""
+PHOTO_DISPLAY = 512
+"""Width in pixels at which the photo is framed to the grid's view for its panel (scaled to the panels' height)."""
 VIDEO_FORMATS = ("gif", "mp4")
 VIDEO_FORMATS_DEFAULT = "gif"
 
@@ -96,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
         "oblique, 30 deg right and 35 deg above the grid camera's side, fitted to the frustum.",
     )
     p.add_argument("model", nargs="?", metavar="MODEL",
-                   help="model or logits .npz, or a logits tensor .npy/.pt (default: the sample room)")
+                   help="model or logits .npz, a logits tensor .npy/.pt, or a photo (.png, .jpg, ...) to predict a "
+                   "model from (default: the sample room)")
     config_option(p, RenderOptions, "backend", choices=BACKENDS)
     config_option(p, RenderOptions, "device", type=device_name, metavar="cpu|cuda[:N]")
     config_option(p, RenderOptions, "mode", choices=MODES)
@@ -111,11 +130,13 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RenderOptions, "frustum")
     config_option(p, RenderOptions, "threshold", type=unit_fraction, metavar="T")
     p.add_argument("--size", type=image_size, default=None, metavar="WxH",
-                   help=f"image size in pixels (default: {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}, or --camera's); up to "
+                   help=f"image size in pixels (default: {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}, or --camera's; for a "
+                   f"photo, each model panel's, default {PHOTO_SIZE[0]}x{PHOTO_SIZE[1]}); up to "
                    "2^28 pixels, large images drawn in tiles at about 8 bytes a pixel of memory (16000x16000: 2-3 GB)")
     p.add_argument("--camera", default=None, metavar="JSON", help="viewing camera: Camera JSON text or a file")
     add_grid_options(p, _default_grid(), size_default=False,
-                     what="of a bare logits tensor; with --benchmark, N for an N^3 room")
+                     what="of a bare logits tensor; with --benchmark, N for an N^3 room",
+                     hfov_help="for a photo MODEL, the photo's horizontal field of view (default: the model grid's)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR|FILE",
                    help=f"output folder (default {DEFAULT_OUT}/), or the file itself when it ends in an image or "
                    "video suffix (.png, .jpg, ...; .gif, .mp4 with --orbit)")
@@ -129,6 +150,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the mesh to FILE.glb (glTF's frame, +Y up, as glTF viewers expect) or FILE.ply "
                    "(the grid frame: OpenCV axes, y down; with face labels)")
     p.add_argument("--view", action="store_true", help="open pyrender's interactive Viewer (needs a display)")
+    ph = p.add_argument_group("a photo MODEL (predicted with SSZ)")
+    ph.add_argument("--checkpoint", type=Path, default=None, metavar="FILE",
+                    help="the SSZ model: a shipped .safetensors file or a training checkpoint (default: the shipped "
+                    "model, 64^3 cells from 128x128 images)")
+    ph.add_argument("--truth", type=Path, default=None, metavar="FILE.npz",
+                    help="the photo's ground truth, a fruxel model on the prediction's grid: adds its column and the "
+                    "own-view first-hit accuracy")
+    ph.add_argument("--fit", choices=FITS, default=None,
+                    help="without --hfov, how a photo of another aspect than the grid's is matched: crop (default; a "
+                    "centred crop of the grid's aspect) or pad (grey bands); with --hfov geometry alone decides")
     b = p.add_argument_group("Table 1 (--benchmark)")
     b.add_argument("--benchmark", action="store_true", help="measure Table 1 (per-frame model updates)")
     config_option(b, Table1Config, "frames", type=positive_int)
@@ -254,9 +285,9 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
         return RenderInput(np.ascontiguousarray(m.labels), m.grid, m.classes, SAMPLE_ROOM.stem)
     path = Path(model)
     suffix = path.suffix.lower()
-    if suffix not in (".npz", ".npy", ".pt", ".pth"):
-        raise InputError(f"{path}: unknown model file type: expected .npz (model or logits file) or .npy / .pt "
-                         "(logits tensor)")
+    if suffix not in MODEL_SUFFIXES:
+        raise InputError(f"{path}: unknown model file type: expected .npz (model or logits file), .npy / .pt "
+                         "(logits tensor) or a photo (.png, .jpg, ...)")
     if suffix == ".npz":
         if grid is not None:
             raise UsageError(f"--grid describes a bare logits tensor (.npy / .pt); {path} carries its grid")
@@ -294,6 +325,157 @@ def load_input(model: str | None, grid: FruxelGrid | None = None) -> RenderInput
     else:
         classes = _classes_for(int(tensor.shape[1]), side_classes, side)
     return RenderInput(tensor, grid, classes, path.stem)
+
+
+MODEL_SUFFIXES = (".npz", ".npy", ".pt", ".pth")
+"""Suffixes (lower case) of model, logits and tensor files."""
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".gif")
+"""Suffixes (lower case) of photos."""
+PHOTO_MAGIC = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"GIF87a", b"GIF89a", b"BM", b"II*\x00", b"MM\x00*")
+"""First bytes of PNG, JPEG, GIF, BMP and TIFF files (WebP: ``RIFF????WEBP``)."""
+
+
+def is_photo(model: str | None) -> bool:
+    """True when MODEL names a photo: a photo suffix (:data:`PHOTO_SUFFIXES`), or a file of another suffix (not a
+    model's) that starts like an image (:data:`PHOTO_MAGIC`)."""
+    if model is None:
+        return False
+    path = Path(model)
+    suffix = path.suffix.lower()
+    if suffix in MODEL_SUFFIXES:
+        return False
+    if suffix in PHOTO_SUFFIXES:
+        return True
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError:
+        return False
+    return head.startswith(PHOTO_MAGIC) or (head[:4] == b"RIFF" and head[8:12] == b"WEBP")
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A photo MODEL after prediction: what its picture shows besides the predicted model."""
+
+    framed: Any
+    """``(h, w, 3)`` uint8 RGB: the photo framed to the view of the grid's camera, :data:`PHOTO_DISPLAY` wide."""
+    truth: RenderInput | None
+    """The ``--truth`` model, or None."""
+    title: str
+    """The picture's title: the photo, the model, where and how fast it predicted, and the own-view accuracy."""
+
+
+def _check_photo_options(args: argparse.Namespace, photo: bool) -> None:
+    """Refuse options that do not fit a photo MODEL, or photo options without one."""
+    import math
+
+    if not photo:
+        given = [flag for flag, v in (("--checkpoint", args.checkpoint), ("--truth", args.truth),
+                                      ("--fit", args.fit)) if v is not None]
+        if given:
+            raise UsageError(f"{', '.join(given)}: only for a photo MODEL (.png, .jpg, ...)")
+        return
+    grid = [g for g in grid_options_given(args) if g != "--hfov"]
+    if grid:
+        raise UsageError(f"{', '.join(grid)}: the grid options describe a bare logits tensor; a photo is predicted "
+                         "on the SSZ model's own grid")
+    if args.hfov is not None and not (math.isfinite(args.hfov) and 0.0 < args.hfov < 180.0):
+        raise UsageError(f"--hfov {args.hfov:g}: a photo's horizontal field of view must be in (0, 180) degrees")
+
+
+def _describe_grid(g: FruxelGrid) -> str:
+    return f"{g.width}x{g.height}x{g.depth} cells, {g.z_near:g}-{g.z_far:g} m, {g.hfov:g} degrees"
+
+
+def _own_view_accuracy(pred: Any, truth: Any) -> float | None:
+    """Own-view first-hit accuracy (SPEC section 9), percent: ``(1, C, D, H, W)`` logits against ``(D, H, W)``
+    labels; None when the truth's own view hits nothing."""
+    import numpy as np
+    import torch
+
+    from fruxel.train.eval.metrics import first_surface
+
+    p = first_surface(torch.as_tensor(pred).argmax(dim=1).cpu())[0]
+    t = first_surface(torch.from_numpy(np.array(truth, dtype=np.int64))[None])[0]
+    hit = t != 0
+    return 100.0 * float(((p == t) & hit).sum()) / float(hit.sum()) if bool(hit.any()) else None
+
+
+def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
+    """Predict the model of a photo MODEL (see the module docstring).
+
+    Returns:
+        The prediction (logits ``(1, C, D, H, W)`` float32, on the prediction's device) and the photo's
+        :class:`Photo`.
+
+    Raises:
+        ImageError: an unreadable photo. ModelFileError: an unusable ``--checkpoint``. FruxelFileError,
+        InputError: an unusable ``--truth``. UsageError: options that do not fit a photo.
+    """
+    import time
+
+    import numpy as np
+
+    import fruxel
+    from fruxel.render.frames import RenderInput
+    from fruxel.train.predict import (
+        default_model,
+        frame_image,
+        load_image,
+        load_predictor,
+        share_cpu,
+        to_tensor,
+    )
+
+    _check_photo_options(args, True)
+    path = Path(args.model)
+    image = load_image(path)
+    truth = None
+    if args.truth is not None:
+        t = fruxel.load(args.truth)
+        truth = RenderInput(np.ascontiguousarray(t.labels), t.grid, t.classes, args.truth.stem)
+    checkpoint = str(args.checkpoint) if args.checkpoint is not None else default_model()
+    predictor = load_predictor(checkpoint, device=args.device, batch=1)
+    if predictor.device.type == "cpu":
+        share_cpu()
+    grid, classes = predictor.config.grid, predictor.config.classes
+    if truth is not None:
+        if truth.grid != grid:
+            raise InputError(f"--truth {args.truth}: its grid ({_describe_grid(truth.grid)}) is not the model's "
+                             f"({_describe_grid(grid)})")
+        if len(truth.classes) != len(classes):
+            raise InputError(f"--truth {args.truth}: {len(truth.classes)} classes, the model predicts {len(classes)}")
+    fit = args.fit or FITS[0]
+    x = to_tensor([frame_image(image, grid, predictor.config.image_size, args.hfov, fit)], predictor.device)
+    # The first call sets up the backend's kernels (seconds on a loaded CPU); the time shown is the second's.
+    predictor.logits(x)
+    t0 = time.perf_counter()
+    logits = predictor.logits(x)
+    if predictor.device.type == "cuda":
+        import torch
+
+        torch.cuda.synchronize(predictor.device)  # the time is the prediction's, not its launch's
+    ms = 1000.0 * (time.perf_counter() - t0)
+    height = round(PHOTO_DISPLAY * grid.height / grid.width)
+    framed = frame_image(image, grid, (height, PHOTO_DISPLAY), args.hfov, fit)
+    hfov = args.hfov if args.hfov is not None else grid.hfov
+    title = (f"{path.name} ({image.shape[1]}x{image.shape[0]}, {hfov:g}\N{DEGREE SIGN}) \N{RIGHTWARDS ARROW} SSZ "
+             f"{Path(checkpoint).name} ({grid.width}x{grid.height}x{grid.depth} cells, {grid.z_near:g}-"
+             f"{grid.z_far:g} m), predicted on {predictor.device.type} in {ms:.0f} ms")
+    if truth is not None:
+        acc = _own_view_accuracy(logits, truth.volume)
+        if acc is not None:
+            title += f"; own-view first-hit accuracy against {args.truth.name}: {acc:.1f} %"
+    return RenderInput(logits, grid, classes, path.stem), Photo(framed, truth, title)
+
+
+def load_source(args: argparse.Namespace) -> tuple[RenderInput, Photo | None]:
+    """MODEL as :func:`load_input` reads it, or a photo's prediction (:func:`load_photo`)."""
+    if is_photo(args.model):
+        return load_photo(args)
+    _check_photo_options(args, False)
+    return load_input(args.model, _input_grid(args)), None
 
 
 def _read_camera_file(text: str) -> str:
@@ -405,24 +587,39 @@ def run_render(args: argparse.Namespace) -> list[Path]:
                                       ("--video", args.video)) if v is not None]
         if given:
             raise UsageError(f"--view shows the model in a window and writes no file: leave out {', '.join(given)}")
-    inp = load_input(args.model, _input_grid(args))
-    camera = viewing_camera(args.camera, inp.grid, args.size)
+    inp, photo = load_source(args)
     opts = _render_options(args)
+    frames = FrameRenderer(inp, opts)
+    pictures: Any = frames
+    if photo is None:
+        camera = viewing_camera(args.camera, inp.grid, args.size)
+    else:
+        from fruxel.render.compare import PhotoComparison
+        from fruxel.render.frames import default_camera
+
+        truth = FrameRenderer(photo.truth, opts) if photo.truth is not None else None
+        pictures = PhotoComparison(photo.framed, frames, truth, title=photo.title,
+                                   headings=("photo, in the model's view", "SSZ prediction", "ground truth"))
+        if args.camera is not None:
+            camera = viewing_camera(args.camera, inp.grid, args.size)
+        else:
+            # Fitted to what the models hold: the grid's far end is mostly empty.
+            camera = default_camera(inp.grid, *(args.size or PHOTO_SIZE), points=pictures.model_points())
     if args.view:
         open_viewer(inp, opts, camera)
         return []
     target = output_path(args, inp.name)
-    frames = FrameRenderer(inp, opts)
     outputs: list[tuple[Path, Any]] = []
     if args.orbit is not None:
         from tqdm import tqdm
 
-        cams = orbit(inp.grid, camera, args.orbit, points=frames.model_points())
+        cams = orbit(inp.grid, camera, args.orbit, points=pictures.model_points())
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
-        images = frames.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
-        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix)))
+        images = pictures.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
+        keep = [(255, 255, 255), *inp.classes.palette()[1:]]
+        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
     else:
-        image, fmt = frames.image(camera), image_format(target)
+        image, fmt = pictures.image(camera), image_format(target)
         outputs.append((target, lambda tmp: save_image(tmp, image, fmt)))
     if args.export is not None:
         from fruxel.mesh import encode_mesh
@@ -479,7 +676,7 @@ def _benchmark(args: argparse.Namespace) -> list[Path]:
     model = None
     if args.model is not None:
         # Scores are turned into labels once, before timing.
-        inp = load_input(args.model)
+        inp = load_photo(args)[0] if is_photo(args.model) else load_input(args.model)
         labels = labels_from_scores(to_numpy(inp.volume)[0], axis=0) if inp.is_scores else inp.volume
         model = (labels, inp.grid, inp.classes)
     result = run(cfg, model)

@@ -81,10 +81,18 @@ class RenderInput:
 
 
 # ---------------------------------------------------------------------------------------------------- cameras
-def default_camera(grid: FruxelGrid, width: int, height: int) -> Camera:
-    """The default viewing camera (module docstring): oblique, fitted to the frustum, its image centred."""
+def default_camera(grid: FruxelGrid, width: int, height: int, points: Any = None) -> Camera:
+    """The default viewing camera (module docstring): oblique, fitted to the frustum, its image centred.
+
+    Args:
+        grid: the model's grid.
+        width, height: image size, pixels.
+        points: ``(N, 3)`` points to fit instead of the frustum, grid frame (e.g. the occupied cells' corners of
+            the models a picture compares, :func:`occupied_points`); None for the whole frustum.
+    """
     d = orbit_direction(math.radians(DEFAULT_AZIMUTH), math.radians(DEFAULT_ELEVATION))
-    return look_at_grid(grid, d, width=width, height=height, hfov=DEFAULT_HFOV, margin=FIT_MARGIN, centre=True)
+    return look_at_grid(grid, d, points=points, width=width, height=height, hfov=DEFAULT_HFOV, margin=FIT_MARGIN,
+                        centre=True)
 
 
 def orbit(grid: FruxelGrid, base: Camera, n: int, points: Any = None) -> list[Camera]:
@@ -289,6 +297,16 @@ class FrameRenderer:
 
         return kernels.registry.describe(self.opts.backend, self.opts.device, self.inp.volume)
 
+    def mesh_caption(self) -> str:
+        """What the last mesh image shows, in words: shell, meshing and triangles."""
+        return (f"mesh: shell {self.opts.mesh_shell}, {self.opts.meshing}, "
+                f"{0 if self.mesh is None else self.mesh.n_faces} triangles")
+
+    def raycast_caption(self) -> str:
+        """What a ray-cast image shows, in words: the kernel's backend and the shell."""
+        shell = self.opts.raycast_shell
+        return f"ray cast: first_hit on {self._backend_name()}" + ("" if shell == "none" else f", shell {shell}")
+
     def picture(self, camera: Camera) -> tuple[np.ndarray, list[int]]:
         """The image of the chosen mode without legend (with captions for ``"both"``): ``(h, w', 3)`` uint8, and
         the labels it shows."""
@@ -300,11 +318,8 @@ class FrameRenderer:
             return self.raycast_image(camera)
         mimg, mp = self.mesh_image(camera)
         rimg, rp = self.raycast_image(camera)
-        mimg = draw_caption(mimg, f"mesh: shell {self.opts.mesh_shell}, {self.opts.meshing}, "
-                                  f"{0 if self.mesh is None else self.mesh.n_faces} triangles")
-        shell = self.opts.raycast_shell
-        rimg = draw_caption(rimg, f"ray cast: first_hit on {self._backend_name()}"
-                                  + ("" if shell == "none" else f", shell {shell}"))
+        mimg = draw_caption(mimg, self.mesh_caption())
+        rimg = draw_caption(rimg, self.raycast_caption())
         gap = np.full((mimg.shape[0], 2, 3), 160, np.uint8)
         return np.concatenate([mimg, gap, rimg], axis=1), sorted(set(mp) | set(rp))
 
@@ -326,7 +341,8 @@ class FrameRenderer:
         return [draw_legend(p, self.inp.classes, present, corner=corner) for p, _ in pictures]
 
 
-def _has_display() -> bool:
+def has_display() -> bool:
+    """True when a window can be opened: macOS, Windows, or ``DISPLAY`` / ``WAYLAND_DISPLAY`` set."""
     if sys.platform in ("darwin", "win32"):
         return True
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
@@ -338,7 +354,7 @@ def open_viewer(inp: RenderInput, opts: RenderOptions, camera: Camera) -> None:
     Raises:
         RenderError: no display, or the Viewer could not open a window.
     """
-    if not _has_display():
+    if not has_display():
         raise RenderError("the interactive viewer needs a display (DISPLAY is not set); render offscreen instead")
     if os.environ.get("PYOPENGL_PLATFORM") == "egl":
         # EGL is headless; the Viewer needs the window system's GL. Only this process is affected.

@@ -9,8 +9,9 @@ of one and a failure leaves any earlier file as it was.
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -80,21 +81,77 @@ def check_video_writer(path: str | Path) -> None:
         raise RenderError("MP4 output needs imageio-ffmpeg (pip install imageio-ffmpeg); or write a .gif")
 
 
-def save_video(file: str | Path, frames: Sequence[np.ndarray], fps: int, suffix: str) -> None:
-    """Write frames (each ``(h, w, 3)`` uint8) to ``file`` (as it is, not atomically) as a looping GIF or an MP4
-    by ``suffix`` (``file`` must end in it too: imageio picks its writer by the name)."""
+def save_video(file: str | Path, frames: Iterable[np.ndarray], fps: float, suffix: str,
+               colours: Sequence[Sequence[int]] = ()) -> None:
+    """Write frames (each ``(h, w, 3)`` uint8, one size) to ``file`` (as it is, not atomically) as a looping GIF or
+    an MP4 by ``suffix`` (``file`` must end in it too: imageio picks its writer by the name).
+
+    ``frames`` may be a generator: an MP4 is encoded as the frames come (memory holds one frame), a GIF once all
+    have come. A GIF has one palette for all frames (:func:`gif_palette`) holding ``colours`` exactly (RGB uint8:
+    the background, the class colours of flat faces and legend swatches).
+
+    Raises:
+        RenderError: no frames.
+    """
     if suffix.lower() == ".mp4":
         import imageio.v2 as imageio
 
-        # libx264 with yuv420p needs even sizes; pad by one row / column where needed.
-        h, w = frames[0].shape[:2]
-        padded = [np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") for f in frames]
-        imageio.mimwrite(file, padded, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+        writer = None
+        try:
+            for f in frames:
+                if writer is None:
+                    writer = imageio.get_writer(file, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+                # libx264 with yuv420p needs even sizes; pad by one row / column where needed.
+                h, w = f.shape[:2]
+                writer.append_data(np.pad(f, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        finally:
+            if writer is not None:
+                writer.close()
+        if writer is None:
+            raise RenderError("no frames to write")
     else:
         from PIL import Image
 
-        ims = [Image.fromarray(f) for f in frames]
+        rgb = [np.ascontiguousarray(f[..., :3]) for f in frames]
+        if not rgb:
+            raise RenderError("no frames to write")
+        palette = gif_palette(rgb, colours)
+        ims = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.FLOYDSTEINBERG) for f in rgb]
         ims[0].save(file, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps), loop=0)
+
+
+GIF_PALETTE_FRAMES = 8
+"""Frames (evenly spaced) that a GIF's one palette is made from."""
+
+
+def gif_palette(frames: Sequence[np.ndarray], colours: Sequence[Sequence[int]] = ()) -> Any:
+    """One 256-colour palette for all frames of a GIF (a ``"P"`` PIL image to quantise them with): ``colours``
+    exactly, then the median-cut colours of up to :data:`GIF_PALETTE_FRAMES` evenly spaced frames. With a palette
+    per frame, a class colour (a legend swatch, a wall) would change from frame to frame, and a colour covering
+    few pixels (a swatch) would be merged away.
+
+    Args:
+        frames: ``(h, w, 3)`` uint8 RGB frames.
+        colours: RGB colours to keep exactly (at most 128; repeats are dropped).
+    """
+    from PIL import Image
+
+    keep = list(dict.fromkeys(tuple(int(v) for v in c[:3]) for c in colours))[:128]
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), GIF_PALETTE_FRAMES)).round().astype(int))
+    h = min(f.shape[0] for f in frames)
+    mosaic = np.concatenate([frames[i][:h] for i in pick], axis=1)
+    rest = Image.fromarray(mosaic).quantize(256 - len(keep), method=Image.Quantize.MEDIANCUT,
+                                            dither=Image.Dither.NONE)
+    others = np.asarray(rest.getpalette()[:3 * (256 - len(keep))], dtype=np.int32).reshape(-1, 3)
+    if keep:
+        # Pillow finds a pixel's palette entry among colours equal in their top 5 bits; a median-cut colour that
+        # close to a kept one could take its pixels (white drawn as (253, 253, 253)).
+        near = np.all(np.abs(others[:, None, :] - np.asarray(keep)[None]) < 8, axis=-1).any(axis=1)
+        others = others[~near]
+    values = [v for c in keep for v in c] + others.reshape(-1).tolist()
+    palette = Image.new("P", (1, 1))
+    palette.putpalette(values + [0] * (768 - len(values)))
+    return palette
 
 
 def write_video(path: str | Path, frames: Sequence[np.ndarray], fps: int) -> Path:

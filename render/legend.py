@@ -150,12 +150,44 @@ def draw_legend(image: Any, classes: ClassTable, labels: Iterable[int],
     return _draw_on(img, (x0, y0, x0 + panel_w + 1, y0 + panel_h + 1), draw)
 
 
-def draw_caption(image: Any, text: str) -> np.ndarray:
-    """A copy of ``image`` (``(h, w, 3)`` uint8 RGB) with one line of ``text`` in its top-left corner."""
+def wrap_text(text: str, width: int, font: Any, measure: Any = None) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels in ``font``, broken at spaces; a word wider than that is
+    cut and ends in an ellipsis.
+
+    Args:
+        text: the text.
+        width: the widest line, pixels.
+        font: a PIL font (:func:`fruxel.render.compat.default_font`).
+        measure: a PIL ``ImageDraw`` to measure with (None: made here).
+
+    Returns:
+        The lines (one empty line for empty text).
+    """
+    if measure is None:
+        from PIL import Image, ImageDraw
+
+        measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    lines: list[str] = []
+    for word in text.split():
+        joined = f"{lines[-1]} {word}" if lines else word
+        if lines and measure.textlength(joined, font=font) <= width:
+            lines[-1] = joined
+            continue
+        if measure.textlength(word, font=font) > width:
+            while len(word) > 1 and measure.textlength(word + "\u2026", font=font) > width:
+                word = word[:-1]
+            word += "\u2026"
+        lines.append(word)
+    return lines or [""]
+
+
+def draw_caption(image: Any, text: str, font_size: int | None = None) -> np.ndarray:
+    """A copy of ``image`` (``(h, w, 3)`` uint8 RGB) with one line of ``text`` in its top-left corner, in
+    ``font_size`` pixels (None: scaled with the image's height, as legends are)."""
     from PIL import Image, ImageDraw
 
     img = np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3])
-    s = _scale(img.shape[0])
+    s = _scale(img.shape[0]) if font_size is None else font_size / 11
     pad = max(2, round(PAD * s))
     font = default_font(max(8, round(11 * s)))
     box = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((2 * pad, 2 * pad), text, font=font)

@@ -5,7 +5,8 @@ view is the grid's. A photo of another size and field of view is mapped onto it 
 optical centre (the photo's centre):
 
 * with its field of view given (``hfov``), geometry decides: a wider photo is cropped to the grid's view, a
-  narrower one is padded (the model sees grey where the photo has nothing), in both directions;
+  narrower one is padded (the model sees grey where the photo has nothing), in both directions; ``fit`` plays no
+  part, since enlarging the photo to fill the frame would change the field of view the model sees;
 * without it, the photo is taken as the grid's view and only its aspect is brought to ``H / W``: crop
   (``fit="crop"``, default) or pad (``fit="pad"``) rows or columns, centred;
 * then it is resized to the model's image size (area averaging when shrinking).
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 
 from fruxel.errors import FruxelError
+from fruxel.grid import FruxelGrid
 
 from .config import ModelConfig
 
@@ -30,9 +32,6 @@ PAD_VALUE = 128
 """Grey (uint8) the model sees where the photo has nothing."""
 MAX_IMAGE_PIXELS = 1 << 28
 """Largest photo accepted, in pixels (a decompression-bomb bound)."""
-MAX_FRAME_GROWTH = 16
-"""A photo whose frame (the grid's view at the photo's scale) would hold more than this many times its pixels (and
-the model image's) is framed at the model's scale instead (see :func:`prepare_image`)."""
 
 
 class ImageError(FruxelError, ValueError):
@@ -68,21 +67,67 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     return np.ascontiguousarray(rgb)
 
 
-def _crop_or_pad(img: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """Centre ``img`` in a ``rows x cols`` frame: crop where it is larger, pad with :data:`PAD_VALUE` where
-    smaller."""
+def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: float | None = None,
+                fit: str = "crop") -> np.ndarray:
+    """A photo framed to the view of a grid's own camera (see the module docstring), at any size: the model's
+    input (:func:`prepare_image`) or a picture of what the model sees.
+
+    Only the photo's part inside the frame is resized, then placed on :data:`PAD_VALUE` grey: a photo whose field of
+    view is far narrower than the grid's (a frame many times the photo's size) costs no more memory than the result.
+
+    Args:
+        img: ``(h, w, 3)`` uint8 RGB.
+        grid: the grid whose camera's view the photo is brought to.
+        size: ``(height, width)`` of the result in pixels, in the grid's aspect ``H / W``.
+        hfov: the photo's horizontal field of view, degrees (None: the grid's own).
+        fit: ``"crop"`` or ``"pad"``, how the aspect is matched when ``hfov`` is None.
+
+    Returns:
+        ``(height, width, 3)`` uint8 RGB.
+
+    Raises:
+        ValueError: a wrong array, field of view or fit.
+    """
+    from PIL import Image
+
+    if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"image must be an (h, w, 3) uint8 array, got {getattr(img, 'dtype', type(img))} "
+                         f"{getattr(img, 'shape', '')}")
+    if fit not in ("crop", "pad"):
+        raise ValueError(f"fit must be 'crop' or 'pad', got {fit!r}")
+    if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
+        raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
     h, w = img.shape[:2]
-    out = np.full((rows, cols, 3), PAD_VALUE, dtype=np.uint8)
+    # Pixels per unit of x/z of the photo; the grid's view spans u in [-tu, tu].
+    f = w / (2.0 * math.tan(math.radians(hfov if hfov is not None else grid.hfov) / 2.0))
+    cols = max(1, round(2.0 * grid.tu * f))
+    if hfov is None:
+        # The photo is the grid's view (cols == w): the frame is the largest centred region of the grid's aspect
+        # inside the photo (crop) or the smallest one around it (pad).
+        aspect_cols = max(1, round(h * grid.width / grid.height))
+        cols = min(cols, aspect_cols) if fit == "crop" else max(cols, aspect_cols)
+    rows = max(1, round(cols * grid.height / grid.width))
+    # The frame (rows x cols photo pixels) centred on the photo: the photo's part inside it, and where it lands.
     sy, sx = max(0, (h - rows) // 2), max(0, (w - cols) // 2)
     dy, dx = max(0, (rows - h) // 2), max(0, (cols - w) // 2)
     ch, cw = min(h, rows), min(w, cols)
-    out[dy:dy + ch, dx:dx + cw] = img[sy:sy + ch, sx:sx + cw]
+    out_h, out_w = size
+    part = Image.fromarray(np.ascontiguousarray(img[sy:sy + ch, sx:sx + cw]))
+    resample = Image.BOX if rows >= out_h else Image.BILINEAR
+    if (ch, cw) == (rows, cols):
+        return np.asarray(part.resize((out_w, out_h), resample), dtype=np.uint8)
+    y0, y1 = round(dy * out_h / rows), round((dy + ch) * out_h / rows)
+    x0, x1 = round(dx * out_w / cols), round((dx + cw) * out_w / cols)
+    out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
+    if y1 > y0 and x1 > x0:
+        out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
     return out
 
 
 def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = None, fit: str = "crop"
                   ) -> np.ndarray:
-    """A photo as the model's input image (see the module docstring).
+    """A photo as the model's input image (see the module docstring): :func:`frame_image` at the model's image
+    size.
 
     Args:
         img: ``(h, w, 3)`` uint8 RGB.
@@ -97,42 +142,7 @@ def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = Non
     Raises:
         ValueError: a wrong array, field of view or fit.
     """
-    from PIL import Image
-
-    if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"image must be an (h, w, 3) uint8 array, got {getattr(img, 'dtype', type(img))} "
-                         f"{getattr(img, 'shape', '')}")
-    if fit not in ("crop", "pad"):
-        raise ValueError(f"fit must be 'crop' or 'pad', got {fit!r}")
-    grid = config.grid
-    if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
-        raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
-    h, w = img.shape[:2]
-    if hfov is None:
-        # The photo is taken as the grid's view: the largest centred region of the grid's aspect (crop), or the
-        # smallest frame of that aspect around the whole photo (pad).
-        wide = w * grid.height >= h * grid.width
-        if (fit == "crop") == wide:
-            rows, cols = h, max(1, round(h * grid.width / grid.height))
-        else:
-            rows, cols = max(1, round(w * grid.height / grid.width)), w
-    else:
-        # Geometry decides: the grid's view spans x/z in [-tu, tu] and y/z in [-tv, tv]; the photo's focal length
-        # in pixels follows from its field of view (square pixels). Outside the photo is padded, beyond the
-        # grid's view cropped; ``fit`` plays no part.
-        f = w / (2.0 * math.tan(math.radians(hfov) / 2.0))
-        cols, rows = max(1, round(2.0 * grid.tu * f)), max(1, round(2.0 * grid.tv * f))
-    out_h, out_w = config.image_size
-    if rows * cols > MAX_FRAME_GROWTH * max(h * w, out_h * out_w):
-        # A photo far narrower than the grid's view (a long lens): padding it at its own scale would need a huge
-        # frame (1 degree of a 4000-pixel photo in a 60 degree grid: 264000^2 pixels), so it is shrunk to the
-        # model's scale first and padded there: the same picture up to resampling.
-        s = out_w / cols
-        img = np.asarray(Image.fromarray(img).resize((max(1, round(w * s)), max(1, round(h * s))), Image.BOX))
-        rows, cols = out_h, out_w
-    framed = _crop_or_pad(img, rows, cols)
-    resample = Image.BOX if rows >= out_h else Image.BILINEAR
-    return np.asarray(Image.fromarray(framed).resize((out_w, out_h), resample), dtype=np.uint8)
+    return frame_image(img, config.grid, config.image_size, hfov, fit)
 
 
 def to_tensor(images: Sequence[np.ndarray], device: torch.device | str = "cpu") -> torch.Tensor:
@@ -175,6 +185,23 @@ class Predictor:
                 pending = []
         if pending:
             yield from self.logits(to_tensor(pending, self.device))
+
+
+def share_cpu(threads: int | None = None) -> int:
+    """Set torch's CPU threads for prediction: ``threads``, or half the usable cores (at least 1), leaving the rest
+    to what runs beside the model (rendering, kernels, a simulator). torch's own default, a thread per core,
+    stalls whenever another process takes a core, since its threads wait for each other at every operation: on a
+    shared 2-core machine with one core busy elsewhere, SSZ took 2-2.8 s a prediction on 2 threads and 0.14-0.15 s
+    on 1.
+
+    Returns:
+        The number of threads set.
+    """
+    if threads is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        threads = max(1, cores // 2)
+    torch.set_num_threads(int(threads))
+    return int(threads)
 
 
 def default_model() -> str:

@@ -1,4 +1,6 @@
-"""Bundled data: the procedural sample room (``sample_room.npz``, described by :mod:`fruxel.data.make_sample`)."""
+"""Bundled data: the procedural sample room (``sample_room.npz``, described by :mod:`fruxel.data.make_sample`) and a
+photo of a held-out simulator room with its ground truth (``photo.png``, ``photo_truth.npz``, written by
+``scripts/make_photo.py``), the input of ``make demo``."""
 
 from __future__ import annotations
 
@@ -9,3 +11,11 @@ DATA_DIR = Path(__file__).resolve().parent
 
 SAMPLE_ROOM = DATA_DIR / "sample_room.npz"
 """Path of the sample room model (load it with :func:`fruxel.load`)."""
+
+PHOTO = DATA_DIR / "photo.png"
+"""Path of the bundled photo: 512 x 512 RGB, a robot camera's view (horizontal field of view 60 degrees) of a room
+of the simulator's test split, which the shipped SSZ model never saw in training."""
+
+PHOTO_TRUTH = DATA_DIR / "photo_truth.npz"
+"""Path of the photo's ground truth, a fruxel model (64^3 cells, 0.5 to 8 m, 60 degrees) aligned with the photo's
+camera (load it with :func:`fruxel.load`)."""

@@ -38,6 +38,7 @@ import numpy as np
 
 from fruxel.camera import OPENCV_TO_OPENGL, Camera, check_pose, look_at_grid
 from fruxel.render.compat import default_font, import_pyrender
+from fruxel.render.legend import wrap_text
 from fruxel.render.scene import renderers
 
 from .config import SimConfig
@@ -302,23 +303,6 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
                         height=height, hfov=grid.hfov)
 
 
-def _wrap(text: str, width: int, font: Any, measure: Any) -> list[str]:
-    """``text`` in lines no wider than ``width`` pixels, broken at spaces (a word wider than that is cut and
-    ends in an ellipsis)."""
-    lines: list[str] = []
-    for word in text.split():
-        joined = f"{lines[-1]} {word}" if lines else word
-        if lines and measure.textlength(joined, font=font) <= width:
-            lines[-1] = joined
-            continue
-        if measure.textlength(word, font=font) > width:
-            while len(word) > 1 and measure.textlength(word + "…", font=font) > width:
-                word = word[:-1]
-            word += "…"
-        lines.append(word)
-    return lines or [""]
-
-
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
                   titles: Sequence[str]) -> np.ndarray:
     """Compose preview panels into one image: a title row, one row per sample, a class legend.
@@ -348,7 +332,7 @@ def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], p
     font = default_font(13)
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
     # Panel titles wrap to their panel's width (narrow panels got overlapping titles).
-    wrapped = [[_wrap(name, panel.shape[1], font, measure) for name, panel in row] for row in scaled]
+    wrapped = [[wrap_text(name, panel.shape[1], font, measure) for name, panel in row] for row in scaled]
     title_lines = [max(len(lines) for lines in row) for row in wrapped]
     legend_w = pad + sum(30 + int(measure.textlength(n, font=font)) for n in names[1:])
     titles_w = pad + max(int(measure.textlength(t, font=font)) for t in titles) + pad

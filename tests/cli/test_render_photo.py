@@ -1,0 +1,191 @@
+"""``fruxel-render PHOTO``: SSZ predicts the photo's model, which is drawn beside the photo and its ground truth;
+``make demo`` runs it on the bundled photo. Runs call :func:`fruxel.cli.render.main` in this process."""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import fruxel
+from fruxel import kernels
+from fruxel.cli.render import build_parser, is_photo, load_photo, main
+from fruxel.data import PHOTO, PHOTO_TRUTH, SAMPLE_ROOM
+from fruxel.render.compare import GAP, fit_height
+from fruxel.train.predict import frame_image, load_image
+
+from .errors import assert_one_error_line
+
+ROOT = Path(__file__).resolve().parents[2]
+TRUTH = fruxel.load(PHOTO_TRUTH)
+PALETTE = TRUTH.classes.palette()
+CLASSES = {name: TRUTH.classes.index(name) for name in TRUTH.classes.names}
+W, H = 96, 72
+"""Model panel size of these tests."""
+BACKEND_ARGS = {"warp-cpu": ("--backend", "warp", "--device", "cpu"), "opencl": ("--backend", "opencl")}
+"""fruxel-render's options for each CPU backend of fruxel.kernels.available_backends()."""
+
+
+def run_cli(*argv: object) -> int:
+    return main([str(a) for a in argv])
+
+
+def read_png(path: Path) -> np.ndarray:
+    assert path.is_file() and path.stat().st_size > 0
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def colours_present(image: np.ndarray) -> set[str]:
+    flat = image.reshape(-1, 3)
+    return {n for n, c in CLASSES.items() if c and np.any(np.all(flat == PALETTE[c], axis=1))}
+
+
+def find(picture: np.ndarray, panel: np.ndarray) -> list[tuple[int, int]]:
+    """Top-left corners where ``panel`` occurs exactly in ``picture``."""
+    ph, pw = panel.shape[:2]
+    ys, xs = np.nonzero(np.all(picture == panel[0, 0], axis=-1))
+    return [(int(y), int(x)) for y, x in zip(ys, xs, strict=True)
+            if y + ph <= picture.shape[0] and x + pw <= picture.shape[1]
+            and np.array_equal(picture[y:y + ph, x:x + pw], panel)]
+
+
+@pytest.fixture(scope="module")
+def photo_panel() -> np.ndarray:
+    """The photo as its panel shows it at height H: framed to the grid's view, then scaled."""
+    return fit_height(frame_image(load_image(PHOTO), TRUTH.grid, (512, 512)), H)
+
+
+# ---------------------------------------------------------------------------------------------------- pictures
+@pytest.mark.parametrize("backend", list(BACKEND_ARGS))
+def test_photo_with_truth_on_each_backend(tmp_path: Path, backend: str, photo_panel: np.ndarray,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    if backend not in kernels.available_backends():
+        pytest.skip(f"{backend} is not available here: {kernels.available_backends()}")
+    assert run_cli(PHOTO, "--truth", PHOTO_TRUTH, *BACKEND_ARGS[backend], "--mode", "both", "--shading", "flat",
+                   "--size", f"{W}x{H}", "--out", tmp_path) == 0
+    out = tmp_path / "photo_both.png"
+    assert capsys.readouterr().out.split() == [str(out)]
+    img = read_png(out)
+    # Photo column (H wide: the grid is square), prediction and truth columns, each panel W wide.
+    assert img.shape[1] == GAP + H + GAP + W + GAP + W + GAP
+    assert img.shape[0] > 2 * H + GAP
+    # The photo's panel, and every class of the room in the flat-shaded models.
+    assert len(find(img, photo_panel)) == 1
+    assert colours_present(img) == {"wall", "floor", "window", "furniture", "door", "sculpture"}
+
+
+def test_photo_without_truth_has_two_columns(tmp_path: Path, photo_panel: np.ndarray) -> None:
+    assert run_cli(PHOTO, "--mode", "raycast", "--size", f"{W}x{H}", "--out", tmp_path / "p.png") == 0
+    img = read_png(tmp_path / "p.png")
+    assert img.shape[1] == GAP + H + GAP + W + GAP
+    assert find(img, photo_panel)
+
+
+def test_title_states_the_own_view_accuracy() -> None:
+    args = build_parser().parse_args([str(PHOTO), "--truth", str(PHOTO_TRUTH), "--device", "cpu"])
+    inp, photo = load_photo(args)
+    assert inp.volume.shape == (1, 7, 64, 64, 64) and inp.grid == TRUTH.grid
+    assert "ssz64.safetensors" in photo.title and "92.1 %" in photo.title, photo.title
+    assert photo.truth is not None and np.array_equal(photo.truth.volume, TRUTH.labels)
+
+
+def test_make_demo_command_line_runs(tmp_path: Path) -> None:
+    """The Makefile's demo recipe, as written there, with its output folder moved into tmp_path."""
+    recipe = next(line.strip() for line in (ROOT / "Makefile").read_text().splitlines()
+                  if "bin/fruxel-render" in line)
+    argv = shlex.split(recipe)[1:]
+    out = argv.index("--out")
+    argv[out + 1] = str(tmp_path / argv[out + 1])
+    argv = [str(ROOT / a) if (ROOT / a).is_file() else a for a in argv]
+    assert str(PHOTO) in argv and str(PHOTO_TRUTH) in argv
+    assert main(argv) == 0
+    pictures = list(tmp_path.rglob("*.png"))
+    assert len(pictures) == 1 and pictures[0].name == "photo_both.png"
+    img = read_png(pictures[0])
+    assert img.shape[0] > 700 and img.shape[1] > 1200
+
+
+def test_photo_is_recognised_by_its_content(tmp_path: Path) -> None:
+    snap = tmp_path / "snap.dat"
+    shutil.copy(PHOTO, snap)
+    assert is_photo(str(snap)) and is_photo(str(PHOTO)) and not is_photo(str(SAMPLE_ROOM))
+    assert run_cli(snap, "--mode", "mesh", "--size", f"{W}x{H}", "--out", tmp_path) == 0
+    assert (tmp_path / "snap_mesh.png").is_file()
+
+
+def test_photo_orbit_and_export(tmp_path: Path) -> None:
+    trimesh = pytest.importorskip("trimesh")
+    assert run_cli(PHOTO, "--orbit", "2", "--size", f"{W}x{H}", "--out", tmp_path / "o.gif",
+                   "--export", tmp_path / "pred.glb") == 0
+    with Image.open(tmp_path / "o.gif") as gif:
+        assert gif.n_frames == 2
+    assert len(trimesh.load(tmp_path / "pred.glb", force="mesh", process=False).faces) > 1000
+
+
+def test_wider_field_of_view_changes_the_prediction() -> None:
+    """--hfov reaches the model: at 90 degrees the model sees the photo's middle 58 %, enlarged."""
+    base = build_parser().parse_args([str(PHOTO), "--device", "cpu"])
+    wide = build_parser().parse_args([str(PHOTO), "--hfov", "90", "--device", "cpu"])
+    a, b = (load_photo(x)[0].volume.argmax(1) for x in (base, wide))
+    assert float((a != b).float().mean()) > 0.002
+
+
+# ---------------------------------------------------------------------------------------------------- errors
+def _one_error_line(rc: int, err: str, *words: str) -> None:
+    assert_one_error_line("fruxel-render", rc, err, *words)
+
+
+@pytest.mark.parametrize(("case", "words"), [
+    ("garbage", ("bad.png", "not a readable image")),
+    ("truncated", ("bad.png", "not a readable image")),
+    ("missing", ("bad.png", "no such file")),
+    ("folder", ("bad.png", "not a regular file")),
+])
+def test_bad_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str, words: tuple[str, ...]) -> None:
+    bad = tmp_path / "bad.png"
+    if case == "garbage":
+        bad.write_bytes(b"this is not an image\n" * 10)
+    elif case == "truncated":
+        bad.write_bytes(PHOTO.read_bytes()[:300])
+    elif case == "folder":
+        bad.mkdir()
+    _one_error_line(run_cli(bad, "--out", tmp_path / "out"), capsys.readouterr().err, *words)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("hfov", ["200", "0", "-10", "nan", "inf", "180"])
+def test_bad_hfov(tmp_path: Path, capsys: pytest.CaptureFixture[str], hfov: str) -> None:
+    _one_error_line(run_cli(PHOTO, "--hfov", hfov, "--out", tmp_path / "out"), capsys.readouterr().err, "--hfov",
+                    "(0, 180)")
+    assert not (tmp_path / "out").exists()
+
+
+def test_hfov_that_is_no_number(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        run_cli(PHOTO, "--hfov", "wide", "--out", tmp_path)
+    _one_error_line(e.value.code, capsys.readouterr().err, "--hfov", "wide")
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (("--truth", SAMPLE_ROOM), ("--truth", "grid")),
+    (("--truth", "missing.npz"), ("missing.npz",)),
+    (("--checkpoint", "missing.safetensors"), ("missing.safetensors", "no such file")),
+    (("--checkpoint", PHOTO_TRUTH), ("photo_truth.npz",)),
+    (("--grid", "32"), ("--grid", "photo")),
+    (("--z-far", "6"), ("--z-far", "photo")),
+])
+def test_options_that_do_not_fit_the_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                           argv: tuple[object, ...], words: tuple[str, ...]) -> None:
+    _one_error_line(run_cli(PHOTO, *argv, "--out", tmp_path / "out"), capsys.readouterr().err, *words)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("option", [("--truth", PHOTO_TRUTH), ("--checkpoint", PHOTO_TRUTH), ("--fit", "pad")])
+def test_photo_options_without_a_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                       option: tuple[object, ...]) -> None:
+    _one_error_line(run_cli(SAMPLE_ROOM, *option, "--out", tmp_path), capsys.readouterr().err, str(option[0]),
+                    "photo")
