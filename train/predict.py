@@ -116,12 +116,21 @@ def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: 
     resample = Image.BOX if rows >= out_h else Image.BILINEAR
     if (ch, cw) == (rows, cols):
         return np.asarray(part.resize((out_w, out_h), resample), dtype=np.uint8)
-    y0, y1 = round(dy * out_h / rows), round((dy + ch) * out_h / rows)
-    x0, x1 = round(dx * out_w / cols), round((dx + cw) * out_w / cols)
     out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
-    if y1 > y0 and x1 > x0:
-        out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
+    # Where the part lands, at least one pixel (a photo narrower than one output pixel still shows), centred.
+    (y0, y1), (x0, x1) = (_span(d, c, n, m) for d, c, n, m in ((dy, ch, rows, out_h), (dx, cw, cols, out_w)))
+    out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
     return out
+
+
+def _span(offset: int, length: int, frame: int, size: int) -> tuple[int, int]:
+    """Output pixels ``[a, b)`` of ``size`` that hold frame pixels ``[offset, offset + length)`` of ``frame``:
+    their own span rounded, or the one pixel nearest its centre when that span rounds to nothing."""
+    a, b = round(offset * size / frame), round((offset + length) * size / frame)
+    if b > a:
+        return a, b
+    a = min(size - 1, max(0, int((offset + length / 2) * size / frame)))
+    return a, a + 1
 
 
 def prepare_image(img: np.ndarray, config: ModelConfig, hfov: float | None = None, fit: str = "crop"
