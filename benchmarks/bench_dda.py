@@ -24,7 +24,6 @@ re-renders the "## OpenCL on the CPU: first_hit against a plain DDA" section of 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -294,17 +293,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print()
     print(table(result))
     if not args.no_write:
-        out = Path(args.out)
-        png = out.with_suffix(".png")
-        chart(result, png)
-        try:
-            result["chart"] = str(png.resolve().relative_to(common.ROOT))
-        except ValueError:
-            result["chart"] = str(png)
-        common.write_text(out.with_suffix(".json"), json.dumps(result, indent=1, default=str))
-        files = sorted(common.RESULTS.glob("dda*.json"))
-        common.replace_section(common.BENCHMARKS_MD, SECTION, section([json.loads(f.read_text()) for f in files]))
-        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")
+        common.write_result(result, Path(args.out), chart, "dda*.json", SECTION, section)
     return result
 
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import statistics
 import sys
 import time
@@ -440,17 +439,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"{b}: {r['vs_build_and_cast']:.1f}x faster than the peer incl. BVH rebuild, "
               f"{r['vs_cast']:.2f}x vs its cast alone")
     if not args.no_write:
-        out = Path(args.out)
-        png = out.with_suffix(".png")
-        bar_chart(result, png)
-        try:
-            result["chart"] = str(png.resolve().relative_to(common.ROOT))
-        except ValueError:
-            result["chart"] = str(png)
-        common.write_text(out.with_suffix(".json"), json.dumps(result, indent=1, default=str))
-        files = sorted(common.RESULTS.glob("kernels*.json"))
-        common.replace_section(common.BENCHMARKS_MD, SECTION, section([json.loads(f.read_text()) for f in files]))
-        print(f"wrote {out.with_suffix('.json')}, {png} and the {SECTION!r} section of {common.BENCHMARKS_MD.name}")
+        common.write_result(result, Path(args.out), bar_chart, "kernels*.json", SECTION, section)
     return result
 
 

@@ -9,6 +9,7 @@ included) never imports it.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import platform
 import re
@@ -270,3 +271,21 @@ def replace_section(path: Path, heading: str, text: str) -> None:
     """Replace the ``heading`` section of BENCHMARKS.md-like ``path`` with ``text``, or append it
     (:func:`fruxel.render.markdown.replace_markdown_section`; a missing file gets this folder's title)."""
     replace_markdown_section(path, heading, text, new_file=_NEW_FILE)
+
+
+def write_result(result: dict[str, Any], out: Path, chart: Callable[[dict[str, Any], Path], Any], pattern: str,
+                 heading: str, section: Callable[[list[dict[str, Any]]], str]) -> None:
+    """Write one benchmark run: ``out.png`` by ``chart`` (its path stored in ``result["chart"]``, relative to the
+    repository when inside it), ``out.json``, then the ``heading`` section of BENCHMARKS.md rebuilt by ``section``
+    from every result file of :data:`RESULTS` matching ``pattern`` (this run's and earlier machines')."""
+    png = out.with_suffix(".png")
+    chart(result, png)
+    try:
+        result["chart"] = str(png.resolve().relative_to(ROOT))
+    except ValueError:
+        result["chart"] = str(png)
+    write_text(out.with_suffix(".json"), json.dumps(result, indent=1, default=str))
+    files = sorted(RESULTS.glob(pattern))
+    replace_section(BENCHMARKS_MD, heading, section([json.loads(f.read_text()) for f in files]))
+    print(f"wrote {out.with_suffix('.json')}, {png} and the {heading!r} section of {BENCHMARKS_MD.name}")
+
