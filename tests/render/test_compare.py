@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from fruxel import DEFAULT_CLASSES
-from fruxel.render.compare import GAP, compose, fit_height, legend_strip
+from fruxel.render.compare import GAP, Layout, compose, fit_height, legend_strip
 from fruxel.render.images import save_video
 
 PALETTE = DEFAULT_CLASSES.palette()
@@ -101,3 +101,27 @@ def test_no_frames_is_an_error(tmp_path: Path, suffix: str) -> None:
 
     with pytest.raises(RenderError, match="no frames"):
         save_video(tmp_path / f"v{suffix}", iter([]), 10, suffix)
+
+
+def test_layout_fill_is_compose_and_keeps_its_template() -> None:
+    rng = np.random.default_rng(3)
+    cols = [[rng.integers(0, 256, (40, 30, 3), dtype=np.uint8)],
+            [rng.integers(0, 256, (40, 50, 3), dtype=np.uint8), rng.integers(0, 256, (20, 50, 4), dtype=np.uint8)]]
+    heads, title = ["one", "two with a heading long enough to wrap"], "a title over both"
+    layout = Layout([[p.shape[:2] for p in c] for c in cols], heads, DEFAULT_CLASSES, [1, 2, 5], title=title)
+    before = layout.template.copy()
+    first = layout.fill(cols)
+    assert np.array_equal(first, compose(cols, heads, DEFAULT_CLASSES, [1, 2, 5], title=title))
+    other = [[cols[0][0] // 2], [cols[1][0] // 3, cols[1][1] // 4]]
+    second = layout.fill(other)
+    assert np.array_equal(second, compose(other, heads, DEFAULT_CLASSES, [1, 2, 5], title=title))
+    assert np.array_equal(layout.template, before) and not np.array_equal(first, second)
+
+
+@pytest.mark.parametrize("cols, match", [([[panel(40, 30, (1, 1, 1))]], "2 columns"),
+                                         ([[panel(40, 30, (1, 1, 1))], []], "1 panels"),
+                                         ([[panel(40, 31, (1, 1, 1))], [panel(40, 50, (1, 1, 1))]], "40x30")])
+def test_layout_refuses_panels_it_was_not_made_for(cols, match) -> None:
+    layout = Layout([[(40, 30)], [(40, 50)]], ["a", "b"], DEFAULT_CLASSES, [1])
+    with pytest.raises(ValueError, match=match):
+        layout.fill(cols)
