@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -163,26 +164,67 @@ def to_tensor(images: Sequence[np.ndarray], device: torch.device | str = "cpu") 
 class Predictor:
     """Batched prediction with a trained generator.
 
+    On CUDA each input shape's forward pass is captured once as a CUDA graph and replayed: at batch 1 the eager
+    pass is bound by launching its few hundred kernels from Python (11.5 ms on the H100 for ``ssz64``, against
+    about 1.4 ms of work), which the live robot demo pays every frame.
+
     Args:
         generator: the model, in eval mode.
         config: its architecture.
         device: where to predict.
         batch: images per forward pass.
+        graphs: replay CUDA graphs on CUDA (False: always the eager pass).
     """
 
+    MAX_GRAPHS = 4
+    """Input shapes kept captured at once (a batched run needs two: the full batches and the last one)."""
+
     def __init__(self, generator: torch.nn.Module, config: ModelConfig, device: torch.device | str = "cpu",
-                 batch: int = 8) -> None:
+                 batch: int = 8, graphs: bool = True) -> None:
         self.device = torch.device(device)
         self.generator = generator.to(self.device).eval()
         self.config = config
         self.batch = max(1, int(batch))
+        self.graphs = bool(graphs) and self.device.type == "cuda"
+        self._graphs: dict[tuple[int, ...], tuple[Any, torch.Tensor, torch.Tensor]] = {}
+
+    def _forward(self, images: torch.Tensor) -> torch.Tensor:
+        cuda = self.device.type == "cuda"
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cuda):
+            return self.generator(images).logits.float()
 
     @torch.no_grad()
     def logits(self, images: torch.Tensor) -> torch.Tensor:
         """``(B, 3, h, w)`` float images -> ``(B, C, D, H, W)`` float32 logits (bfloat16 compute on CUDA)."""
-        cuda = self.device.type == "cuda"
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cuda):
-            return self.generator(images.to(self.device)).logits.float()
+        images = images.to(self.device)
+        if not self.graphs:
+            return self._forward(images)
+        key = tuple(images.shape)
+        entry = self._graphs.get(key)
+        if entry is None:
+            entry = self._capture(images)
+            if len(self._graphs) >= self.MAX_GRAPHS:
+                self._graphs.pop(next(iter(self._graphs)))
+            self._graphs[key] = entry
+        graph, static_in, static_out = entry
+        static_in.copy_(images)
+        graph.replay()
+        # The graph writes the same buffer on every replay: a caller keeps its own copy.
+        return static_out.clone()
+
+    def _capture(self, images: torch.Tensor) -> tuple[Any, torch.Tensor, torch.Tensor]:
+        static_in = images.clone()
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            # Warm-up off the capture: cuDNN chooses its algorithms and the allocator settles.
+            for _ in range(2):
+                self._forward(static_in)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            static_out = self._forward(static_in)
+        return graph, static_in, static_out
 
     def predict(self, images: Iterable[np.ndarray]) -> Iterator[torch.Tensor]:
         """Logits ``(C, D, H, W)`` float32 of each prepared image (:func:`prepare_image`), in order."""
@@ -218,13 +260,14 @@ def default_model() -> str:
     return str(os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "ssz64.safetensors"))
 
 
-def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8) -> Predictor:
+def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True
+                   ) -> Predictor:
     """A :class:`Predictor` of a shipped model or training checkpoint (the shipped default when ``path`` is
-    None), on ``device`` (CUDA when present)."""
+    None), on ``device`` (CUDA when present); ``graphs`` as :class:`Predictor`'s."""
     from .export import load_generator
 
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     gen, config, _ = load_generator(path or default_model(), device=dev)
-    return Predictor(gen, config, dev, batch)
+    return Predictor(gen, config, dev, batch, graphs)
 
 
