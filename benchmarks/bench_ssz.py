@@ -12,6 +12,10 @@ Parts (``--parts``, default all):
   processes), profiled: samples/s over the steps after the first 20, peak memory and where a step's time goes
   (data wait, forward, losses, backward, optimiser). Profiling synchronises at phase boundaries; a second,
   unprofiled measure gives the plain throughput.
+* ``pointwise``: the decoder's 1x1x1 convolutions as :class:`~fruxel.train.models.blocks.Pointwise3d` computes
+  them (a batched matrix product) against cuDNN's ``Conv3d`` on the same ``ssz64`` generator, in alternating
+  rounds: forward + backward with the objective at batch 32 (eager), and batch-1 image -> logits replayed as a
+  CUDA graph (:class:`~fruxel.train.predict.Predictor`); medians over the rounds.
 * ``latency``: batch 1, image -> logits, and image -> logits -> own-view ``shell`` -> ``first_hit`` of a
   512 x 512 view -> shaded image, per preset, eager and compiled (``torch.compile(mode="reduce-overhead")``,
   CUDA graphs); median of ``--repeat`` calls, synchronised.
@@ -157,6 +161,55 @@ DEFAULT_VARIANTS = ["1,0,0,parity", "1,1,0,parity", "1000,1,0,parity", "1,1,1,pa
 """The design variants timed by default (``--variants``)."""
 
 
+def bench_pointwise(device: Any, rounds: int = 5, batch: int = 32) -> list[dict[str, Any]]:
+    """``pointwise`` part (module docstring): Pointwise3d's product against cuDNN's 1x1x1 Conv3d."""
+    import torch
+    from torch import nn
+
+    from fruxel.train.config import preset as get_preset
+    from fruxel.train.export import build_generator
+    from fruxel.train.models.blocks import Pointwise3d
+    from fruxel.train.objective import SSZObjective
+    from fruxel.train.predict import Predictor
+
+    cfg = get_preset("ssz64")
+    m = cfg.model
+    g = build_generator(m).to(device)
+    obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=device))
+    x = torch.rand(batch, 3, *m.image_size, device=device)
+    y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=device, dtype=torch.uint8)
+    x1 = torch.rand(1, 3, *m.image_size, device=device)
+    forwards = {"matmul (Pointwise3d)": Pointwise3d.forward, "nn.Conv3d (cuDNN)": nn.Conv3d.forward}
+    predictors = {k: Predictor(g, m, device, batch=1) for k in forwards}
+    times: dict[str, dict[str, list[float]]] = {k: {"train": [], "logits": []} for k in forwards}
+
+    def step() -> None:
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
+            loss = obj(g(x), y)["total"]
+        loss.backward()
+
+    try:
+        for _ in range(rounds):
+            for name, fwd in forwards.items():
+                Pointwise3d.forward = fwd  # type: ignore[method-assign]
+                g.train()
+                times[name]["train"].append(_median_ms(step, device, 5, warm=2))
+                # Each predictor captures its graph with this variant's kernels on its first call.
+                g.eval()
+                pr = predictors[name]
+                times[name]["logits"].append(_median_ms(lambda pr=pr: pr.logits(x1), device, 20, warm=3))
+    finally:
+        Pointwise3d.forward = forwards["matmul (Pointwise3d)"]  # type: ignore[method-assign]
+    rows = []
+    for name, t in times.items():
+        row = {"form": name, "train_ms": statistics.median(t["train"]), "logits_ms": statistics.median(t["logits"]),
+               "batch": batch, "rounds": rounds}
+        rows.append(row)
+        print(f"pointwise {name}: fwd+bwd batch {batch} {row['train_ms']:.1f} ms, batch-1 logits "
+              f"{row['logits_ms']:.2f} ms", flush=True)
+    return rows
+
+
 def bench_train(preset: str, device: Any, steps: int, workers: int, overrides: dict[str, Any]) -> dict[str, Any]:
     """Profiled and plain training throughput of ``preset`` with streamed data."""
     import torch
@@ -250,8 +303,8 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--parts", nargs="+", default=["layers", "variants", "train", "latency"],
-                   choices=["layers", "variants", "train", "latency"])
+    p.add_argument("--parts", nargs="+", default=["layers", "variants", "pointwise", "train", "latency"],
+                   choices=["layers", "variants", "pointwise", "train", "latency"])
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
                    help="GROUP_WIDTH,CHANNELS_LAST,COMPILE,UPSAMPLE specs of the variants part")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
@@ -260,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=15, help="simulator processes per training run")
     p.add_argument("--train-override", default="{}", help="JSON config overrides of the training runs")
     p.add_argument("--repeat", type=int, default=30)
-    p.add_argument("--batch", type=int, default=32, help="batch of the layer benchmark")
+    p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
     p.add_argument("--out", default=None, help="PREFIX of PREFIX.json (default benchmarks/results/ssz-<device>)")
     p.add_argument("--render", action="store_true", help="only re-render BENCHMARKS.md from the results")
     args = p.parse_args(argv)
@@ -277,6 +330,8 @@ def main(argv: list[str] | None = None) -> int:
         result["layers"] = bench_layers(device, args.repeat, args.batch)
     if "variants" in args.parts:
         result["variants"] = bench_variants(device, args.variants)
+    if "pointwise" in args.parts:
+        result["pointwise"] = bench_pointwise(device, batch=args.batch)
     if "train" in args.parts:
         ov = json.loads(args.train_override)
         result["train"] = [bench_train(pr, device, args.steps, args.workers, ov) for pr in args.presets]
@@ -320,14 +375,21 @@ def render() -> None:
             lines += [f"| {x['upsample']} | {x['group_width']} | {x['channels_last']} | {x['compiled']} | "
                       f"{_fmt(x['ms'])} | {x['samples_per_s']:.0f} | {x.get('note', '')} |" for x in r["variants"]]
             lines.append("")
+        if r.get("pointwise"):
+            lines += ["The decoder's 1x1x1 convolutions, `ssz64` generator (alternating rounds, medians):", "",
+                      "| form | forward + backward, batch " + str(r["pointwise"][0]["batch"]) + ", ms | "
+                      "batch-1 image -> logits, ms |", "| --- | ---: | ---: |"]
+            lines += [f"| {x['form']} | {_fmt(x['train_ms'])} | {_fmt(x['logits_ms'], 2)} |" for x in r["pointwise"]]
+            lines.append("")
         if r.get("train"):
             lines += ["Training with the simulator streaming in the same run (profiled phases per step, ms; "
                       "samples/s from an unprofiled run):", "",
-                      "| preset | batch | workers | samples/s | peak GiB | data | forward | losses | backward | "
-                      "optimiser |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                      "| preset | compiled | batch | workers | samples/s | peak GiB | data | forward | losses | "
+                      "backward | optimiser |", "| --- | --- |" + " ---: |" * 9]
             for x in r["train"]:
                 ph = x.get("phases_ms", {})
-                lines.append(f"| {x['preset']} | {x['batch']} | {x['workers']} | {_fmt(x.get('samples_per_s'), 0)} | "
+                lines.append(f"| {x['preset']} | {bool(x.get('compile'))} | {x['batch']} | {x['workers']} | "
+                             f"{_fmt(x.get('samples_per_s'), 0)} | "
                              f"{_fmt(x.get('peak_memory_gib'))} | " + " | ".join(
                                  _fmt(ph.get(k)) for k in ("data", "forward", "loss", "backward", "optimizer")) + " |")
             lines.append("")

@@ -66,6 +66,41 @@ class Down2d(nn.Module):
         return self.body(x)
 
 
+class Pointwise3d(nn.Conv3d):
+    """A 1x1x1 ``Conv3d`` (the same parameters, initialisation and state-dict keys) computed as a matrix product
+    over the channels: ``weight (cout, cin) @ x[b] (cin, D*H*W)`` for each sample, or ``x (B, D, H, W, cin) @ weight.T`` for a
+    channels-last-3D input, whose output is channels-last-3D too.
+
+    On the H100, cuDNN ran the decoder's 1x1x1 convolutions at 64^3 with layout conversions around them
+    (NCDHW <-> NDHWC) and, for their weight gradients, an implicit-GEMM kernel that took 2-4 ms per layer at batch
+    32: a quarter of a training step's kernel time (``benchmarks/profile_ssz.py``). The same product on cuBLAS
+    runs at memory speed, forward and backward, and needs no conversion.
+
+    Args:
+        cin, cout: input and output channels.
+        bias: add a learnt bias per output channel.
+    """
+
+    def __init__(self, cin: int, cout: int, bias: bool = True) -> None:
+        super().__init__(cin, cout, 1, bias=bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, cin, D, H, W)`` -> ``(B, cout, D, H, W)``, in ``x``'s memory format."""
+        b, c, d, h, w = x.shape
+        weight = self.weight.view(self.out_channels, c)
+        if x.is_contiguous():
+            # bmm over the batch with the weight broadcast (stride 0): torch.matmul would fold (B, C, N) into
+            # (B * N, C) through a transposed copy of the whole volume, forward and backward.
+            y = torch.bmm(weight.expand(b, -1, -1), x.view(b, c, d * h * w))
+            if self.bias is not None:
+                # In the product's dtype (bfloat16 under autocast), as the convolution adds it.
+                y = y + self.bias.to(y.dtype).view(-1, 1)
+            return y.view(b, self.out_channels, d, h, w)
+        if x.is_contiguous(memory_format=torch.channels_last_3d):
+            return nn.functional.linear(x.permute(0, 2, 3, 4, 1), weight, self.bias).permute(0, 4, 1, 2, 3)
+        return super().forward(x)
+
+
 class InvertedResidual3d(nn.Module):
     """Volumetric inverted residual block: expand 1x1x1, depthwise 3x3x3, project 1x1x1, residual.
 
@@ -85,10 +120,10 @@ class InvertedResidual3d(nn.Module):
     def __init__(self, channels: int, expand: int, group_width: int = 1, spatial: bool = True) -> None:
         super().__init__()
         hidden = channels * expand
-        project = nn.Conv3d(hidden, channels, 1)
+        project = Pointwise3d(hidden, channels)
         nn.init.zeros_(project.weight)
         nn.init.zeros_(project.bias)
-        layers: list[nn.Module] = [nn.Conv3d(channels, hidden, 1), act3d()]
+        layers: list[nn.Module] = [Pointwise3d(channels, hidden), act3d()]
         if spatial:
             layers += [spatial_conv3d(hidden, group_width), act3d()]
         self.body = nn.Sequential(*layers, project)
@@ -162,7 +197,7 @@ class Up3d(nn.Module):
         if mode == "parity":
             # Depthwise ConvTranspose3d(kernel 2, stride 2) weights, one per channel and output parity.
             self.parity = nn.Parameter(torch.ones(1, cin, 1, 2, 1, 2, 1, 2))
-        self.post = nn.Sequential(act3d(), nn.Conv3d(cin, cout, 1), act3d())
+        self.post = nn.Sequential(act3d(), Pointwise3d(cin, cout), act3d())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, cin, D, H, W)`` -> ``(B, cout, 2D, 2H, 2W)``."""
@@ -218,9 +253,9 @@ class Lift(nn.Module):
         super().__init__()
         self.depth_channels = depth_channels
         self.from_2d = nn.Conv2d(c2d, cout, 1, bias=False)
-        self.from_3d = nn.Conv3d(c3d, cout, 1, bias=False) if c3d else None
-        self.from_coords = nn.Conv3d(3, cout, 1, bias=True)
-        self.from_depth = nn.Conv3d(depth_channels, cout, 1, bias=False) if depth_channels else None
+        self.from_3d = Pointwise3d(c3d, cout, bias=False) if c3d else None
+        self.from_coords = Pointwise3d(3, cout, bias=True)
+        self.from_depth = Pointwise3d(depth_channels, cout, bias=False) if depth_channels else None
         self.post = act3d()
 
     def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor | None,

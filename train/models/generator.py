@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Up3d, act2d
+from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Pointwise3d, Up3d, act2d
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 """Per-channel mean subtracted inside the model (inputs are RGB in [0, 1], SPEC section 8)."""
@@ -140,7 +140,7 @@ class SSZGenerator(nn.Module):
             nn.Sequential(*[InvertedResidual3d(decoder[s], expand, group_width, spatial=s > 0 or full_res_spatial)
                             for _ in range(decoder_blocks[s])])
             for s in range(levels))
-        self.head = nn.Conv3d(decoder[0], classes, 1)
+        self.head = Pointwise3d(decoder[0], classes)
 
     # ------------------------------------------------------------------ parts
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
