@@ -362,6 +362,8 @@ def render() -> None:
         where = m.get("gpu") if r.get("device", "").startswith("cuda") else m.get("cpu")
         lines += [f"### {where}, {m.get('cores', '?')} cores ({r.get('date', '?')}, torch {r.get('torch', '?')}, "
                   f"load {_fmt(m.get('load_average'))})", "", f"`{path.name}`", ""]
+        if r.get("note"):
+            lines += [r["note"], ""]
         if r.get("layers"):
             lines += ["Up-convolution of one decoder level, B x 16 x 32^3 -> 64^3, forward + backward:", "",
                       "| form | channels-last | compiled | ms |", "| --- | --- | --- | ---: |"]
@@ -395,10 +397,10 @@ def render() -> None:
             lines.append("")
         if r.get("latency"):
             lines += ["Batch 1 (median of synchronised calls):", "",
-                      "| preset | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms |",
-                      "| --- | --- | ---: | ---: |"]
-            lines += [f"| {x['preset']} | {x['compiled']} | {_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} |"
-                      for x in r["latency"]]
+                      "| preset | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms | note |",
+                      "| --- | --- | ---: | ---: | --- |"]
+            lines += [f"| {x['preset']} | {x['compiled']} | {_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
+                      f"{x.get('note', '')} |" for x in r["latency"]]
             lines.append("")
     common.replace_section(common.BENCHMARKS_MD, SECTION, "\n".join(lines))
     print(f"rendered {SECTION} of {common.BENCHMARKS_MD}")
