@@ -251,8 +251,9 @@ def _steady_rate(trainer: Any) -> float:
     return float(statistics.median(rates)) if rates else float("nan")
 
 
-def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict[str, Any]:
-    """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast."""
+def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen: bool = False) -> dict[str, Any]:
+    """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast; ``frozen`` compiles with
+    Inductor's freezing (weights as constants: batch norms folded into their convolutions, layouts chosen once)."""
     import numpy as np
     import torch
 
@@ -276,15 +277,21 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict
         with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=auto):
             return gen(img).logits
 
-    fwd = torch.compile(forward, mode="reduce-overhead") if compiled else forward
+    if frozen:
+        import torch._inductor.config as inductor_config
+
+        inductor_config.freezing = True
+    try:
+        fwd = torch.compile(forward, mode="reduce-overhead") if compiled else forward
+        logits_ms = _median_ms(lambda: fwd(x), device, repeat, warm=5)
+    finally:
+        if frozen:
+            inductor_config.freezing = False
     grid = m.grid
     centre = grid.centre()
     eye = centre + 1.2 * float(np.linalg.norm(grid.bounds()[1] - grid.bounds()[0])) * orbit_direction(0.6, 0.4)
     cam = Camera.look_at(eye, centre, width=512, height=512, hfov=60.0)
     palette = np.asarray(m.classes.palette(), dtype=np.uint8)
-
-    def logits_only() -> Any:
-        return fwd(x)
 
     def full() -> Any:
         logits = fwd(x)
@@ -293,10 +300,9 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool) -> dict
         one = type(hits)(label=hits.label[0], cell=hits.cell[0], depth=hits.depth[0], normal=hits.normal[0])
         return shade(one, cam, palette)
 
-    row = {"preset": preset, "compiled": compiled,
-           "logits_ms": _median_ms(logits_only, device, repeat, warm=5),
+    row = {"preset": preset, "compiled": compiled, "frozen": frozen, "logits_ms": logits_ms,
            "full_ms": _median_ms(full, device, repeat, warm=5)}
-    print(f"latency {preset} compiled={compiled}: image->logits {row['logits_ms']:.2f} ms, "
+    print(f"latency {preset} compiled={compiled} frozen={frozen}: image->logits {row['logits_ms']:.2f} ms, "
           f"->shell->raycast 512^2 {row['full_ms']:.2f} ms", flush=True)
     return row
 
@@ -313,6 +319,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=15, help="simulator processes per training run")
     p.add_argument("--train-override", default="{}", help="JSON config overrides of the training runs")
     p.add_argument("--repeat", type=int, default=30)
+    p.add_argument("--frozen", action="store_true", help="latency part: also compile with Inductor's freezing")
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
     p.add_argument("--out", default=None, help="PREFIX of PREFIX.json (default benchmarks/results/ssz-<device>)")
     p.add_argument("--render", action="store_true", help="only re-render BENCHMARKS.md from the results")
@@ -338,6 +345,8 @@ def main(argv: list[str] | None = None) -> int:
     if "latency" in args.parts:
         result["latency"] = [bench_latency(pr, device, args.repeat, c) for pr in args.presets
                              for c in ((False, True) if device.type == "cuda" else (False,))]
+        if args.frozen and device.type == "cuda":
+            result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True) for pr in args.presets]
     out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
@@ -399,7 +408,8 @@ def render() -> None:
             lines += ["Batch 1 (median of synchronised calls):", "",
                       "| preset | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms | note |",
                       "| --- | --- | ---: | ---: | --- |"]
-            lines += [f"| {x['preset']} | {x['compiled']} | {_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
+            lines += [f"| {x['preset']} | {x['compiled']}{', frozen' if x.get('frozen') else ''} | "
+                      f"{_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
                       f"{x.get('note', '')} |" for x in r["latency"]]
             lines.append("")
     common.replace_section(common.BENCHMARKS_MD, SECTION, "\n".join(lines))
