@@ -68,8 +68,8 @@ class Down2d(nn.Module):
 
 class Pointwise3d(nn.Conv3d):
     """A 1x1x1 ``Conv3d`` (the same parameters, initialisation and state-dict keys) computed as a matrix product
-    over the channels: ``weight (cout, cin) @ x[b] (cin, D*H*W)`` for each sample, or ``x (B, D, H, W, cin) @ weight.T`` for a
-    channels-last-3D input, whose output is channels-last-3D too.
+    over the channels: ``weight (cout, cin) @ x[b] (cin, D*H*W)`` for each sample, or ``x (B, D, H, W, cin) @
+    weight.T`` for a channels-last-3D input, whose output is channels-last-3D too.
 
     On the H100, cuDNN ran the decoder's 1x1x1 convolutions at 64^3 with layout conversions around them
     (NCDHW <-> NDHWC) and, for their weight gradients, an implicit-GEMM kernel that took 2-4 ms per layer at batch
