@@ -251,9 +251,16 @@ def _steady_rate(trainer: Any) -> float:
     return float(statistics.median(rates)) if rates else float("nan")
 
 
-def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen: bool = False) -> dict[str, Any]:
+LATENCY_FORMS = ("channels-last", "contiguous", "bf16")
+"""How the batch-1 generator is held on CUDA: channels-last weights under bfloat16 autocast, contiguous weights
+under autocast, or contiguous bfloat16 weights without autocast (no per-call weight casts)."""
+
+
+def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen: bool = False,
+                  form: str = "channels-last") -> dict[str, Any]:
     """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast; ``frozen`` compiles with
-    Inductor's freezing (weights as constants: batch norms folded into their convolutions, layouts chosen once)."""
+    Inductor's freezing (weights as constants: batch norms folded into their convolutions, layouts chosen once);
+    ``form`` one of :data:`LATENCY_FORMS` (CUDA only; the CPU runs float32 contiguous)."""
     import numpy as np
     import torch
 
@@ -267,15 +274,18 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
     cfg = get_preset(preset)
     m = cfg.model
     gen = build_generator(m).to(device).eval()
-    if device.type == "cuda":
+    cuda = device.type == "cuda"
+    if cuda and form == "channels-last":
         gen = channels_last(gen)
+    if cuda and form == "bf16":
+        gen = gen.to(torch.bfloat16)
     h, w = m.image_size
     x = torch.rand(1, 3, h, w, device=device)
-    auto = device.type == "cuda"
+    auto = cuda and form != "bf16"
 
     def forward(img: Any) -> Any:
         with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=auto):
-            return gen(img).logits
+            return gen(img.to(torch.bfloat16) if cuda and form == "bf16" else img).logits
 
     if frozen:
         import torch._inductor.config as inductor_config
@@ -300,9 +310,11 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
         one = type(hits)(label=hits.label[0], cell=hits.cell[0], depth=hits.depth[0], normal=hits.normal[0])
         return shade(one, cam, palette)
 
-    row = {"preset": preset, "compiled": compiled, "frozen": frozen, "logits_ms": logits_ms,
+    row = {"preset": preset, "compiled": compiled, "frozen": frozen, "form": form if cuda else "float32",
+           "logits_ms": logits_ms,
            "full_ms": _median_ms(full, device, repeat, warm=5)}
-    print(f"latency {preset} compiled={compiled} frozen={frozen}: image->logits {row['logits_ms']:.2f} ms, "
+    print(f"latency {preset} {row['form']} compiled={compiled} frozen={frozen}: "
+          f"image->logits {row['logits_ms']:.2f} ms, "
           f"->shell->raycast 512^2 {row['full_ms']:.2f} ms", flush=True)
     return row
 
@@ -320,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-override", default="{}", help="JSON config overrides of the training runs")
     p.add_argument("--repeat", type=int, default=30)
     p.add_argument("--frozen", action="store_true", help="latency part: also compile with Inductor's freezing")
+    p.add_argument("--forms", nargs="+", default=["channels-last"], choices=LATENCY_FORMS,
+                   help="latency part on CUDA: also the compiled generator in these forms (LATENCY_FORMS)")
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
     p.add_argument("--out", default=None, help="PREFIX of PREFIX.json (default benchmarks/results/ssz-<device>)")
     p.add_argument("--render", action="store_true", help="only re-render BENCHMARKS.md from the results")
@@ -345,6 +359,9 @@ def main(argv: list[str] | None = None) -> int:
     if "latency" in args.parts:
         result["latency"] = [bench_latency(pr, device, args.repeat, c) for pr in args.presets
                              for c in ((False, True) if device.type == "cuda" else (False,))]
+        if device.type == "cuda":
+            result["latency"] += [bench_latency(pr, device, args.repeat, True, form=f) for pr in args.presets
+                                  for f in args.forms if f != "channels-last"]
         if args.frozen and device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True) for pr in args.presets]
     out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
@@ -406,9 +423,11 @@ def render() -> None:
             lines.append("")
         if r.get("latency"):
             lines += ["Batch 1 (median of synchronised calls):", "",
-                      "| preset | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms | note |",
-                      "| --- | --- | ---: | ---: | --- |"]
-            lines += [f"| {x['preset']} | {x['compiled']}{', frozen' if x.get('frozen') else ''} | "
+                      "| preset | form | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms | "
+                      "note |", "| --- | --- | --- | ---: | ---: | --- |"]
+            old_form = "channels-last" if r.get("device", "").startswith("cuda") else "float32"
+            lines += [f"| {x['preset']} | {x.get('form', old_form)} | "
+                      f"{x['compiled']}{', frozen' if x.get('frozen') else ''} | "
                       f"{_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
                       f"{x.get('note', '')} |" for x in r["latency"]]
             lines.append("")

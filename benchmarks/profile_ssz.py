@@ -47,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--top", type=int, default=30, help="kernels to print")
     p.add_argument("--channels-last", action="store_true", help="channels-last weights and input")
     p.add_argument("--compile", action="store_true", help="torch.compile the generator")
+    p.add_argument("--inference", action="store_true", help="profile prediction instead: the forward pass alone, "
+                   "eval mode, no gradients (with --compile as CUDA graphs, mode reduce-overhead)")
     p.add_argument("--ops", type=int, default=0, help="also print the N operators (with input shapes) that take "
                    "the most device time")
     p.add_argument("--out", default=None, help="write the table as JSON here")
@@ -71,13 +73,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.channels_last:
         g = channels_last(g)
     obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=dev))
-    f = torch.compile(g) if args.compile else g
+    if args.inference:
+        g.eval()
+    f = torch.compile(g, mode="reduce-overhead" if args.inference else None) if args.compile else g
     x = torch.rand(batch, 3, *m.image_size, device=dev)
     if args.channels_last:
         x = x.contiguous(memory_format=torch.channels_last)
     y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=dev, dtype=torch.uint8)
 
     def step() -> None:
+        if args.inference:
+            with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
+                f(x)
+            return
         with torch.autocast("cuda", dtype=torch.bfloat16):
             loss = obj(f(x), y)["total"]
         loss.backward()
@@ -111,18 +119,20 @@ def main(argv: list[str] | None = None) -> int:
     for r in table:
         kinds[r["kind"]] = kinds.get(r["kind"], 0.0) + r["ms"]
     launches = sum(r["calls"] for r in table)
-    print(f"{args.preset}, batch {batch}{', compiled' if args.compile else ''}: {wall:.1f} ms a step (wall, "
-          f"unprofiled), {total:.1f} ms of kernels ({launches} launches, {len(table)} distinct kernels)")
+    what = ("prediction" if args.inference else "training") + (", compiled" if args.compile else "")
+    print(f"{args.preset}, batch {batch}, {what}: {wall:.2f} ms a step (wall, "
+          f"unprofiled), {total:.2f} ms of kernels ({launches} launches, {len(table)} distinct kernels)")
     for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]):
         print(f"  {k:14s} {v:8.2f} ms  {100 * v / total:5.1f} %")
     for r in table[:args.top]:
-        print(f"{r['ms']:8.2f} ms {r['calls']:4d}x  {r['kind']:13s} {r['name'][:110]}")
+        print(f"{r['ms']:8.3f} ms {r['calls']:4d}x  {r['kind']:13s} {r['name'][:110]}")
     if args.ops:
         print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_device_time_total",
                                                                  row_limit=args.ops, max_name_column_width=40,
                                                                  max_shapes_column_width=90))
     if args.out:
         Path(args.out).write_text(json.dumps({"preset": args.preset, "batch": batch, "compiled": args.compile,
+                                              "inference": args.inference,
                                               "wall_ms": wall, "launches": launches, "total_ms": total,
                                               "kinds": kinds, "kernels": table}, indent=1) + "\n")
     return 0
