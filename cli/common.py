@@ -28,7 +28,8 @@ Every command (``fruxel-render``, ``fruxel-sim``, and the training, evaluation a
 - any other exception is a bug in fruxel and keeps its traceback.
 
 Argument vocabulary shared by the commands: :func:`positive_int`, :func:`non_negative_int`,
-:func:`unit_fraction`, :func:`device_name`, :func:`image_size` (``WxH``), and the grid options of
+:func:`unit_fraction`, :func:`positive_float`, :func:`field_of_view` (degrees), :func:`device_name`,
+:func:`image_size` (``WxH``), and the grid options of
 :func:`add_grid_options`: ``--grid N|WxHxD`` (cells) with ``--z-near``, ``--z-far`` and ``--hfov``.
 
 Outputs: :func:`write_outputs` writes a command's files together (all or none), making their folders and removing
@@ -153,15 +154,29 @@ def non_negative_int(text: str) -> int:
     return _integer(text, 0, "non-negative")
 
 
-def unit_fraction(text: str) -> float:
-    """argparse type: a number in (0, 1], such as an occupancy threshold."""
+def _real(text: str, ok: Callable[[float], bool], what: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < v <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not ok(v):  # NaN fails every comparison, so no check lets it through
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
     return v
+
+
+def unit_fraction(text: str) -> float:
+    """argparse type: a number in (0, 1], such as an occupancy threshold."""
+    return _real(text, lambda v: 0.0 < v <= 1.0, "a number in (0, 1]")
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0, such as frames per second."""
+    return _real(text, lambda v: 0.0 < v < float("inf"), "a positive number")
+
+
+def field_of_view(text: str) -> float:
+    """argparse type: a horizontal field of view in degrees, in (0, 180)."""
+    return _real(text, lambda v: 0.0 < v < 180.0, "degrees in (0, 180)")
 
 
 def device_name(text: str) -> str:

@@ -28,13 +28,21 @@ one line ``fruxel-predict: error: ...`` with exit status 2 (:func:`fruxel.cli.co
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .common import OneLineParser, UsageError, add_model_options, positive_int, run, torch_device, write_outputs
+from .common import (
+    OneLineParser,
+    UsageError,
+    add_model_options,
+    field_of_view,
+    positive_int,
+    run,
+    torch_device,
+    write_outputs,
+)
 
 PROG = "fruxel-predict"
 DEFAULT_OUT = Path("out")
@@ -43,17 +51,6 @@ MODEL_SUFFIX = ".npz"
 """Suffix of the fruxel model file written per image."""
 LOGITS_SUFFIX = ".logits.npz"
 """Suffix of the logits file written per image with ``--logits``."""
-
-
-def field_of_view(text: str) -> float:
-    """argparse type: a horizontal field of view in degrees, in (0, 180)."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected degrees in (0, 180), got {text!r}") from None
-    if not (math.isfinite(v) and 0.0 < v < 180.0):
-        raise argparse.ArgumentTypeError(f"expected degrees in (0, 180), got {text!r}")
-    return v
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -38,6 +38,7 @@ from .common import (
     config_values,
     device_name,
     non_negative_int,
+    positive_float,
     positive_int,
     run,
     write_outputs,
@@ -51,16 +52,6 @@ QUEUE_FRAMES = 2
 """Camera frames the simulator's process may render ahead of the live viewer."""
 LINGER: float | None = None
 """Seconds the live viewer stays open after the drive; None: until its window is closed."""
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (v > 0 and v < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, metavar="FILE",
                    help=f"write the video here (.mp4 or .gif) instead of showing the viewer (default without a "
                    f"display: {DEFAULT_OUT})")
-    p.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+    p.add_argument("--fps", type=positive_float, default=None, metavar="F",
                    help="playback rate of the video (default: robot time, 10 / --steps-per-frame)")
     p.add_argument("--view", action="store_true", help="show pyrender's viewer (needs a display; the default there)")
     return p

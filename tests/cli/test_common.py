@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -19,10 +20,13 @@ from fruxel.cli.common import (
     config_option,
     config_values,
     field_docs,
+    field_of_view,
     grid_from_args,
     grid_size,
     image_size,
+    positive_float,
     run,
+    unit_fraction,
 )
 from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid, GridError
@@ -115,6 +119,20 @@ def test_image_and_grid_sizes() -> None:
             grid_size(bad)
     with pytest.raises(argparse.ArgumentTypeError, match="--z-near, --z-far and --hfov"):
         grid_size("64,48,64,0.5,6,60")
+
+
+@pytest.mark.parametrize(("parse", "good", "bad", "what"), [
+    (unit_fraction, ["1", "0.25", "1e-3"], ["0", "1.5", "-0.1", "nan", "inf", "x"], "a number in (0, 1]"),
+    (positive_float, ["5", "0.1", "1e9"], ["0", "-2", "nan", "inf", ""], "a positive number"),
+    (field_of_view, ["60", "0.5", "179.9"], ["0", "180", "-10", "nan", "inf", "wide"], "degrees in (0, 180)"),
+])
+def test_bounded_numbers(parse, good: list[str], bad: list[str], what: str) -> None:
+    for text in good:
+        assert parse(text) == float(text)
+    for text in bad:
+        line = rf"^expected {re.escape(what)}, got {re.escape(repr(text))}$"
+        with pytest.raises(argparse.ArgumentTypeError, match=line):
+            parse(text)
 
 
 # ---------------------------------------------------------------------------------------------------- dataclasses
