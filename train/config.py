@@ -75,6 +75,10 @@ class ModelConfig:
     group_width: int = 1
     """Channels per group of the decoder's 3x3x3 convolutions: 1 is depthwise (SPEC section 8); wider groups run
     on faster GPU kernels (measured in benchmarks/bench_ssz.py)."""
+    surface_fusion: bool = False
+    """Add the image-side heads' own-view answer to the logits of every cell
+    (:class:`fruxel.train.models.blocks.SurfaceFusion`; needs ``lift = "depth"``). On in every preset; off here
+    so that a config or model file written before the field existed reads as the model it describes."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -112,6 +116,8 @@ class ModelConfig:
                               "in every axis")
         if self.lift not in ("depth", "copy"):
             raise ConfigError(f"{path}.lift must be 'depth' or 'copy', got {self.lift!r}")
+        if self.surface_fusion and self.lift != "depth":
+            raise ConfigError(f"{path}.surface_fusion needs {path}.lift = 'depth' (the column depth head)")
         if self.upsample not in ("parity", "resize", "transpose"):
             raise ConfigError(f"{path}.upsample must be 'parity', 'resize' or 'transpose', got {self.upsample!r}")
         w = self.grid.width << self.image_scale
@@ -353,20 +359,20 @@ def _presets() -> dict[str, TrainConfig]:
             name="tiny",
             model=ModelConfig(grid=tiny_grid, levels=4, stem=8, encoder=(16, 24, 32, 48), encoder_blocks=(1, 1, 1, 1),
                               encoder_expand=2, topdown=(16, 24, 32, 48), decoder=(8, 16, 24, 32),
-                              decoder_blocks=(1, 1, 1, 1), discriminator=(16, 32)),
+                              decoder_blocks=(1, 1, 1, 1), discriminator=(16, 32), surface_fusion=True),
             data=DataConfig(workers=1, eval_samples=32, frequency_samples=64),
             optim=OptimConfig(warmup=20),
             run=RunConfig(steps=2000, batch_size=8, precision="fp32", channels_last=False, log_every=10,
                           eval_every=500, checkpoint_every=500),
         ),
-        "ssz64": TrainConfig(name="ssz64", data=DataConfig(workers=14, replay=4096, reuse=2),
-                             run=RunConfig(compile=True)),
+        "ssz64": TrainConfig(name="ssz64", model=ModelConfig(surface_fusion=True),
+                             data=DataConfig(workers=14, replay=4096, reuse=2), run=RunConfig(compile=True)),
         "paper": TrainConfig(
             name="paper",
             model=ModelConfig(grid=paper_grid, image_scale=2, levels=6, stem=16, encoder=(24, 32, 48, 64, 96, 128),
                               encoder_blocks=(1, 1, 2, 2, 2, 2), topdown=(24, 32, 32, 48, 64, 96),
                               decoder=(8, 16, 24, 32, 48, 64), decoder_blocks=(0, 1, 1, 1, 2, 2),
-                              discriminator=(16, 32, 64, 128)),
+                              discriminator=(16, 32, 64, 128), surface_fusion=True),
             data=DataConfig(workers=14),
             run=RunConfig(batch_size=8, compile=True),
         ),

@@ -52,7 +52,8 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         decoder=config.decoder, decoder_blocks=config.decoder_blocks, expand=config.expand,
                         encoder_expand=config.encoder_expand,
                         lift=config.lift, upsample=config.upsample, group_width=config.group_width,
-                        full_res_spatial=config.full_res_spatial, checkpointing=checkpointing)
+                        full_res_spatial=config.full_res_spatial, surface_fusion=config.surface_fusion,
+                        checkpointing=checkpointing)
 
 
 def build_discriminator(config: ModelConfig) -> PatchDiscriminator3d:

@@ -1,12 +1,19 @@
-"""SSZ's building blocks that replace a PyTorch layer by a faster computation of the same function."""
+"""SSZ's building blocks: those that replace a PyTorch layer by a faster computation of the same function, and the
+surface fusion that writes the image-side heads' answer into the logits."""
 
 from __future__ import annotations
+
+import dataclasses
+import math
 
 import pytest
 import torch
 from torch import nn
 
-from fruxel.train.models.blocks import Pointwise3d
+from fruxel.grid import FruxelGrid
+from fruxel.train.config import ConfigError, ModelConfig
+from fruxel.train.export import build_generator
+from fruxel.train.models.blocks import Pointwise3d, SurfaceFusion
 
 
 @pytest.mark.parametrize("bias", [True, False])
@@ -46,3 +53,77 @@ def test_pointwise3d_keeps_the_autocast_dtype() -> None:
         y = pw(x)
         want = nn.functional.conv3d(x, pw.weight, pw.bias)
     assert y.dtype == want.dtype == torch.bfloat16
+
+
+def test_surface_fusion_features_by_hand() -> None:
+    """A column sure of its surface at slice 2 with class 3, and a column sure there is none, 5 slices deep."""
+    d, classes = 5, 4
+    depth = torch.full((1, d + 1, 1, 2), -30.0)
+    depth[0, 2, 0, 0] = 30.0  # column 0: surface at slice 2
+    depth[0, d, 0, 1] = 30.0  # column 1: no surface
+    surface = torch.full((1, classes, 1, 2), -30.0)
+    surface[0, 3, 0, 0] = 30.0
+    surface[0, 0, 0, 1] = 30.0
+    f = SurfaceFusion(classes).features(depth, surface)
+    assert f.shape == (1, classes + 1, d, 1, 2) and f.dtype == torch.float32
+    lo = math.log(SurfaceFusion.FLOOR)
+    col = f[0, :, :, 0, 0]  # (C + 1, D)
+    sure, never = 0.0, lo
+    # In front of the surface (slices 0, 1): front is sure; behind is not.
+    torch.testing.assert_close(col[0], torch.tensor([sure, sure, never, never, never]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(col[1], torch.tensor([never, never, never, sure, sure]), atol=1e-5, rtol=0)
+    # "Here, class c" is sure only at slice 2 for class 3 (feature 2 + c - 1); floored twice elsewhere.
+    here3 = col[2 + 3 - 1]
+    assert here3[2].abs() < 1e-5 and (here3[[0, 1, 3, 4]] <= lo + 1e-5).all()
+    assert (col[2] <= lo + 1e-5).all() and (col[3] <= lo + 1e-5).all()
+    # No surface: every slice is in front of it, none behind, none here.
+    empty = f[0, :, :, 0, 1]
+    torch.testing.assert_close(empty[0], torch.zeros(d), atol=1e-5, rtol=0)
+    assert (empty[1:] <= lo + 1e-5).all() and (empty >= 2 * lo - 1e-5).all()
+
+
+def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
+                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    torch.manual_seed(0)
+    plain = build_generator(cfg)
+    fused = build_generator(dataclasses.replace(cfg, surface_fusion=True))
+    missing, unexpected = fused.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == ["fusion.mix.bias", "fusion.mix.weight"] and not unexpected
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(fused(image).logits, plain(image).logits)
+    # The mix starts at zero but gets a gradient, and once it is not zero the heads get one through it.
+    out = fused(image)
+    out.logits.square().mean().backward()
+    assert fused.fusion.mix.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        fused.fusion.mix.weight.normal_()
+    fused.zero_grad()
+    out = fused(image)
+    out.logits.square().mean().backward()
+    assert fused.surface_head.weight.grad.abs().sum() > 0
+
+
+def test_surface_fusion_needs_the_depth_head() -> None:
+    with pytest.raises(ConfigError, match="surface_fusion needs model.lift"):
+        ModelConfig(lift="copy", surface_fusion=True).check()
+
+
+def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
+    """The forward pass never builds the C + 1 features; it must equal the 1x1x1 mix of them."""
+    torch.manual_seed(0)
+    fusion = SurfaceFusion(7)
+    with torch.no_grad():
+        fusion.mix.weight.normal_()
+        fusion.mix.bias.normal_()
+    depth, surface = torch.randn(2, 17, 4, 5) * 3, torch.randn(2, 7, 4, 5) * 3
+    want = nn.functional.conv3d(fusion.features(depth, surface), fusion.mix.weight, fusion.mix.bias)
+    got = fusion(depth, surface)
+    assert got.shape == (2, 7, 16, 4, 5) and got.dtype == torch.float32
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-5)
+    # A model held in bfloat16 gets a bfloat16 term from float32 heads.
+    got16 = fusion.to(torch.bfloat16)(depth, surface)
+    assert got16.dtype == torch.bfloat16
+    torch.testing.assert_close(got16.float(), want, atol=0.5, rtol=0.02)

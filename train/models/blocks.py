@@ -7,6 +7,8 @@ channels-last-3D input stays channels-last-3D.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -282,3 +284,84 @@ class Lift(nn.Module):
         if self.from_depth is not None and depth is not None:
             y = y + self.from_depth(depth.to(y.dtype))
         return self.post(y)
+
+
+class SurfaceFusion(nn.Module):
+    """The image side's own-view answer, written into the volume's logits: a per-cell term added to the decoder's
+    logits from each column's first-surface depth distribution and surface class.
+
+    What the grid's own camera sees of a column is its first occupied cell; the image-side heads predict exactly
+    that (the slice, as a distribution over the D slices plus "no surface", and the class). The decoder receives
+    the depth distribution as a feature (:class:`Lift`) but is free to ignore it, and at 64^3 it left one own-view
+    pixel in eight with no surface where the truth has one, while the heads alone were right more often. This
+    layer gives the heads a direct, learnt say in the logits of every cell, per cell, from three log-probabilities:
+
+    * ``log P(in front)``: the column's surface lies behind this slice (or there is none): the cell is empty;
+    * ``log P(behind)``: the surface lies in front of this slice: the cell is hidden, anything goes;
+    * ``log P(surface here) + log P(class c | surface)`` for each occupied class c.
+
+    The ``C + 1`` features are mixed into ``C`` logits by a 1x1x1 convolution that starts at zero, so a new
+    model starts as the decoder alone and learns how far to trust the heads. Log-probabilities are floored at
+    ``log(FLOOR)`` so that the term stays bounded.
+
+    Args:
+        classes: C, classes including empty (channel 0).
+    """
+
+    FLOOR = 1e-4
+    """Smallest probability taken into a log-probability feature."""
+
+    def __init__(self, classes: int) -> None:
+        super().__init__()
+        self.mix = Pointwise3d(classes + 1, classes)
+        nn.init.zeros_(self.mix.weight)
+        nn.init.zeros_(self.mix.bias)
+
+    def _fields(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``log P(in front)``, ``log P(behind)``, ``log P(here)``, each ``(B, D, H, W)``, and ``log P(class c |
+        surface)`` for c = 1 .. C-1, ``(B, C-1, H, W)``; float32, floored."""
+        q = torch.softmax(depth_logits.float(), dim=1)
+        here = q[:, :-1]  # (B, D, H, W)
+        upto = torch.cumsum(here, dim=1)
+        floor = self.FLOOR
+        front = torch.log((1.0 - upto).clamp(min=floor))
+        behind = torch.log((upto - here).clamp(min=floor))
+        cls = torch.log_softmax(surface_logits.float(), dim=1)[:, 1:].clamp(min=math.log(floor))
+        return front, behind, torch.log(here.clamp(min=floor)), cls
+
+    def features(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor) -> torch.Tensor:
+        """The per-cell log-probability features that the mix weighs.
+
+        Args:
+            depth_logits: ``(B, D + 1, H, W)`` logits of each column's first-surface slice (bin D = no surface).
+            surface_logits: ``(B, C, H, W)`` logits of each column's first-surface class (0 = no surface).
+
+        Returns:
+            ``(B, C + 1, D, H, W)`` float32: ``log P(in front)``, ``log P(behind)``, then ``log P(here, class c)``
+            for c = 1 .. C-1.
+        """
+        front, behind, here, cls = self._fields(depth_logits, surface_logits)
+        at = here.unsqueeze(1) + cls.unsqueeze(2)
+        return torch.cat([front.unsqueeze(1), behind.unsqueeze(1), at], dim=1)
+
+    def forward(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor) -> torch.Tensor:
+        """``mix(features)``: the ``(B, C, D, H, W)`` term to add to the decoder's logits, in the mix's dtype (see
+        :meth:`features` for the inputs).
+
+        The mix is linear and ``log P(here, c) = log P(here) + log P(c | surface)``, whose second part is the same
+        in every cell of a column; so the term is computed as three per-cell fields weighted per output class plus
+        one per-column term broadcast along depth, never materialising the ``C + 1`` features (the same function:
+        at batch 1 on the H100 the features and their product cost a third of a millisecond).
+        """
+        front, behind, here, cls = self._fields(depth_logits, surface_logits)
+        dtype = self.mix.weight.dtype
+        w = self.mix.weight.view(self.mix.out_channels, -1)  # (C, C + 1)
+        column = torch.einsum("oc,bchw->bohw", w[:, 2:].to(dtype), cls.to(dtype))
+        if self.mix.bias is not None:
+            column = column + self.mix.bias.to(dtype).view(1, -1, 1, 1)
+        view = (1, -1, 1, 1, 1)
+        return (w[:, 0].to(dtype).view(view) * front.to(dtype).unsqueeze(1)
+                + w[:, 1].to(dtype).view(view) * behind.to(dtype).unsqueeze(1)
+                + w[:, 2:].sum(dim=1).to(dtype).view(view) * here.to(dtype).unsqueeze(1)
+                + column.unsqueeze(2))

@@ -12,7 +12,7 @@ Architecture (``L`` = ``config.levels``; level ``s`` has the grid's resolution d
     3D decoder, bottom up:
       x_{L-1} = Lift(learned depth lift of t_{L-1}, t_{L-1}, depth features)             (B, V_{L-1}, D_s, H_s, W_s)
       x_s     = blocks(Lift(Up3d(x_{s+1}), t_s, depth features))                         (B, V_s, D_s, H_s, W_s)
-      logits  = pointwise(x_0)                                                           (B, C, D, H, W)
+      logits  = pointwise(x_0) [+ SurfaceFusion(depth head, surface head)]                (B, C, D, H, W)
 
 The 2D-to-3D skips copy the image features of each resolution into every depth slice (Z-GAN's skip). A copy
 says nothing about *where along the column* something is, and a wall one or two cells thick must land in exactly
@@ -20,6 +20,10 @@ the right slice; so the image side also predicts each column's first-surface dep
 slices (supervised with the ground truth's first occupied cell, as in categorical depth networks), and each
 level's skip carries that distribution and its running sum (0 in front of the surface, 1 behind) pooled to the
 level's resolution. ``lift="copy"`` turns this off (the plain Z-GAN skip) for comparison.
+
+With ``surface_fusion`` the heads also speak in the output directly: :class:`~.blocks.SurfaceFusion` adds to
+every cell's logits a learnt mix of the log-probabilities that the column's surface lies behind, in front of or
+in this cell with each class; the own view's first hit is then the heads' answer wherever the decoder is unsure.
 
 Shapes: ``D, H, W`` must be divisible by ``2^(L-1)``; the image must be ``(H * 2^k, W * 2^k)`` with ``k >= 0``.
 """
@@ -33,7 +37,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Pointwise3d, Up3d, act2d
+from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Pointwise3d, SurfaceFusion, Up3d, act2d
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 """Per-channel mean subtracted inside the model (inputs are RGB in [0, 1], SPEC section 8)."""
@@ -75,6 +79,7 @@ class SSZGenerator(nn.Module):
         group_width: channels per group of the decoder's 3x3x3 convolutions (1 = depthwise).
         full_res_spatial: give the finest level's blocks a 3x3x3 convolution too (by default they are per-cell:
             the neighbourhood comes from the up-convolution into that level).
+        surface_fusion: add :class:`~.blocks.SurfaceFusion`'s term to the logits (needs ``lift="depth"``).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -84,7 +89,7 @@ class SSZGenerator(nn.Module):
                  decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, encoder_expand: int = 4,
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
-                 checkpointing: bool = False) -> None:
+                 surface_fusion: bool = False, checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -92,6 +97,8 @@ class SSZGenerator(nn.Module):
                 raise ValueError(f"{name} needs one entry per level ({levels}), got {len(seq)}")
         if lift not in ("depth", "copy"):
             raise ValueError(f"lift must be 'depth' or 'copy', got {lift!r}")
+        if surface_fusion and lift != "depth":
+            raise ValueError("surface_fusion needs lift='depth' (the column depth head)")
         d, h, w = grid_shape
         f = 2 ** (levels - 1)
         if d % f or h % f or w % f:
@@ -141,6 +148,7 @@ class SSZGenerator(nn.Module):
                             for _ in range(decoder_blocks[s])])
             for s in range(levels))
         self.head = Pointwise3d(decoder[0], classes)
+        self.fusion = SurfaceFusion(classes) if surface_fusion else None
 
     # ------------------------------------------------------------------ parts
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
@@ -211,4 +219,7 @@ class SSZGenerator(nn.Module):
             x = self.ups[s](x)
             x = self.lifts[s](x, t[s], depth[s], shapes[s])
             x = self._run(self.blocks[s], x)
-        return SSZOutput(logits=self.head(x), depth_logits=depth_logits, surface_logits=surface_logits)
+        logits = self.head(x)
+        if self.fusion is not None:
+            logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
+        return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
