@@ -276,7 +276,7 @@ class AtomicFiles:
     """The temporary files of one :func:`atomic_files` block, committed together when it ends."""
 
     def __init__(self) -> None:
-        self._pending: list[tuple[str, str, int]] = []
+        self._pending: list[tuple[str, str, int, int]] = []
 
     def path(self, path: str | os.PathLike[str]) -> Path:
         """A new, empty temporary file for the target ``path`` (``.NAME.XXXXXXXXXXXX.tmpSUFFIX`` beside it, with
@@ -287,8 +287,9 @@ class AtomicFiles:
         """
         target = os.fsdecode(path)
         tmp, fd, lock = _create_temporary(target, Path(target).suffix)
+        mode = stat.S_IMODE(os.fstat(fd).st_mode)
         os.close(fd)
-        self._pending.append((tmp, target, lock))
+        self._pending.append((tmp, target, lock, mode))
         return Path(tmp)
 
 
@@ -310,15 +311,19 @@ def atomic_files() -> Iterator[AtomicFiles]:
     pending = files._pending
     try:
         yield files
-        for tmp, _, _ in pending:
+        for tmp, _, _, mode in pending:
+            # A writer may have replaced the file rather than overwritten it (safetensors' save_file does, with
+            # mode 0o600): the target gets the permissions the umask gave the file this block created.
+            if stat.S_IMODE(os.stat(tmp).st_mode) != mode:
+                os.chmod(tmp, mode)
             _fsync_file(tmp)
         while pending:
-            tmp, target, lock = pending[0]
+            tmp, target, lock, _ = pending[0]
             _commit(tmp, target)
             pending.pop(0)
             os.close(lock)
     except BaseException:
-        for tmp, _, lock in pending:
+        for tmp, _, lock, _ in pending:
             _discard(tmp, lock)
         raise
 

@@ -454,3 +454,18 @@ def test_every_corpus_file_is_refused_by_the_public_name(tmp_path: Path) -> None
     path = MALFORMED["garbage bytes"][0](tmp_path / "g.npz")
     with pytest.raises(fruxel.FruxelFileError):
         fruxel.load(path)
+
+
+def test_atomic_path_keeps_the_umask_permissions_when_the_writer_replaces_the_file(tmp_path: Path) -> None:
+    """safetensors' save_file writes a new file of mode 0o600 in place of the one it is given; a shipped model
+    must still be readable as any other written file."""
+    path = tmp_path / "model.safetensors"
+    with fio.atomic_path(path) as tmp:
+        os.remove(tmp)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.write(fd, b"weights")
+        os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.read_bytes() == b"weights"
+    assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask
