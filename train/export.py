@@ -128,6 +128,28 @@ def read_shipped(path: str) -> tuple[dict[str, torch.Tensor], ModelConfig, dict[
     return state, _model_config(path, model), training
 
 
+def read_weights(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], ModelConfig, dict[str, Any]]:
+    """The generator weights, architecture and training summary of a shipped ``.safetensors`` file or a training
+    checkpoint (told apart by their first bytes), read without pickle.
+
+    Raises:
+        ModelFileError: a missing, unreadable or foreign file.
+        fruxel.train.engine.checkpoint.CheckpointError: a checkpoint that cannot be read (or holds pickled
+            objects).
+    """
+    path = os.fsdecode(path)
+    if not os.path.isfile(path):
+        raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head[:2] == b"PK" or head[:1] == b"\x80":
+        from .engine.checkpoint import read_checkpoint
+
+        ckpt = read_checkpoint(path)
+        return ckpt.state["generator"], ckpt.config.model, ckpt.state.get("summary", {})
+    return read_shipped(path)
+
+
 def load_generator(path: str | os.PathLike[str], device: str | torch.device = "cpu"
                    ) -> tuple[SSZGenerator, ModelConfig, dict[str, Any]]:
     """A trained generator from a shipped ``.safetensors`` file or a training checkpoint, in eval mode, float32.
@@ -139,19 +161,7 @@ def load_generator(path: str | os.PathLike[str], device: str | torch.device = "c
         ModelFileError: a missing, unreadable or foreign file, or weights that do not fit the config.
     """
     path = os.fsdecode(path)
-    if not os.path.isfile(path):
-        raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
-    with open(path, "rb") as f:
-        head = f.read(8)
-    if head[:2] == b"PK" or head[:1] == b"\x80":
-        from .engine.checkpoint import read_checkpoint
-
-        ckpt = read_checkpoint(path)
-        config = ckpt.config.model
-        state = ckpt.state["generator"]
-        training = ckpt.state.get("summary", {})
-    else:
-        state, config, training = read_shipped(path)
+    state, config, training = read_weights(path)
     gen = build_generator(config)
     try:
         gen.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})

@@ -65,21 +65,35 @@ def test_surface_fusion_features_by_hand() -> None:
     surface[0, 3, 0, 0] = 30.0
     surface[0, 0, 0, 1] = 30.0
     f = SurfaceFusion(classes).features(depth, surface)
-    assert f.shape == (1, classes + 1, d, 1, 2) and f.dtype == torch.float32
+    assert f.shape == (1, classes + 2, d, 1, 2) and f.dtype == torch.float32
     lo = math.log(SurfaceFusion.FLOOR)
     col = f[0, :, :, 0, 0]  # (C + 1, D)
     sure, never = 0.0, lo
     # In front of the surface (slices 0, 1): front is sure; behind is not.
     torch.testing.assert_close(col[0], torch.tensor([sure, sure, never, never, never]), atol=1e-5, rtol=0)
     torch.testing.assert_close(col[1], torch.tensor([never, never, never, sure, sure]), atol=1e-5, rtol=0)
-    # "Here, class c" is sure only at slice 2 for class 3 (feature 2 + c - 1); floored twice elsewhere.
-    here3 = col[2 + 3 - 1]
+    # The column's most likely slice is 2.
+    torch.testing.assert_close(col[2], torch.tensor([never, never, sure, never, never]), atol=1e-5, rtol=0)
+    # "Here, class c" is sure only at slice 2 for class 3 (feature 3 + c - 1); floored twice elsewhere.
+    here3 = col[3 + 3 - 1]
     assert here3[2].abs() < 1e-5 and (here3[[0, 1, 3, 4]] <= lo + 1e-5).all()
-    assert (col[2] <= lo + 1e-5).all() and (col[3] <= lo + 1e-5).all()
-    # No surface: every slice is in front of it, none behind, none here.
+    assert (col[3] <= lo + 1e-5).all() and (col[4] <= lo + 1e-5).all()
+    # No surface: every slice is in front of it, none behind, none here; the (equal) slices are all modes.
     empty = f[0, :, :, 0, 1]
     torch.testing.assert_close(empty[0], torch.zeros(d), atol=1e-5, rtol=0)
-    assert (empty[1:] <= lo + 1e-5).all() and (empty >= 2 * lo - 1e-5).all()
+    torch.testing.assert_close(empty[2], torch.zeros(d), atol=1e-5, rtol=0)
+    assert (empty[1] <= lo + 1e-5).all() and (empty[3:] <= lo + 1e-5).all() and (empty >= 2 * lo - 1e-5).all()
+
+
+def test_surface_fusion_marks_the_most_likely_slice_of_an_unsure_column() -> None:
+    """A column spread over every slice (a plain wall at an unknown distance) still has one slice at 0."""
+    depth = torch.zeros(1, 9, 1, 1)
+    depth[0, 5] = 0.5
+    f = SurfaceFusion(3).features(depth, torch.zeros(1, 3, 1, 1))
+    mode = f[0, 2, :, 0, 0]
+    assert mode[5].abs() < 1e-6 and (mode[[0, 1, 2, 3, 4, 6, 7]] < -0.4).all()
+    # ... where no slice holds even a fifth of the probability.
+    assert (torch.softmax(depth, dim=1) < 0.2).all()
 
 
 def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
@@ -90,7 +104,7 @@ def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
     plain = build_generator(cfg)
     fused = build_generator(dataclasses.replace(cfg, surface_fusion=True))
     missing, unexpected = fused.load_state_dict(plain.state_dict(), strict=False)
-    assert sorted(missing) == ["fusion.mix.bias", "fusion.mix.weight"] and not unexpected
+    assert sorted(missing) == ["fusion.mix.bias", "fusion.mix.weight", "fusion.mode.weight"] and not unexpected
     image = torch.rand(2, 3, 32, 32)
     with torch.no_grad():
         torch.testing.assert_close(fused(image).logits, plain(image).logits)
@@ -112,14 +126,16 @@ def test_surface_fusion_needs_the_depth_head() -> None:
 
 
 def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
-    """The forward pass never builds the C + 1 features; it must equal the 1x1x1 mix of them."""
+    """The forward pass never builds the C + 2 features; it must equal the 1x1x1 mix of them."""
     torch.manual_seed(0)
     fusion = SurfaceFusion(7)
     with torch.no_grad():
         fusion.mix.weight.normal_()
         fusion.mix.bias.normal_()
+        fusion.mode.weight.normal_()
     depth, surface = torch.randn(2, 17, 4, 5) * 3, torch.randn(2, 7, 4, 5) * 3
-    want = nn.functional.conv3d(fusion.features(depth, surface), fusion.mix.weight, fusion.mix.bias)
+    w, b = fusion.weight()
+    want = nn.functional.conv3d(fusion.features(depth, surface), w[..., None, None, None], b)
     got = fusion(depth, surface)
     assert got.shape == (2, 7, 16, 4, 5) and got.dtype == torch.float32
     torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-5)

@@ -33,7 +33,7 @@ from fruxel.train.engine.checkpoint import (  # noqa: E402
 from fruxel.train.engine.data import Batches, BlockPlan, BlockStream  # noqa: E402
 from fruxel.train.engine.trainer import SHIPPED, Trainer, TrainingError, sim_config  # noqa: E402
 from fruxel.train.eval.evaluate import evaluate  # noqa: E402
-from fruxel.train.export import build_generator, load_generator  # noqa: E402
+from fruxel.train.export import build_generator, load_generator, save_shipped  # noqa: E402
 from fruxel.train.objective import SSZObjective, class_frequencies, class_weights  # noqa: E402
 from fruxel.train.sim.writer import generate  # noqa: E402
 
@@ -432,3 +432,34 @@ def test_fit_restores_the_callers_floating_point_mode_and_threads(tmp_path: Path
     Trainer(config, tmp_path, device="cpu", progress=False).fit()
     assert (torch.tensor([1e-39], dtype=torch.float32) * 2.0).item() != 0.0
     assert torch.get_num_threads() == threads
+
+
+def test_run_init_starts_from_a_model_file_and_keeps_new_layers_fresh(tmp_path: Path, shards: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Fine-tuning: a model without the surface fusion starts a run of a model with it; every weight the file has
+    is taken, the fusion (which it lacks) starts at its fresh zeros, and a file that does not fit stops the run."""
+    plain = tiny({"model": {"surface_fusion": False}})
+    torch.manual_seed(5)
+    source = build_generator(plain.model)
+    with torch.no_grad():
+        for p in source.parameters():
+            p.add_(torch.randn_like(p))
+    path = tmp_path / "plain.safetensors"
+    save_shipped(path, source, plain.model, half=False)
+    data = {"source": "shards", "root": str(shards)}
+    trainer = Trainer(tiny({"data": data, "run": {"init": str(path)}}), tmp_path / "run", device="cpu")
+    trainer._build()
+    got = trainer.generator.state_dict()
+    want = source.state_dict()
+    assert sorted(k for k in got if k not in want) == ["fusion.mix.bias", "fusion.mix.weight", "fusion.mode.weight"]
+    _assert_same_tensors({k: got[k] for k in want}, want)
+    assert all(not got[k].any() for k in got if k.startswith("fusion."))
+    assert "kept the fresh initialisation of fusion.mix.bias, fusion.mix.weight, fusion.mode.weight" in \
+        capsys.readouterr().err
+    # Another grid: the weights do not fit.
+    other = tiny({"model": {"grid": {"width": 32, "height": 32, "depth": 32}}})
+    save_shipped(path, build_generator(other.model), other.model)
+    trainer = Trainer(tiny({"data": data, "run": {"init": str(path)}}), tmp_path / "run2", device="cpu")
+    with pytest.raises(TrainingError, match=r"plain\.safetensors: run.init does not fit the model config: "
+                                            r"parameters \d+ of another shape"):
+        trainer._build()

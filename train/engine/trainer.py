@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -231,6 +232,23 @@ class Trainer:
         os.makedirs(self.run_dir, exist_ok=True)
 
     # ------------------------------------------------------------------ set-up
+    def _start_from(self, path: str) -> None:
+        """Load ``run.init``'s generator weights into the fresh generator (see :class:`RunConfig`)."""
+        from ..export import read_weights
+
+        state, _, _ = read_weights(path)
+        own = self.generator.state_dict()
+        foreign = sorted(k for k in state if k not in own)
+        reshaped = sorted(k for k in state if k in own and state[k].shape != own[k].shape)
+        if foreign or reshaped:
+            what = [f"{len(foreign)} it does not have ({', '.join(foreign[:3])})"] if foreign else []
+            what += [f"{len(reshaped)} of another shape ({', '.join(reshaped[:3])})"] if reshaped else []
+            raise TrainingError(f"{path}: run.init does not fit the model config: parameters {'; '.join(what)}")
+        self.generator.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=False)
+        fresh = sorted(k for k in own if k not in state)
+        if fresh and self.progress:
+            print(f"run.init {path}: kept the fresh initialisation of {', '.join(fresh)}", file=sys.stderr)
+
     def _build(self) -> None:
         c, dev = self.config, self.dist.device
         cuda = dev.type == "cuda"
@@ -241,7 +259,10 @@ class Trainer:
                 cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
                 torch.set_num_threads(max(1, cores - c.data.workers))
         torch.manual_seed(c.run.seed)
-        self.generator = build_generator(c.model, checkpointing=c.run.checkpointing).to(dev)
+        self.generator = build_generator(c.model, checkpointing=c.run.checkpointing)
+        if c.run.init and self.ckpt is None:
+            self._start_from(c.run.init)
+        self.generator = self.generator.to(dev)
         self.discriminator = build_discriminator(c.model).to(dev) if c.loss.adversarial else None
         self.channels_last = cuda and c.run.channels_last
         if self.channels_last:

@@ -294,67 +294,80 @@ class SurfaceFusion(nn.Module):
     that (the slice, as a distribution over the D slices plus "no surface", and the class). The decoder receives
     the depth distribution as a feature (:class:`Lift`) but is free to ignore it, and at 64^3 it left one own-view
     pixel in eight with no surface where the truth has one, while the heads alone were right more often. This
-    layer gives the heads a direct, learnt say in the logits of every cell, per cell, from three log-probabilities:
+    layer gives the heads a direct, learnt say in the logits of every cell, per cell, from four log-probabilities:
 
     * ``log P(in front)``: the column's surface lies behind this slice (or there is none): the cell is empty;
     * ``log P(behind)``: the surface lies in front of this slice: the cell is hidden, anything goes;
+    * ``log (P(here) / max over the column's slices)``: 0 at the column's most likely surface slice. A column
+      unsure *where* its surface is (a plain wall filling the image) spreads its probability over many slices,
+      so that no cell of it is more likely occupied than empty and the argmax leaves the column with no surface
+      at all; this field marks the one slice to put it in;
     * ``log P(surface here) + log P(class c | surface)`` for each occupied class c.
 
-    The ``C + 1`` features are mixed into ``C`` logits by a 1x1x1 convolution that starts at zero, so a new
-    model starts as the decoder alone and learns how far to trust the heads. Log-probabilities are floored at
-    ``log(FLOOR)`` so that the term stays bounded.
+    The ``C + 2`` features are mixed into ``C`` logits by 1x1x1 weights that start at zero (``mix`` for all but
+    the third, ``mode`` for it), so a new model starts as the decoder alone and learns how far to trust the
+    heads. Log-probabilities are floored at ``log(FLOOR)`` so that the term stays bounded.
 
     Args:
         classes: C, classes including empty (channel 0).
     """
 
     FLOOR = 1e-4
-    """Smallest probability taken into a log-probability feature."""
+    """Smallest probability (or ratio to the column's most likely slice) taken into a log feature."""
 
     def __init__(self, classes: int) -> None:
         super().__init__()
         self.mix = Pointwise3d(classes + 1, classes)
-        nn.init.zeros_(self.mix.weight)
-        nn.init.zeros_(self.mix.bias)
+        self.mode = Pointwise3d(1, classes, bias=False)
+        for p in (self.mix.weight, self.mix.bias, self.mode.weight):
+            nn.init.zeros_(p)
 
     def _fields(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``log P(in front)``, ``log P(behind)``, ``log P(here)``, each ``(B, D, H, W)``, and ``log P(class c |
-        surface)`` for c = 1 .. C-1, ``(B, C-1, H, W)``; float32, floored."""
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``log P(in front)``, ``log P(behind)``, ``log P(here)``, ``log (P(here) / max P(here))``, each
+        ``(B, D, H, W)``, and ``log P(class c | surface)`` for c = 1 .. C-1, ``(B, C-1, H, W)``; float32,
+        floored."""
         q = torch.softmax(depth_logits.float(), dim=1)
         here = q[:, :-1]  # (B, D, H, W)
         upto = torch.cumsum(here, dim=1)
         floor = self.FLOOR
         front = torch.log((1.0 - upto).clamp(min=floor))
         behind = torch.log((upto - here).clamp(min=floor))
+        # The softmax never gives exactly 0, so the column maximum is positive.
+        mode = torch.log((here / here.amax(dim=1, keepdim=True)).clamp(min=floor))
         cls = torch.log_softmax(surface_logits.float(), dim=1)[:, 1:].clamp(min=math.log(floor))
-        return front, behind, torch.log(here.clamp(min=floor)), cls
+        return front, behind, torch.log(here.clamp(min=floor)), mode, cls
 
     def features(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor) -> torch.Tensor:
-        """The per-cell log-probability features that the mix weighs.
+        """The per-cell log features that the weights mix.
 
         Args:
             depth_logits: ``(B, D + 1, H, W)`` logits of each column's first-surface slice (bin D = no surface).
             surface_logits: ``(B, C, H, W)`` logits of each column's first-surface class (0 = no surface).
 
         Returns:
-            ``(B, C + 1, D, H, W)`` float32: ``log P(in front)``, ``log P(behind)``, then ``log P(here, class c)``
-            for c = 1 .. C-1.
+            ``(B, C + 2, D, H, W)`` float32: ``log P(in front)``, ``log P(behind)``, ``log (P(here) / max)``, then
+            ``log P(here, class c)`` for c = 1 .. C-1.
         """
-        front, behind, here, cls = self._fields(depth_logits, surface_logits)
+        front, behind, here, mode, cls = self._fields(depth_logits, surface_logits)
         at = here.unsqueeze(1) + cls.unsqueeze(2)
-        return torch.cat([front.unsqueeze(1), behind.unsqueeze(1), at], dim=1)
+        return torch.cat([front.unsqueeze(1), behind.unsqueeze(1), mode.unsqueeze(1), at], dim=1)
+
+    def weight(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The 1x1x1 weights over :meth:`features`: ``(C, C + 2)`` and the ``(C,)`` bias."""
+        w = self.mix.weight.view(self.mix.out_channels, -1)
+        return torch.cat([w[:, :2], self.mode.weight.view(-1, 1), w[:, 2:]], dim=1), self.mix.bias
 
     def forward(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor) -> torch.Tensor:
-        """``mix(features)``: the ``(B, C, D, H, W)`` term to add to the decoder's logits, in the mix's dtype (see
-        :meth:`features` for the inputs).
+        """The 1x1x1 mix of :meth:`features`: the ``(B, C, D, H, W)`` term to add to the decoder's logits, in the
+        weights' dtype.
 
         The mix is linear and ``log P(here, c) = log P(here) + log P(c | surface)``, whose second part is the same
-        in every cell of a column; so the term is computed as three per-cell fields weighted per output class plus
-        one per-column term broadcast along depth, never materialising the ``C + 1`` features (the same function:
+        in every cell of a column; so the term is computed as four per-cell fields weighted per output class plus
+        one per-column term broadcast along depth, never materialising the ``C + 2`` features (the same function:
         at batch 1 on the H100 the features and their product cost a third of a millisecond).
         """
-        front, behind, here, cls = self._fields(depth_logits, surface_logits)
+        front, behind, here, mode, cls = self._fields(depth_logits, surface_logits)
         dtype = self.mix.weight.dtype
         w = self.mix.weight.view(self.mix.out_channels, -1)  # (C, C + 1)
         column = torch.einsum("oc,bchw->bohw", w[:, 2:].to(dtype), cls.to(dtype))
@@ -363,5 +376,6 @@ class SurfaceFusion(nn.Module):
         view = (1, -1, 1, 1, 1)
         return (w[:, 0].to(dtype).view(view) * front.to(dtype).unsqueeze(1)
                 + w[:, 1].to(dtype).view(view) * behind.to(dtype).unsqueeze(1)
+                + self.mode.weight.to(dtype).view(view) * mode.to(dtype).unsqueeze(1)
                 + w[:, 2:].sum(dim=1).to(dtype).view(view) * here.to(dtype).unsqueeze(1)
                 + column.unsqueeze(2))
