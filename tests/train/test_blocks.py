@@ -134,8 +134,10 @@ def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
         fusion.mix.bias.normal_()
         fusion.mode.weight.normal_()
     depth, surface = torch.randn(2, 17, 4, 5) * 3, torch.randn(2, 7, 4, 5) * 3
-    w, b = fusion.weight()
-    want = nn.functional.conv3d(fusion.features(depth, surface), w[..., None, None, None], b)
+    # The features' order: in front, behind, most likely slice, then here with each class.
+    mix = fusion.mix.weight.view(7, 8)
+    w = torch.cat([mix[:, :2], fusion.mode.weight.view(7, 1), mix[:, 2:]], dim=1)
+    want = nn.functional.conv3d(fusion.features(depth, surface), w[..., None, None, None], fusion.mix.bias)
     got = fusion(depth, surface)
     assert got.shape == (2, 7, 16, 4, 5) and got.dtype == torch.float32
     torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-5)

@@ -292,9 +292,10 @@ class SurfaceFusion(nn.Module):
 
     What the grid's own camera sees of a column is its first occupied cell; the image-side heads predict exactly
     that (the slice, as a distribution over the D slices plus "no surface", and the class). The decoder receives
-    the depth distribution as a feature (:class:`Lift`) but is free to ignore it, and at 64^3 it left one own-view
-    pixel in eight with no surface where the truth has one, while the heads alone were right more often. This
-    layer gives the heads a direct, learnt say in the logits of every cell, per cell, from four log-probabilities:
+    the depth distribution as a feature (:class:`Lift`) but is free to ignore it: in the first shipped model
+    (64^3, no fusion) the volume's first hit had the true label on 88.1 % of the own-view pixels where the truth
+    has a surface, its surface-class head alone on 92.4 % (128 test samples). This layer gives the heads a
+    direct, learnt say in the logits of every cell, per cell, from four log-probabilities:
 
     * ``log P(in front)``: the column's surface lies behind this slice (or there is none): the cell is empty;
     * ``log P(behind)``: the surface lies in front of this slice: the cell is hidden, anything goes;
@@ -353,26 +354,20 @@ class SurfaceFusion(nn.Module):
         at = here.unsqueeze(1) + cls.unsqueeze(2)
         return torch.cat([front.unsqueeze(1), behind.unsqueeze(1), mode.unsqueeze(1), at], dim=1)
 
-    def weight(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The 1x1x1 weights over :meth:`features`: ``(C, C + 2)`` and the ``(C,)`` bias."""
-        w = self.mix.weight.view(self.mix.out_channels, -1)
-        return torch.cat([w[:, :2], self.mode.weight.view(-1, 1), w[:, 2:]], dim=1), self.mix.bias
-
     def forward(self, depth_logits: torch.Tensor, surface_logits: torch.Tensor) -> torch.Tensor:
         """The 1x1x1 mix of :meth:`features`: the ``(B, C, D, H, W)`` term to add to the decoder's logits, in the
         weights' dtype.
 
         The mix is linear and ``log P(here, c) = log P(here) + log P(c | surface)``, whose second part is the same
         in every cell of a column; so the term is computed as four per-cell fields weighted per output class plus
-        one per-column term broadcast along depth, never materialising the ``C + 2`` features (the same function:
-        at batch 1 on the H100 the features and their product cost a third of a millisecond).
+        one per-column term broadcast along depth, never materialising the ``C + 2`` features (the same function;
+        at batch 1 on the H100 the whole term is 0.02 ms of kernels, benchmarks/profile_ssz.py).
         """
         front, behind, here, mode, cls = self._fields(depth_logits, surface_logits)
         dtype = self.mix.weight.dtype
         w = self.mix.weight.view(self.mix.out_channels, -1)  # (C, C + 1)
         column = torch.einsum("oc,bchw->bohw", w[:, 2:].to(dtype), cls.to(dtype))
-        if self.mix.bias is not None:
-            column = column + self.mix.bias.to(dtype).view(1, -1, 1, 1)
+        column = column + self.mix.bias.to(dtype).view(1, -1, 1, 1)
         view = (1, -1, 1, 1, 1)
         return (w[:, 0].to(dtype).view(view) * front.to(dtype).unsqueeze(1)
                 + w[:, 1].to(dtype).view(view) * behind.to(dtype).unsqueeze(1)
