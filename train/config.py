@@ -152,6 +152,10 @@ class LossConfig:
     """Random novel views per batch for the shell-aware losses."""
     shell_view_size: int = 64
     """Width and height of each novel view, pixels."""
+    shell_own_view: float = 0.0
+    """Weight, inside the shell-aware losses' total, of their cross-entropy over the grid's own view alone
+    (:attr:`fruxel.train.losses.ShellLossConfig.weight_own_view`): the own-view first-hit accuracy's own term.
+    At 0 the own view is one camera among ``1 + shell_views`` in the shell cross-entropy."""
     adversarial: bool = False
     """Add the adversarial term (conditional 3D PatchGAN, hinge loss)."""
     adversarial_weight: float = 0.05
@@ -165,8 +169,8 @@ class LossConfig:
 
     def check(self, path: str = "loss") -> None:
         """Raise :class:`ConfigError` for impossible settings."""
-        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "shell_weight", "adversarial_weight",
-                     "discriminator_lr"):
+        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "shell_weight", "shell_own_view",
+                     "adversarial_weight", "discriminator_lr"):
             _finite_nonneg(f"{path}.{name}", getattr(self, name))
         for name in ("shell_views", "adversarial_start", "adversarial_ramp"):
             _positive_int(f"{path}.{name}", getattr(self, name), allow_zero=True)

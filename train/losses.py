@@ -204,6 +204,10 @@ class ShellLossConfig:
     """Weight of :func:`depth_l1` (unit-free: the error is divided by ``z_far - z_near``) in the total."""
     weight_voxel: float = 1.0
     """Weight of :func:`visible_weighted_voxel_ce` in the total."""
+    weight_own_view: float = 0.0
+    """Weight of the own view's shell cross-entropy on its own in the total (needs ``own_view``). Its pixels also
+    count in :func:`shell_cross_entropy`, where they are one camera among ``1 + novel_views``; this term is what
+    the own-view first-hit accuracy of SPEC section 9 measures, so it can be weighted up separately."""
     weight_visible: float = 1.0
     """Per-cell weight of the ground truth's shell cells in the voxel cross-entropy."""
     weight_other: float = 0.1
@@ -233,6 +237,9 @@ class ShellLossTerms:
     """Scalar: :func:`visible_weighted_voxel_ce`."""
     cameras: list[Camera]
     """The cameras used, own view first."""
+    own_view: torch.Tensor | None = None
+    """Scalar: the shell cross-entropy over the own view's pixels alone (computed when
+    :attr:`ShellLossConfig.weight_own_view` is not 0 and the own camera is among the cameras), else None."""
 
 
 @dataclass(frozen=True)
@@ -261,6 +268,8 @@ class ShellTargets:
     """The grid's own camera (when it is among the cameras): its ``first_hit`` labels ``(B, H, W)`` int64, depths
     ``(B, H, W)`` float32 (the near plane ``z_k`` of each column's first occupied cell, 0 on a miss) and hit mask
     ``(B, H, W)`` bool, views of the group tensors above: the own-view truth, from the labels like every view's."""
+    own_index: tuple[int, int] | None = None
+    """Where the own camera is: ``(camera group, camera within the group)``, or None."""
 
     @property
     def pixels(self) -> int:
@@ -358,10 +367,14 @@ class ShellLoss:
             depth_flat = torch.cat([t[1].reshape(-1) for t in out])
             hit_flat = torch.cat([t[2].reshape(-1) for t in out])
         own = self.grid.camera()
-        own_view = next(((lab[:, n], depth[:, n], hit[:, n]) for group, (lab, depth, hit) in
-                         zip(group_by_size(cameras), out, strict=True) for n, cam in enumerate(group) if cam == own),
-                        None)
-        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_view)
+        own_index = next(((g, n) for g, group in enumerate(group_by_size(cameras)) for n, cam in enumerate(group)
+                          if cam == own), None)
+        own_view = None
+        if own_index is not None:
+            lab, depth, hit = out[own_index[0]]
+            n = own_index[1]
+            own_view = (lab[:, n], depth[:, n], hit[:, n])
+        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_view, own_index)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:
@@ -408,7 +421,14 @@ class ShellLoss:
         err = torch.where(targets.hit_flat, (pred_depth - targets.depth_flat.to(pred_depth.dtype)).abs(), 0.0)
         depth = err.sum() * targets.depth_norm
         voxel = (F.nll_loss(log_p, targets.voxel_labels, reduction="none") * targets.voxel_weight).sum()
+        weighted = [(c.weight_shell, shell_ce), (c.weight_depth, depth), (c.weight_voxel, voxel)]
+        own_ce = None
+        if c.weight_own_view and targets.own_index is not None:
+            g, n = targets.own_index
+            p_own = soft[g].classes[:, n].gather(1, targets.groups[g][0][:, n].unsqueeze(1))
+            own_ce = -torch.log(p_own + c.eps).mean()
+            weighted.append((c.weight_own_view, own_ce))
         # reduce, not sum(): adding to 0 would cost one more device operation; unit weights cost none.
-        total = functools.reduce(operator.add, (x if w == 1.0 else w * x for w, x in (
-            (c.weight_shell, shell_ce), (c.weight_depth, depth), (c.weight_voxel, voxel))))
-        return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras))
+        total = functools.reduce(operator.add, (x if w == 1.0 else w * x for w, x in weighted))
+        return ShellLossTerms(total=total, shell_ce=shell_ce, depth=depth, voxel=voxel, cameras=list(cameras),
+                              own_view=own_ce)

@@ -68,6 +68,7 @@ def test_help_is_instant_and_imports_no_torch() -> None:
     ({"run": {"stepz": 3}}, "unknown config key 'run.stepz'"),
     ({"run": {"steps": "3"}}, "run.steps must be an integer"),
     ({"optim": {"lr": -1.0}}, "optim.lr must be a finite number >= 0"),
+    ({"loss": {"shell_own_view": float("nan")}}, "loss.shell_own_view must be a finite number >= 0"),
     ({"model": {"grid": {"width": 15}}}, "model.grid 15x64x64 must be divisible"),
     ({"preset": "huge"}, "unknown preset 'huge'"),
     ('{"run": {"steps": 3}', "not valid JSON"),

@@ -463,3 +463,11 @@ def test_run_init_starts_from_a_model_file_and_keeps_new_layers_fresh(tmp_path: 
     with pytest.raises(TrainingError, match=r"plain\.safetensors: run.init does not fit the model config: "
                                             r"parameters \d+ of another shape"):
         trainer._build()
+
+
+def test_shell_own_view_weight_reaches_the_shell_loss(tmp_path: Path, shards: Path) -> None:
+    data = {"source": "shards", "root": str(shards)}
+    trainer = Trainer(tiny({"data": data, "loss": {"shell": True, "shell_own_view": 1.5}}), tmp_path, device="cpu")
+    trainer._build()
+    assert trainer.shell is not None and trainer.shell.config.weight_own_view == 1.5
+    assert trainer.shell.config.own_view

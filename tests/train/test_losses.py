@@ -4,6 +4,7 @@ that must bring every term down."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 from typing import Any
 
@@ -170,6 +171,34 @@ def test_shell_loss_terms_equal_the_loss_functions() -> None:
     torch.testing.assert_close(terms.depth, depth)
     torch.testing.assert_close(terms.voxel, voxel)
     torch.testing.assert_close(terms.total, 0.5 * ce + 3.0 * depth + 0.7 * voxel)
+
+
+@pytest.mark.skipif(not BACKENDS, reason="no kernel backend is available")
+def test_own_view_term_is_the_own_columns_first_hit_cross_entropy() -> None:
+    # The own camera's pixel (x, y) looks down column (y, x): its expected first-hit class is, along the column,
+    # sum_d p_c(d) prod_{d' < d} p_0(d') (channel 0: the product over every cell, a miss). A reference of its own.
+    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
+    labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
+    torch.manual_seed(7)
+    logits = torch.randn(2, C, *grid.shape, dtype=torch.float64)
+    base = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=8, weight_shell=0.5, weight_voxel=0.7)
+    plain = ShellLoss(grid, base)
+    cams = plain.cameras()
+    weighted = ShellLoss(grid, dataclasses.replace(base, weight_own_view=2.5))(logits, labels, cams)
+    terms = plain(logits, labels, cams)
+    assert terms.own_view is None
+    p = torch.softmax(logits, dim=1)
+    before = torch.cumprod(torch.cat([torch.ones_like(p[:, :1, :1]), p[:, :1, :-1]], dim=2), dim=2)
+    expected = (p * before).sum(2)  # (B, C, H, W): first occupied cell's class
+    expected[:, 0] = p[:, 0].prod(1)
+    truth = torch.from_numpy(np.asarray(first_hit(labels, grid, grid.camera()).label)).long()
+    ref = -torch.log(expected.gather(1, truth.unsqueeze(1)) + base.eps).mean()
+    torch.testing.assert_close(weighted.own_view, ref)
+    torch.testing.assert_close(weighted.total, terms.total + 2.5 * ref)
+    # Without the own camera there is nothing to weight.
+    novel_only = ShellLoss(grid, dataclasses.replace(base, own_view=False, weight_own_view=2.5))
+    cams = novel_only.cameras()
+    assert novel_only(logits, labels, cams).own_view is None
 
 
 def test_loss_arguments_are_checked() -> None:

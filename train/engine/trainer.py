@@ -293,7 +293,8 @@ class Trainer:
 
             n = c.loss.shell_view_size
             self.shell = ShellLoss(c.model.grid, ShellLossConfig(
-                novel_views=c.loss.shell_views, novel_size=(n, n), novel_hfov=c.model.grid.hfov, seed=c.run.seed),
+                novel_views=c.loss.shell_views, novel_size=(n, n), novel_hfov=c.model.grid.hfov, seed=c.run.seed,
+                weight_own_view=c.loss.shell_own_view),
                 rank=self.dist.rank)
 
     def _batches(self, position: tuple[int, int]) -> Any:
