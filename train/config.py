@@ -79,6 +79,10 @@ class ModelConfig:
     """Add the image-side heads' own-view answer to the logits of every cell
     (:class:`fruxel.train.models.blocks.SurfaceFusion`; needs ``lift = "depth"``). On in every preset; off here
     so that a config or model file written before the field existed reads as the model it describes."""
+    fill_columns: bool = False
+    """At inference (eval mode), give a column that the volume leaves empty one surface cell when the column depth
+    head says it has a surface (:func:`fruxel.train.models.generator.fill_columns`; needs ``lift = "depth"``).
+    Training is unchanged; off here for the same reason as ``surface_fusion``."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -118,6 +122,8 @@ class ModelConfig:
             raise ConfigError(f"{path}.lift must be 'depth' or 'copy', got {self.lift!r}")
         if self.surface_fusion and self.lift != "depth":
             raise ConfigError(f"{path}.surface_fusion needs {path}.lift = 'depth' (the column depth head)")
+        if self.fill_columns and self.lift != "depth":
+            raise ConfigError(f"{path}.fill_columns needs {path}.lift = 'depth' (the column depth head)")
         if self.upsample not in ("parity", "resize", "transpose"):
             raise ConfigError(f"{path}.upsample must be 'parity', 'resize' or 'transpose', got {self.upsample!r}")
         w = self.grid.width << self.image_scale

@@ -14,6 +14,7 @@ from fruxel.grid import FruxelGrid
 from fruxel.train.config import ConfigError, ModelConfig
 from fruxel.train.export import build_generator
 from fruxel.train.models.blocks import Pointwise3d, SurfaceFusion
+from fruxel.train.models.generator import FILL_SURFACE_PROBABILITY, fill_columns
 
 
 @pytest.mark.parametrize("bias", [True, False])
@@ -145,3 +146,66 @@ def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
     got16 = fusion.to(torch.bfloat16)(depth, surface)
     assert got16.dtype == torch.bfloat16
     torch.testing.assert_close(got16.float(), want, atol=0.5, rtol=0.02)
+
+
+# ------------------------------------------------------------------------------------------------ fill_columns
+def _fill_reference(logits: torch.Tensor, depth_logits: torch.Tensor) -> torch.Tensor:
+    """Predicted labels after the rule, column by column: (B, D, H, W) int64."""
+    labels = logits.argmax(1)
+    none = torch.softmax(depth_logits.double(), dim=1)[:, -1]
+    b_, _, h_, w_ = labels.shape
+    for b in range(b_):
+        for y in range(h_):
+            for x in range(w_):
+                column = logits[b, :, :, y, x].double()  # (C, D)
+                if (labels[b, :, y, x] > 0).any() or none[b, y, x] >= FILL_SURFACE_PROBABILITY:
+                    continue
+                k = int((1 - torch.softmax(column, dim=0)[0]).argmax())
+                labels[b, k, y, x] = int(column[1:, k].argmax()) + 1
+    return labels
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_fill_columns_gives_a_surface_to_the_columns_the_head_sees_one_in(dtype: torch.dtype) -> None:
+    torch.manual_seed(1)
+    logits = torch.randn(2, 5, 6, 4, 3) * 30  # large logits: bfloat16 spacing there is 0.25 to 1
+    logits[:, 0] += 60.0  # most columns empty
+    logits[0, 0, 2, 1, 1] = -100.0  # one column already has a surface
+    depth_logits = torch.randn(2, 7, 4, 3) * 3
+    logits = logits.to(dtype)
+    out = fill_columns(logits, depth_logits)
+    assert out.dtype == dtype and out.shape == logits.shape
+    torch.testing.assert_close(out[:, 1:], logits[:, 1:], rtol=0, atol=0)
+    expected = _fill_reference(logits.float(), depth_logits)
+    assert torch.equal(out.argmax(1), expected)
+    before = (logits.argmax(1) > 0).any(1)
+    after = (out.argmax(1) > 0).any(1)
+    head_sees = torch.softmax(depth_logits, 1)[:, -1] < FILL_SURFACE_PROBABILITY
+    assert torch.equal(after, before | head_sees) and not torch.equal(after, before)
+    # Only filled columns change, each in one cell.
+    changed = (out != logits).any(1)  # (B, D, H, W)
+    assert torch.equal(changed.sum(1), (after & ~before).long())
+
+
+def test_generator_fills_columns_only_in_eval_mode() -> None:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
+                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    torch.manual_seed(0)
+    plain = build_generator(cfg)
+    with torch.no_grad():  # every cell empty, every column with a surface by the depth head
+        plain.head.bias[0] += 5.0
+        plain.depth_head.bias[-1] -= 10.0
+    filled = build_generator(dataclasses.replace(cfg, fill_columns=True))
+    filled.load_state_dict(plain.state_dict())
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        plain.eval(), filled.eval()
+        ref = plain(image)
+        out = filled(image).logits
+        torch.testing.assert_close(out, fill_columns(ref.logits, ref.depth_logits))
+        assert (ref.logits.argmax(1) == 0).all() and ((out.argmax(1) > 0).sum(1) == 1).all()
+        plain.train(), filled.train()
+        torch.testing.assert_close(filled(image).logits, plain(image).logits)
+    with pytest.raises(ConfigError, match="fill_columns needs model.lift"):
+        ModelConfig(lift="copy", fill_columns=True).check()
