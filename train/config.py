@@ -83,6 +83,11 @@ class ModelConfig:
     """At inference (eval mode), give a column that the volume leaves empty one surface cell when the column depth
     head says it has a surface (:func:`fruxel.train.models.generator.fill_columns`; needs ``lift = "depth"``).
     Training is unchanged; off here for the same reason as ``surface_fusion``."""
+    empty_offset: float = 0.0
+    """At inference (eval mode), added to every cell's empty logit (channel 0) before ``fill_columns``: a
+    decision threshold between empty and occupied chosen after training on training-split samples
+    (``scripts/calibrate.py``), since the class-weighted cross-entropy that trains the model down-weights the
+    empty class. Training is unchanged."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -122,6 +127,8 @@ class ModelConfig:
             raise ConfigError(f"{path}.lift must be 'depth' or 'copy', got {self.lift!r}")
         if self.surface_fusion and self.lift != "depth":
             raise ConfigError(f"{path}.surface_fusion needs {path}.lift = 'depth' (the column depth head)")
+        if not math.isfinite(self.empty_offset):
+            raise ConfigError(f"{path}.empty_offset must be a finite number, got {self.empty_offset}")
         if self.fill_columns and self.lift != "depth":
             raise ConfigError(f"{path}.fill_columns needs {path}.lift = 'depth' (the column depth head)")
         if self.upsample not in ("parity", "resize", "transpose"):

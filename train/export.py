@@ -53,7 +53,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         encoder_expand=config.encoder_expand,
                         lift=config.lift, upsample=config.upsample, group_width=config.group_width,
                         full_res_spatial=config.full_res_spatial, surface_fusion=config.surface_fusion,
-                        fill_columns=config.fill_columns,
+                        fill_columns=config.fill_columns, empty_offset=config.empty_offset,
                         checkpointing=checkpointing)
 
 

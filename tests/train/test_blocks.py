@@ -187,7 +187,8 @@ def test_fill_columns_gives_a_surface_to_the_columns_the_head_sees_one_in(dtype:
     assert torch.equal(changed.sum(1), (after & ~before).long())
 
 
-def test_generator_fills_columns_only_in_eval_mode() -> None:
+@pytest.mark.parametrize("offset", [0.0, 0.7])
+def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) -> None:
     grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
     cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
                       encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
@@ -196,16 +197,20 @@ def test_generator_fills_columns_only_in_eval_mode() -> None:
     with torch.no_grad():  # every cell empty, every column with a surface by the depth head
         plain.head.bias[0] += 5.0
         plain.depth_head.bias[-1] -= 10.0
-    filled = build_generator(dataclasses.replace(cfg, fill_columns=True))
+    filled = build_generator(dataclasses.replace(cfg, fill_columns=True, empty_offset=offset))
     filled.load_state_dict(plain.state_dict())
     image = torch.rand(2, 3, 32, 32)
     with torch.no_grad():
         plain.eval(), filled.eval()
         ref = plain(image)
         out = filled(image).logits
-        torch.testing.assert_close(out, fill_columns(ref.logits, ref.depth_logits))
+        shifted = ref.logits.clone()
+        shifted[:, 0] += offset
+        torch.testing.assert_close(out, fill_columns(shifted, ref.depth_logits))
         assert (ref.logits.argmax(1) == 0).all() and ((out.argmax(1) > 0).sum(1) == 1).all()
         plain.train(), filled.train()
         torch.testing.assert_close(filled(image).logits, plain(image).logits)
     with pytest.raises(ConfigError, match="fill_columns needs model.lift"):
         ModelConfig(lift="copy", fill_columns=True).check()
+    with pytest.raises(ConfigError, match="model.empty_offset must be a finite number"):
+        ModelConfig(empty_offset=math.inf).check()

@@ -21,8 +21,10 @@ slices (supervised with the ground truth's first occupied cell, as in categorica
 level's skip carries that distribution and its running sum (0 in front of the surface, 1 behind) pooled to the
 level's resolution. ``lift="copy"`` turns this off (the plain Z-GAN skip) for comparison.
 
-``fill_columns`` is an inference rule on top (:func:`fill_columns`): a column that the volume leaves empty but
-whose depth head says it has a surface gets one surface cell, where the volume finds a surface most likely.
+``empty_offset`` and ``fill_columns`` are inference rules on top, in eval mode only. The first shifts every
+cell's empty logit (a decision threshold chosen after training); with the second (:func:`fill_columns`) a column
+that the volume leaves empty but whose depth head says it has a surface gets one surface cell, where the volume
+finds a surface most likely.
 
 With ``surface_fusion`` the heads also speak in the output directly: :class:`~.blocks.SurfaceFusion` adds to
 every cell's logits a learnt mix of the log-probabilities that the column's surface lies behind, in front of or
@@ -84,6 +86,7 @@ class SSZGenerator(nn.Module):
             the neighbourhood comes from the up-convolution into that level).
         surface_fusion: add :class:`~.blocks.SurfaceFusion`'s term to the logits (needs ``lift="depth"``).
         fill_columns: in eval mode, pass the logits through :func:`fill_columns` (needs ``lift="depth"``).
+        empty_offset: in eval mode, add this to the empty class's logits (before ``fill_columns``).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -93,7 +96,8 @@ class SSZGenerator(nn.Module):
                  decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, encoder_expand: int = 4,
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
-                 surface_fusion: bool = False, fill_columns: bool = False, checkpointing: bool = False) -> None:
+                 surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
+                 checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -115,6 +119,7 @@ class SSZGenerator(nn.Module):
         self.lift = lift
         self.checkpointing = checkpointing
         self.fill_columns = fill_columns
+        self.empty_offset = float(empty_offset)
         self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -228,6 +233,8 @@ class SSZGenerator(nn.Module):
         logits = self.head(x)
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
+        if self.empty_offset and not self.training:
+            logits = torch.cat([logits[:, :1] + self.empty_offset, logits[:, 1:]], dim=1)
         if self.fill_columns and not self.training:
             logits = fill_columns(logits, depth_logits)
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
