@@ -27,6 +27,7 @@ Run ``python benchmarks/bench_ssz.py --device cuda --out $OUT/ssz-h100`` on the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import sys
@@ -257,10 +258,11 @@ under autocast, or contiguous bfloat16 weights without autocast (no per-call wei
 
 
 def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen: bool = False,
-                  form: str = "channels-last") -> dict[str, Any]:
+                  form: str = "channels-last", model_override: dict[str, Any] | None = None) -> dict[str, Any]:
     """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast; ``frozen`` compiles with
     Inductor's freezing (weights as constants: batch norms folded into their convolutions, layouts chosen once);
-    ``form`` one of :data:`LATENCY_FORMS` (CUDA only; the CPU runs float32 contiguous)."""
+    ``form`` one of :data:`LATENCY_FORMS` (CUDA only; the CPU runs float32 contiguous); ``model_override``
+    replaces fields of the preset's ``ModelConfig`` (e.g. the inference rules ``fill_columns``, ``empty_offset``)."""
     import numpy as np
     import torch
 
@@ -272,7 +274,7 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
     from fruxel.train.models.blocks import channels_last
 
     cfg = get_preset(preset)
-    m = cfg.model
+    m = dataclasses.replace(cfg.model, **(model_override or {}))
     gen = build_generator(m).to(device).eval()
     cuda = device.type == "cuda"
     if cuda and form == "channels-last":
@@ -311,6 +313,7 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
         return shade(one, cam, palette)
 
     row = {"preset": preset, "compiled": compiled, "frozen": frozen, "form": form if cuda else "float32",
+           **({"model_override": model_override} if model_override else {}),
            "logits_ms": logits_ms,
            "full_ms": _median_ms(full, device, repeat, warm=5)}
     print(f"latency {preset} {row['form']} compiled={compiled} frozen={frozen}: "
@@ -334,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frozen", action="store_true", help="latency part: also compile with Inductor's freezing")
     p.add_argument("--forms", nargs="+", default=["channels-last"], choices=LATENCY_FORMS,
                    help="latency part on CUDA: also the compiled generator in these forms (LATENCY_FORMS)")
+    p.add_argument("--model-override", default="{}",
+                   help='latency part: JSON fields of the presets\' ModelConfig, e.g. \'{"fill_columns": true}\'')
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
     p.add_argument("--out", default=None, help="PREFIX of PREFIX.json (default benchmarks/results/ssz-<device>)")
     p.add_argument("--render", action="store_true", help="only re-render BENCHMARKS.md from the results")
@@ -357,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
         ov = json.loads(args.train_override)
         result["train"] = [bench_train(pr, device, args.steps, args.workers, ov) for pr in args.presets]
     if "latency" in args.parts:
-        result["latency"] = [bench_latency(pr, device, args.repeat, c) for pr in args.presets
+        mo = json.loads(args.model_override)
+        result["latency"] = [bench_latency(pr, device, args.repeat, c, model_override=mo) for pr in args.presets
                              for c in ((False, True) if device.type == "cuda" else (False,))]
         if device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, form=f) for pr in args.presets
@@ -369,6 +375,12 @@ def main(argv: list[str] | None = None) -> int:
     Path(f"{out}.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     print(f"wrote {out}.json")
     return 0
+
+
+def _override(row: dict[str, Any]) -> str:
+    """``" (field value, ...)"`` for a latency row measured with ``--model-override``, else empty."""
+    ov = row.get("model_override")
+    return " (" + ", ".join(f"{k} {json.dumps(v)}" for k, v in ov.items()) + ")" if ov else ""
 
 
 def _fmt(v: Any, nd: int = 1) -> str:
@@ -426,7 +438,7 @@ def render() -> None:
                       "| preset | form | compiled (CUDA graphs) | image -> logits, ms | + shell + 512^2 ray cast, ms | "
                       "note |", "| --- | --- | --- | ---: | ---: | --- |"]
             old_form = "channels-last" if r.get("device", "").startswith("cuda") else "float32"
-            lines += [f"| {x['preset']} | {x.get('form', old_form)} | "
+            lines += [f"| {x['preset']}{_override(x)} | {x.get('form', old_form)} | "
                       f"{x['compiled']}{', frozen' if x.get('frozen') else ''} | "
                       f"{_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
                       f"{x.get('note', '')} |" for x in r["latency"]]

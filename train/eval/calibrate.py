@@ -49,9 +49,10 @@ def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Te
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
             for o, acc in accs.items():
-                shifted = torch.cat([logits[:, :1] + o, logits[:, 1:]], dim=1)
                 if fill:
-                    shifted = fill_columns(shifted, out.depth_logits)
+                    shifted = fill_columns(logits, out.depth_logits, o)
+                else:
+                    shifted = torch.cat([logits[:, :1] + o, logits[:, 1:]], dim=1)
                 acc.add_volumes(shifted.argmax(1).to(torch.uint8), target)
     finally:
         generator.train(rules[0])

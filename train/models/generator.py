@@ -233,10 +233,10 @@ class SSZGenerator(nn.Module):
         logits = self.head(x)
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
-        if self.empty_offset and not self.training:
-            logits = torch.cat([logits[:, :1] + self.empty_offset, logits[:, 1:]], dim=1)
         if self.fill_columns and not self.training:
-            logits = fill_columns(logits, depth_logits)
+            logits = fill_columns(logits, depth_logits, self.empty_offset)
+        elif self.empty_offset and not self.training:
+            logits = torch.cat([logits[:, :1] + self.empty_offset, logits[:, 1:]], dim=1)
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
 
 
@@ -244,7 +244,7 @@ FILL_SURFACE_PROBABILITY = 0.5
 """:func:`fill_columns` fills a column whose depth head gives "no surface" a probability below this."""
 
 
-def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor) -> torch.Tensor:
+def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset: float = 0.0) -> torch.Tensor:
     """Give every column that the depth head believes has a surface at least one occupied cell.
 
     The argmax of a column's logits can leave it empty everywhere while the column depth head is confident that
@@ -260,17 +260,20 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor) -> torch.Tens
     Args:
         logits: ``(B, C, D, H, W)`` class logits (channel 0 = empty), any float dtype, grid frame.
         depth_logits: ``(B, D + 1, H, W)`` float logits of each column's first-surface slice (bin D = no surface).
+        empty_offset: added to every cell's empty logit first (``ModelConfig.empty_offset``; the same as calling
+            this on the shifted logits, in one pass).
 
     Returns:
         ``(B, C, D, H, W)`` logits, ``logits``' dtype.
     """
-    empty = logits[:, 0]
-    top = logits[:, 1:].amax(dim=1)  # (B, D, H, W): the best occupied class's logit
+    empty = logits[:, 0] + empty_offset if empty_offset else logits[:, 0]
+    occupied = logits[:, 1:]
+    top = occupied.amax(dim=1)  # (B, D, H, W): the best occupied class's logit
     no_surface = torch.softmax(depth_logits.float(), dim=1)[:, -1]  # (B, H, W)
     fill = ~(top > empty).any(dim=1) & (no_surface < FILL_SURFACE_PROBABILITY)
-    occupied = torch.logsumexp(logits[:, 1:].float(), dim=1) - torch.logsumexp(logits.float(), dim=1)
-    cell = torch.zeros_like(fill.unsqueeze(1).expand_as(empty)).scatter_(1, occupied.argmax(dim=1, keepdim=True),
-                                                                          fill.unsqueeze(1))
+    # log P(occupied) - log P(empty) rises with P(occupied): one log-sum-exp, over the occupied classes only.
+    odds = torch.logsumexp(occupied.float(), dim=1) - empty.float()
+    cell = torch.zeros_like(empty, dtype=torch.bool).scatter_(1, odds.argmax(dim=1, keepdim=True), fill.unsqueeze(1))
     # Just below the best class, by a margin wider than the dtype's spacing at that size (bfloat16 keeps 8 bits).
     below = top - (1.0 + 0.02 * top.abs())
-    return torch.cat([torch.where(cell, below, empty).unsqueeze(1), logits[:, 1:]], dim=1)
+    return torch.cat([torch.where(cell, below, empty).unsqueeze(1), occupied], dim=1)
