@@ -60,7 +60,7 @@ def _main(args: argparse.Namespace) -> None:
     offsets = sorted({0.0, *map(float, args.offsets)})
 
     def images(pairs):  # noqa: ANN001, ANN202
-        with tqdm(total=count, desc="calibrate", unit="sample", leave=False) as bar:
+        with tqdm(total=count, desc="calibrate", unit="sample", leave=False, disable=None) as bar:
             for image, labels in pairs:
                 yield image.permute(0, 3, 1, 2).float() / 255, labels
                 bar.update(len(labels))

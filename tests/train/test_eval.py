@@ -257,3 +257,11 @@ def first_surface_volume(labels: torch.Tensor) -> torch.Tensor:
     first = occupied.to(torch.uint8).argmax(dim=1, keepdim=True)
     keep = torch.zeros_like(occupied).scatter_(1, first, True) & occupied
     return labels * keep
+
+
+def test_report_names_the_inference_rules() -> None:
+    from fruxel.train.eval.report import _rules_text
+
+    assert _rules_text({"fill_columns": True, "empty_offset": 2.0}) == "empty logit +2, fill_columns"
+    assert _rules_text({"fill_columns": False, "empty_offset": -0.5}) == "empty logit -0.5"
+    assert _rules_text({"fill_columns": False, "empty_offset": 0.0}) == "none (plain argmax)"

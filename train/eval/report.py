@@ -62,7 +62,8 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         results: the accumulators by rule, keys from :data:`RULES` (``"model"`` first; a baseline not evaluated is
             left out).
         classes: the class table of the labels.
-        model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary).
+        model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary),
+            optionally ``inference_rules`` (``{"fill_columns": bool, "empty_offset": float}``).
         data: the samples: ``source`` (in words), ``split``, ``samples``, and anything else worth keeping.
         prior: how the per-cell prior was made (``split``, ``samples``), None when it was not.
         machine: where it ran (CPU, GPU, versions, device, kernel backend).
@@ -119,6 +120,13 @@ def _plain(d: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
     return ", ".join(parts)
 
 
+def _rules_text(rules: Mapping[str, Any]) -> str:
+    """The model's inference rules (``ModelConfig.fill_columns``, ``empty_offset``) in words."""
+    parts = [f"empty logit {rules['empty_offset']:+g}"] if rules.get("empty_offset") else []
+    parts += ["fill_columns"] if rules.get("fill_columns") else []
+    return ", ".join(parts) or "none (plain argmax)"
+
+
 def markdown_report(report: Mapping[str, Any]) -> str:
     """``report.md``: the report of :func:`build_report` as Markdown (a summary, then the tables)."""
     rules = [r for r in RULES if r in report["results"]]
@@ -129,7 +137,8 @@ def markdown_report(report: Mapping[str, Any]) -> str:
     h, w = m["image_size"]
     about = [
         ["model", f"`{m['file']}`: grid {_grid_text(m['grid'])}, {w}x{h} images, {len(report['classes']['names'])} "
-                  f"classes" + (f"; trained: {trained}" if trained else "")],
+                  f"classes" + (f"; inference rules: {_rules_text(m['inference_rules'])}" if "inference_rules" in m
+                                else "") + (f"; trained: {trained}" if trained else "")],
         ["samples", f"{d['samples']} samples of split `{d['split']}` ({d.get('indices', '')}), {d['source']}"],
     ]
     if report.get("prior"):
