@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 from fruxel.cli.common import OneLineParser, UsageError, run
 
-DEFAULT_OFFSETS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
+DEFAULT_OFFSETS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 
 
 def _parser() -> argparse.ArgumentParser:
