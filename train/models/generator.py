@@ -251,8 +251,8 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset:
     the own camera sees a surface there: typically a plain wall close to the camera, whose distance the decoder
     spreads over many slices so that no single cell is more likely occupied than empty, and the predicted model
     shows a hole (5.6 % of the own-view pixels where the truth has a surface, in the first 256 test samples, for
-    the model shipped before this rule existed; docs/model.md). For such a column (no cell with ``argmax != 0``, and the depth head's
-    probability of "no surface" below :data:`FILL_SURFACE_PROBABILITY`) the cell with the largest
+    the model shipped before this rule existed; docs/model.md). For such a column (no cell with ``argmax != 0``,
+    and the depth head's probability of "no surface" below :data:`FILL_SURFACE_PROBABILITY`) the cell with the largest
     ``P(occupied) = 1 - P(empty)`` has its empty logit lowered just below its best occupied class's, so that it
     becomes that class's surface; every other logit is returned unchanged. Columns that the volume already
     fills, and columns that the head thinks see nothing, are untouched.
