@@ -366,10 +366,11 @@ def main(argv: list[str] | None = None) -> int:
         result["latency"] = [bench_latency(pr, device, args.repeat, c, model_override=mo) for pr in args.presets
                              for c in ((False, True) if device.type == "cuda" else (False,))]
         if device.type == "cuda":
-            result["latency"] += [bench_latency(pr, device, args.repeat, True, form=f) for pr in args.presets
-                                  for f in args.forms if f != "channels-last"]
+            result["latency"] += [bench_latency(pr, device, args.repeat, True, form=f, model_override=mo)
+                                  for pr in args.presets for f in args.forms if f != "channels-last"]
         if args.frozen and device.type == "cuda":
-            result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True) for pr in args.presets]
+            result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True, model_override=mo)
+                                  for pr in args.presets]
     out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")

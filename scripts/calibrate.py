@@ -41,6 +41,7 @@ def _main(args: argparse.Namespace) -> None:
     import torch
     from tqdm import tqdm
 
+    from fruxel.train.config import ConfigError
     from fruxel.train.eval.calibrate import choose_offset, sweep_offsets
     from fruxel.train.eval.samples import EvalData, batches, data_set_manifest, split_size
     from fruxel.train.export import load_generator, save_shipped
@@ -52,8 +53,10 @@ def _main(args: argparse.Namespace) -> None:
     if not args.out.endswith(".safetensors"):
         raise UsageError(f"--out {args.out}: must end in .safetensors")
     generator, config, training = load_generator(args.model)
-    if args.fill and config.lift != "depth":
-        raise UsageError(f"{args.model}: --fill needs the column depth head (lift 'depth')")
+    try:  # the model's own check: fill_columns needs the column depth head
+        dataclasses.replace(config, fill_columns=bool(args.fill)).check()
+    except ConfigError as e:
+        raise UsageError(f"{args.model}: --fill: {e}") from None
     manifest = data_set_manifest(args.data, config)
     data = EvalData(source="shards", root=args.data, seed=manifest.seed)
     count = min(args.samples, split_size(data, config, args.split))

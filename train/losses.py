@@ -264,12 +264,20 @@ class ShellTargets:
     concatenated in group order."""
     hit_flat: torch.Tensor
     """``(sum of B * N * h * w over the groups,)`` bool: every group's ground-truth hit mask, like ``depth_flat``."""
-    own_view: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-    """The grid's own camera (when it is among the cameras): its ``first_hit`` labels ``(B, H, W)`` int64, depths
-    ``(B, H, W)`` float32 (the near plane ``z_k`` of each column's first occupied cell, 0 on a miss) and hit mask
-    ``(B, H, W)`` bool, views of the group tensors above: the own-view truth, from the labels like every view's."""
     own_index: tuple[int, int] | None = None
-    """Where the own camera is: ``(camera group, camera within the group)``, or None."""
+    """Where the grid's own camera is among the cameras: ``(camera group, camera within the group)``, or None."""
+
+    @property
+    def own_view(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The grid's own camera (when it is among the cameras): its ``first_hit`` labels ``(B, H, W)`` int64,
+        depths ``(B, H, W)`` float32 (the near plane ``z_k`` of each column's first occupied cell, 0 on a miss) and
+        hit mask ``(B, H, W)`` bool, views of the group tensors above: the own-view truth, from the labels like
+        every view's."""
+        if self.own_index is None:
+            return None
+        g, n = self.own_index
+        lab, depth, hit = self.groups[g]
+        return lab[:, n], depth[:, n], hit[:, n]
 
     @property
     def pixels(self) -> int:
@@ -369,12 +377,7 @@ class ShellLoss:
         own = self.grid.camera()
         own_index = next(((g, n) for g, group in enumerate(group_by_size(cameras)) for n, cam in enumerate(group)
                           if cam == own), None)
-        own_view = None
-        if own_index is not None:
-            lab, depth, hit = out[own_index[0]]
-            n = own_index[1]
-            own_view = (lab[:, n], depth[:, n], hit[:, n])
-        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_view, own_index)
+        return ShellTargets(out, mask, depth_norm, weight, labels.long(), depth_flat, hit_flat, own_index)
 
     def __call__(self, logits: torch.Tensor, labels: torch.Tensor,
                  cameras: list[Camera] | None = None) -> ShellLossTerms:
@@ -425,7 +428,7 @@ class ShellLoss:
         own_ce = None
         if c.weight_own_view and targets.own_index is not None:
             g, n = targets.own_index
-            p_own = soft[g].classes[:, n].gather(1, targets.groups[g][0][:, n].unsqueeze(1))
+            p_own = soft[g].classes[:, n].gather(1, targets.own_view[0].unsqueeze(1))
             own_ce = -torch.log(p_own + c.eps).mean()
             weighted.append((c.weight_own_view, own_ce))
         # reduce, not sum(): adding to 0 would cost one more device operation; unit weights cost none.

@@ -100,6 +100,18 @@ def _room(grid: FruxelGrid) -> np.ndarray:
     return lab
 
 
+def _two_rooms() -> tuple[FruxelGrid, torch.Tensor]:
+    """A small grid and a batch of two label volumes: :func:`_room` and its mirror image."""
+    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
+    return grid, torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
+
+
+def _random_logits(grid: FruxelGrid, seed: int) -> torch.Tensor:
+    """``(2, C, D, H, W)`` float64 standard-normal logits from ``torch.manual_seed(seed)``."""
+    torch.manual_seed(seed)
+    return torch.randn(2, C, *grid.shape, dtype=torch.float64)
+
+
 def _optimise(grid: FruxelGrid, labels: torch.Tensor, config: ShellLossConfig, steps: int) -> tuple[Any, ...]:
     """Adam on free logits (seeded) against ``labels``; returns the logits, the loss, the first call's terms and
     the cameras of that first call."""
@@ -121,8 +133,7 @@ def _optimise(grid: FruxelGrid, labels: torch.Tensor, config: ShellLossConfig, s
 @pytest.mark.skipif(not BACKENDS, reason="no kernel backend is available")
 def test_shell_terms_alone_train_the_visible_surface() -> None:
     # Without the voxel term every gradient comes from soft_first_hit's backward pass: a wrong one fails here.
-    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
-    labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
+    grid, labels = _two_rooms()
     config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=3, weight_voxel=0.0)
     logits, loss, first, fixed = _optimise(grid, labels, config, 25)
     final = loss(logits, labels, fixed)
@@ -151,10 +162,8 @@ def test_optimisation_brings_every_term_down() -> None:
 def test_shell_loss_terms_equal_the_loss_functions() -> None:
     # ShellLoss pools every camera group's pixels and normalises once; its terms must be the public losses',
     # summed over the groups and normalised over all of them, and its total their weighted sum.
-    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
-    labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
-    torch.manual_seed(5)
-    logits = torch.randn(2, C, *grid.shape, dtype=torch.float64)
+    grid, labels = _two_rooms()
+    logits = _random_logits(grid, 5)
     config = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=6, weight_visible=2.0, weight_other=0.25,
                              weight_shell=0.5, weight_depth=3.0, weight_voxel=0.7)
     loss = ShellLoss(grid, config)
@@ -177,10 +186,8 @@ def test_shell_loss_terms_equal_the_loss_functions() -> None:
 def test_own_view_term_is_the_own_columns_first_hit_cross_entropy() -> None:
     # The own camera's pixel (x, y) looks down column (y, x): its expected first-hit class is, along the column,
     # sum_d p_c(d) prod_{d' < d} p_0(d') (channel 0: the product over every cell, a miss). A reference of its own.
-    grid = FruxelGrid(width=10, height=8, depth=9, z_near=0.5, z_far=4.0, hfov=60.0)
-    labels = torch.from_numpy(np.stack([_room(grid), np.flip(_room(grid), axis=2).copy()]))
-    torch.manual_seed(7)
-    logits = torch.randn(2, C, *grid.shape, dtype=torch.float64)
+    grid, labels = _two_rooms()
+    logits = _random_logits(grid, 7)
     base = ShellLossConfig(novel_views=2, novel_size=(16, 12), seed=8, weight_shell=0.5, weight_voxel=0.7)
     plain = ShellLoss(grid, base)
     cams = plain.cameras()

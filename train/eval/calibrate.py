@@ -37,7 +37,7 @@ def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Te
     Returns:
         An accumulator per offset (no novel views).
     """
-    from ..models.generator import fill_columns
+    from ..models.generator import inference_rules
 
     accs = {float(o): Accumulator(classes) for o in offsets}
     rules = (generator.training, generator.empty_offset, generator.fill_columns)
@@ -49,10 +49,7 @@ def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Te
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
             for o, acc in accs.items():
-                if fill:
-                    shifted = fill_columns(logits, out.depth_logits, o)
-                else:
-                    shifted = torch.cat([logits[:, :1] + o, logits[:, 1:]], dim=1)
+                shifted = inference_rules(logits, out.depth_logits, empty_offset=o, fill=fill)
                 acc.add_volumes(shifted.argmax(1).to(torch.uint8), target)
     finally:
         generator.train(rules[0])

@@ -233,11 +233,29 @@ class SSZGenerator(nn.Module):
         logits = self.head(x)
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
-        if self.fill_columns and not self.training:
-            logits = fill_columns(logits, depth_logits, self.empty_offset)
-        elif self.empty_offset and not self.training:
-            logits = torch.cat([logits[:, :1] + self.empty_offset, logits[:, 1:]], dim=1)
+        if not self.training:
+            logits = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns)
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
+
+
+def inference_rules(logits: torch.Tensor, depth_logits: torch.Tensor | None, *, empty_offset: float,
+                    fill: bool) -> torch.Tensor:
+    """The eval-mode rules of ``ModelConfig.empty_offset`` and ``fill_columns`` applied to a batch's logits.
+
+    Args:
+        logits: ``(B, C, D, H, W)`` class logits (channel 0 = empty), any float dtype.
+        depth_logits: ``(B, D + 1, H, W)`` column depth logits (needed with ``fill``).
+        empty_offset: added to every cell's empty logit.
+        fill: then :func:`fill_columns`.
+
+    Returns:
+        ``(B, C, D, H, W)`` logits (``logits`` itself when there is nothing to do).
+    """
+    if fill:
+        return fill_columns(logits, depth_logits, empty_offset)
+    if empty_offset:
+        return torch.cat([logits[:, :1] + empty_offset, logits[:, 1:]], dim=1)
+    return logits
 
 
 FILL_SURFACE_PROBABILITY = 0.5
