@@ -1,12 +1,13 @@
-"""Choose a trained SSZ's empty-logit offset on training-split samples and write the calibrated model file.
+"""Choose a trained SSZ's inference rules on training-split samples and write the calibrated model file.
 
     python scripts/calibrate.py MODEL.safetensors --data data/eval64 --out CALIBRATED.safetensors [--fill]
 
 Predicts ``--samples`` samples of the data set's ``--split`` (default ``train``: never the test split the model is
 evaluated on) once, counts mIoU, completion IoU and own-view first-hit accuracy at every ``--offsets`` value added
-to the empty logit (with ``fill_columns`` after it when ``--fill``), prints the table, picks the offset by
-:func:`fruxel.train.eval.calibrate.choose_offset` and writes the model with ``empty_offset`` (and
-``fill_columns``) set, the sweep recorded in its ``training`` metadata under ``calibration``.
+to the empty logit (with ``--fill``: and ``fill_columns`` after it at every ``--thresholds`` value), prints the
+table, picks the rules by :func:`fruxel.train.eval.calibrate.choose_rules` and writes the model with
+``empty_offset`` (and ``fill_columns``, ``fill_threshold``) set, the sweep recorded in its ``training`` metadata
+under ``calibration``.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections.abc import Sequence
 from fruxel.cli.common import OneLineParser, UsageError, run
 
 DEFAULT_OFFSETS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
+DEFAULT_THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -30,6 +32,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--offsets", type=float, nargs="+", default=list(DEFAULT_OFFSETS),
                    help="empty-logit offsets to try; 0 is always added")
     p.add_argument("--fill", action="store_true", help="set fill_columns and calibrate with it")
+    p.add_argument("--thresholds", type=float, nargs="+", default=list(DEFAULT_THRESHOLDS),
+                   help="with --fill: fill_threshold values to try, in (0, 1]; the model's own is always added")
     p.add_argument("--batch", type=int, default=16, help="samples per batch")
     p.add_argument("--out", required=True, help="calibrated model file to write (.safetensors)")
     return p
@@ -42,7 +46,7 @@ def _main(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
     from fruxel.train.config import ConfigError
-    from fruxel.train.eval.calibrate import choose_offset, sweep_offsets
+    from fruxel.train.eval.calibrate import choose_rules, rules_score, sweep_rules
     from fruxel.train.eval.samples import EvalData, batches, data_set_manifest, split_size
     from fruxel.train.export import load_generator, save_shipped
 
@@ -50,6 +54,8 @@ def _main(args: argparse.Namespace) -> None:
         raise UsageError("--samples and --batch must be >= 1")
     if not all(math.isfinite(o) for o in args.offsets):
         raise UsageError("--offsets must be finite numbers")
+    if not all(0.0 < t <= 1.0 for t in args.thresholds):  # NaN fails too
+        raise UsageError("--thresholds must be numbers in (0, 1]")
     if not args.out.endswith(".safetensors"):
         raise UsageError(f"--out {args.out}: must end in .safetensors")
     generator, config, training = load_generator(args.model)
@@ -61,6 +67,7 @@ def _main(args: argparse.Namespace) -> None:
     data = EvalData(source="shards", root=args.data, seed=manifest.seed)
     count = min(args.samples, split_size(data, config, args.split))
     offsets = sorted({0.0, *map(float, args.offsets)})
+    thresholds = sorted({config.fill_threshold, *map(float, args.thresholds)})
 
     def images(pairs):  # noqa: ANN001, ANN202
         with tqdm(total=count, desc="calibrate", unit="sample", leave=False, disable=None) as bar:
@@ -68,23 +75,29 @@ def _main(args: argparse.Namespace) -> None:
                 yield image.permute(0, 3, 1, 2).float() / 255, labels
                 bar.update(len(labels))
 
-    accs = sweep_offsets(generator, images(batches(data, config, args.split, count, args.batch)), offsets,
-                         config.num_classes, fill=args.fill, device=torch.device("cpu"))
-    summaries = {o: a.summary() for o, a in accs.items()}
-    best = choose_offset(summaries)
+    accs = sweep_rules(generator, images(batches(data, config, args.split, count, args.batch)), offsets, thresholds,
+                       config.num_classes, fill=args.fill, device=torch.device("cpu"))
+    summaries = {r: a.summary() for r, a in accs.items()}
+    offset, threshold = best = choose_rules(summaries, (0.0, config.fill_threshold))
     print(f"{count} samples of {args.data} split {args.split}, fill_columns {args.fill}")
-    print("| empty offset | mIoU | completion IoU | own view % |\n| ---: | ---: | ---: | ---: |")
-    for o, s in summaries.items():
-        mark = " (chosen)" if o == best else ""
-        print(f"| {o:+.2f}{mark} | {s['miou']:.2f} | {s['completion_iou']:.2f} | {s['own_view_accuracy']:.2f} |")
-    calibrated = dataclasses.replace(config, empty_offset=best, fill_columns=bool(args.fill))
-    generator.empty_offset, generator.fill_columns = best, bool(args.fill)
-    sweep = {f"{o:g}": {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy")}
-             for o, s in summaries.items()}
+    print("| empty offset | fill threshold | mIoU | completion IoU | own view % | sum |\n"
+          "| ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r, s in summaries.items():
+        mark = " (chosen)" if r == best else ""
+        t = f"{r[1]:.2f}" if args.fill else "-"
+        print(f"| {r[0]:+.2f}{mark} | {t} | {s['miou']:.2f} | {s['completion_iou']:.2f} | "
+              f"{s['own_view_accuracy']:.2f} | {rules_score(s):.2f} |")
+    calibrated = dataclasses.replace(config, empty_offset=offset, fill_columns=bool(args.fill),
+                                     fill_threshold=threshold)
+    generator.empty_offset, generator.fill_columns, generator.fill_threshold = offset, bool(args.fill), threshold
+    sweep = {(f"{r[0]:g}/{r[1]:g}" if args.fill else f"{r[0]:g}"):
+             {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy")} for r, s in summaries.items()}
     training = {**training, "calibration": {"data": args.data, "split": args.split, "samples": count,
-                                            "fill_columns": bool(args.fill), "empty_offset": best, "sweep": sweep}}
+                                            "fill_columns": bool(args.fill), "empty_offset": offset,
+                                            **({"fill_threshold": threshold} if args.fill else {}), "sweep": sweep}}
     save_shipped(args.out, generator, calibrated, training, half=True)
-    print(f"wrote {args.out}: empty_offset {best:g}, fill_columns {args.fill}")
+    print(f"wrote {args.out}: empty_offset {offset:g}, fill_columns {args.fill}"
+          + (f", fill_threshold {threshold:g}" if args.fill else ""))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -88,6 +88,9 @@ class ModelConfig:
     decision threshold between empty and occupied chosen after training on training-split samples
     (``scripts/calibrate.py``), since the class-weighted cross-entropy that trains the model down-weights the
     empty class. Training is unchanged."""
+    fill_threshold: float = 0.5
+    """``fill_columns`` fills a column whose depth head gives "no surface" a probability below this, in (0, 1]
+    (1 fills every column the volume leaves empty); chosen with ``empty_offset`` by ``scripts/calibrate.py``."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -129,6 +132,8 @@ class ModelConfig:
             raise ConfigError(f"{path}.surface_fusion needs {path}.lift = 'depth' (the column depth head)")
         if not math.isfinite(self.empty_offset):
             raise ConfigError(f"{path}.empty_offset must be a finite number, got {self.empty_offset}")
+        if not (math.isfinite(self.fill_threshold) and 0.0 < self.fill_threshold <= 1.0):
+            raise ConfigError(f"{path}.fill_threshold must be in (0, 1], got {self.fill_threshold}")
         if self.fill_columns and self.lift != "depth":
             raise ConfigError(f"{path}.fill_columns needs {path}.lift = 'depth' (the column depth head)")
         if self.upsample not in ("parity", "resize", "transpose"):

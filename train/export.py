@@ -54,6 +54,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         lift=config.lift, upsample=config.upsample, group_width=config.group_width,
                         full_res_spatial=config.full_res_spatial, surface_fusion=config.surface_fusion,
                         fill_columns=config.fill_columns, empty_offset=config.empty_offset,
+                        fill_threshold=config.fill_threshold,
                         checkpointing=checkpointing)
 
 

@@ -149,7 +149,8 @@ def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ fill_columns
-def _fill_reference(logits: torch.Tensor, depth_logits: torch.Tensor) -> torch.Tensor:
+def _fill_reference(logits: torch.Tensor, depth_logits: torch.Tensor,
+                    threshold: float = FILL_SURFACE_PROBABILITY) -> torch.Tensor:
     """Predicted labels after the rule, column by column: (B, D, H, W) int64."""
     labels = logits.argmax(1)
     none = torch.softmax(depth_logits.double(), dim=1)[:, -1]
@@ -158,30 +159,36 @@ def _fill_reference(logits: torch.Tensor, depth_logits: torch.Tensor) -> torch.T
         for y in range(h_):
             for x in range(w_):
                 column = logits[b, :, :, y, x].double()  # (C, D)
-                if (labels[b, :, y, x] > 0).any() or none[b, y, x] >= FILL_SURFACE_PROBABILITY:
+                if (labels[b, :, y, x] > 0).any() or none[b, y, x] >= threshold:
                     continue
                 k = int((1 - torch.softmax(column, dim=0)[0]).argmax())
                 labels[b, k, y, x] = int(column[1:, k].argmax()) + 1
     return labels
 
 
+@pytest.mark.parametrize("threshold", [FILL_SURFACE_PROBABILITY, 0.85])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_fill_columns_gives_a_surface_to_the_columns_the_head_sees_one_in(dtype: torch.dtype) -> None:
+def test_fill_columns_gives_a_surface_to_the_columns_the_head_sees_one_in(dtype: torch.dtype,
+                                                                         threshold: float) -> None:
     torch.manual_seed(1)
     logits = torch.randn(2, 5, 6, 4, 3) * 30  # large logits: bfloat16 spacing there is 0.25 to 1
     logits[:, 0] += 60.0  # most columns empty
     logits[0, 0, 2, 1, 1] = -100.0  # one column already has a surface
     depth_logits = torch.randn(2, 7, 4, 3) * 3
+    depth_logits[:, -1] += 2.5  # "no surface" from 0.0003 to 0.96: both thresholds tried decide columns
     logits = logits.to(dtype)
-    out = fill_columns(logits, depth_logits)
+    out = fill_columns(logits, depth_logits, threshold=threshold)
     assert out.dtype == dtype and out.shape == logits.shape
     torch.testing.assert_close(out[:, 1:], logits[:, 1:], rtol=0, atol=0)
-    expected = _fill_reference(logits.float(), depth_logits)
+    expected = _fill_reference(logits.float(), depth_logits, threshold)
     assert torch.equal(out.argmax(1), expected)
     before = (logits.argmax(1) > 0).any(1)
     after = (out.argmax(1) > 0).any(1)
-    head_sees = torch.softmax(depth_logits, 1)[:, -1] < FILL_SURFACE_PROBABILITY
+    none = torch.softmax(depth_logits, 1)[:, -1]
+    head_sees = none < threshold
     assert torch.equal(after, before | head_sees) and not torch.equal(after, before)
+    # The draw has columns between the two thresholds tried, so the threshold decides some columns.
+    assert ((none >= FILL_SURFACE_PROBABILITY) & (none < 0.85) & ~before).any()
     # Only filled columns change, each in one cell.
     changed = (out != logits).any(1)  # (B, D, H, W)
     assert torch.equal(changed.sum(1), (after & ~before).long())
@@ -197,7 +204,7 @@ def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) 
     with torch.no_grad():  # every cell empty, every column with a surface by the depth head
         plain.head.bias[0] += 5.0
         plain.depth_head.bias[-1] -= 10.0
-    filled = build_generator(dataclasses.replace(cfg, fill_columns=True, empty_offset=offset))
+    filled = build_generator(dataclasses.replace(cfg, fill_columns=True, empty_offset=offset, fill_threshold=0.9))
     filled.load_state_dict(plain.state_dict())
     image = torch.rand(2, 3, 32, 32)
     with torch.no_grad():
@@ -206,7 +213,7 @@ def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) 
         out = filled(image).logits
         shifted = ref.logits.clone()
         shifted[:, 0] += offset
-        torch.testing.assert_close(out, fill_columns(shifted, ref.depth_logits))
+        torch.testing.assert_close(out, fill_columns(shifted, ref.depth_logits, threshold=0.9))
         assert (ref.logits.argmax(1) == 0).all() and ((out.argmax(1) > 0).sum(1) == 1).all()
         plain.train(), filled.train()
         torch.testing.assert_close(filled(image).logits, plain(image).logits)
@@ -214,3 +221,6 @@ def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) 
         ModelConfig(lift="copy", fill_columns=True).check()
     with pytest.raises(ConfigError, match="model.empty_offset must be a finite number"):
         ModelConfig(empty_offset=math.inf).check()
+    for bad in (0.0, 1.5, math.nan):
+        with pytest.raises(ConfigError, match=r"model.fill_threshold must be in \(0, 1\]"):
+            ModelConfig(fill_threshold=bad).check()

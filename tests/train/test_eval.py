@@ -263,5 +263,8 @@ def test_report_names_the_inference_rules() -> None:
     from fruxel.train.eval.report import _rules_text
 
     assert _rules_text({"fill_columns": True, "empty_offset": 2.0}) == "empty logit +2, fill_columns"
+    assert (_rules_text({"fill_columns": True, "empty_offset": 3.0, "fill_threshold": 0.7})
+            == "empty logit +3, fill_columns (threshold 0.7)")
+    assert _rules_text({"fill_columns": False, "empty_offset": 0.0, "fill_threshold": 0.7}) == "none (plain argmax)"
     assert _rules_text({"fill_columns": False, "empty_offset": -0.5}) == "empty logit -0.5"
     assert _rules_text({"fill_columns": False, "empty_offset": 0.0}) == "none (plain argmax)"

@@ -1,10 +1,13 @@
-"""Choosing a trained model's empty-logit offset (``ModelConfig.empty_offset``) on training-split samples.
+"""Choosing a trained model's inference rules (``ModelConfig.empty_offset``, ``fill_threshold``) on training-split
+samples.
 
 The class-weighted cross-entropy that trains SSZ down-weights the empty class (about 97 % of the cells at 64^3),
 so the argmax of its logits calls cells occupied more readily than the cell-count metrics reward. After training,
-a constant added to every cell's empty logit moves that threshold; it is chosen here on samples of the training
-split (never the test split the model is evaluated on), with the model's ``fill_columns`` rule applied after the
-shift exactly as the model applies it at inference.
+a constant added to every cell's empty logit moves that threshold. With ``fill_columns``, a column that the volume
+leaves empty gets a surface when the depth head's "no surface" probability is below ``fill_threshold``: a higher
+threshold gives the own view a surface in more of the columns the network is unsure of (a plain wall close to the
+camera), at the price of surfaces where the truth has none. Both are chosen here on samples of the training split
+(never the test split the model is evaluated on), with the rules applied exactly as the model applies them.
 """
 
 from __future__ import annotations
@@ -16,30 +19,34 @@ import torch
 
 from .metrics import Accumulator
 
-OWN_VIEW_TOLERANCE = 0.5
-"""An offset may lower the own-view first-hit accuracy by at most this many points against offset 0."""
+Rules = tuple[float, float]
+"""``(empty_offset, fill_threshold)``."""
 
 
 @torch.no_grad()
-def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], offsets: Sequence[float],
-                  classes: int, *, fill: bool, device: torch.device) -> dict[float, Accumulator]:
-    """Volume metrics (cell IoUs, completion, own view) of the generator's predictions at each empty-logit offset.
+def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], offsets: Sequence[float],
+                thresholds: Sequence[float], classes: int, *, fill: bool, device: torch.device
+                ) -> dict[Rules, Accumulator]:
+    """Volume metrics (cell IoUs, completion, own view) of the generator's predictions under each pair of rules.
 
     Args:
         generator: an :class:`~fruxel.train.models.generator.SSZGenerator`; its own inference rules are switched
             off for the sweep and restored after it.
         batches: ``(images (B, 3, h, w) float in [0, 1], labels (B, D, H, W) integer)`` pairs.
         offsets: the offsets to try, added to every cell's empty logit (channel 0).
+        thresholds: the ``fill_threshold`` values to try with each offset, in (0, 1] (ignored without ``fill``).
         classes: C, classes including empty.
         fill: apply :func:`~fruxel.train.models.generator.fill_columns` after each shift.
         device: where to predict and count.
 
     Returns:
-        An accumulator per offset (no novel views).
+        An accumulator per ``(offset, threshold)`` (no novel views); without ``fill`` the threshold of every key is
+        the generator's own.
     """
     from ..models.generator import inference_rules
 
-    accs = {float(o): Accumulator(classes) for o in offsets}
+    ts = [float(t) for t in thresholds] if fill else [generator.fill_threshold]
+    accs = {(float(o), t): Accumulator(classes) for o in offsets for t in ts}
     rules = (generator.training, generator.empty_offset, generator.fill_columns)
     generator.eval()
     generator.empty_offset, generator.fill_columns = 0.0, False
@@ -48,8 +55,8 @@ def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Te
             out = generator(image.to(device))
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
-            for o, acc in accs.items():
-                shifted = inference_rules(logits, out.depth_logits, empty_offset=o, fill=fill)
+            for (o, t), acc in accs.items():
+                shifted = inference_rules(logits, out.depth_logits, empty_offset=o, fill=fill, fill_threshold=t)
                 acc.add_volumes(shifted.argmax(1).to(torch.uint8), target)
     finally:
         generator.train(rules[0])
@@ -57,18 +64,24 @@ def sweep_offsets(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Te
     return accs
 
 
-def choose_offset(summaries: dict[float, dict[str, Any]], tolerance: float = OWN_VIEW_TOLERANCE) -> float:
-    """The offset with the largest mIoU + completion IoU among those whose own-view first-hit accuracy is within
-    ``tolerance`` points of offset 0's (ties: the offset nearest 0).
+def rules_score(summary: dict[str, Any]) -> float:
+    """What :func:`choose_rules` maximises: mIoU + completion IoU + own-view first-hit accuracy, in points (the
+    three metrics the project sets targets for, weighted equally)."""
+    return summary["miou"] + summary["completion_iou"] + summary["own_view_accuracy"]
+
+
+def choose_rules(summaries: dict[Rules, dict[str, Any]], default: Rules) -> Rules:
+    """The rules with the largest :func:`rules_score` (ties: the ones nearest ``default``).
 
     Args:
-        summaries: :meth:`Accumulator.summary` per offset; must include 0.
+        summaries: :meth:`Accumulator.summary` per ``(offset, threshold)``; must include ``default``.
+        default: the model as trained, e.g. ``(0.0, 0.5)``.
 
     Raises:
-        ValueError: no offset 0 among them.
+        ValueError: ``default`` is not among them.
     """
-    if 0.0 not in summaries:
-        raise ValueError("the offsets must include 0 (the model as trained)")
-    floor = summaries[0.0]["own_view_accuracy"] - tolerance
-    allowed = [o for o, s in summaries.items() if s["own_view_accuracy"] >= floor]
-    return max(allowed, key=lambda o: (summaries[o]["miou"] + summaries[o]["completion_iou"], -abs(o)))
+    if default not in summaries:
+        raise ValueError(f"the sweep must include the model as trained (offset {default[0]:g}, threshold "
+                         f"{default[1]:g})")
+    return max(summaries, key=lambda r: (round(rules_score(summaries[r]), 9),
+                                         -abs(r[0] - default[0]) - abs(r[1] - default[1])))

@@ -42,12 +42,15 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from ..config import ModelConfig
 from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Pointwise3d, SurfaceFusion, Up3d, act2d
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 """Per-channel mean subtracted inside the model (inputs are RGB in [0, 1], SPEC section 8)."""
 IMAGE_STD = (0.229, 0.224, 0.225)
 """Per-channel standard deviation divided inside the model."""
+FILL_SURFACE_PROBABILITY: float = ModelConfig.fill_threshold
+"""The default ``threshold`` of :func:`fill_columns`: ``ModelConfig.fill_threshold``'s default."""
 
 
 @dataclass
@@ -87,6 +90,7 @@ class SSZGenerator(nn.Module):
         surface_fusion: add :class:`~.blocks.SurfaceFusion`'s term to the logits (needs ``lift="depth"``).
         fill_columns: in eval mode, pass the logits through :func:`fill_columns` (needs ``lift="depth"``).
         empty_offset: in eval mode, add this to the empty class's logits (before ``fill_columns``).
+        fill_threshold: :func:`fill_columns`' ``threshold``, in (0, 1].
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -97,7 +101,7 @@ class SSZGenerator(nn.Module):
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
-                 checkpointing: bool = False) -> None:
+                 fill_threshold: float = FILL_SURFACE_PROBABILITY, checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -108,6 +112,8 @@ class SSZGenerator(nn.Module):
         for name, on in (("surface_fusion", surface_fusion), ("fill_columns", fill_columns)):
             if on and lift != "depth":
                 raise ValueError(f"{name} needs lift='depth' (the column depth head)")
+        if not 0.0 < fill_threshold <= 1.0:
+            raise ValueError(f"fill_threshold must be in (0, 1], got {fill_threshold}")
         d, h, w = grid_shape
         f = 2 ** (levels - 1)
         if d % f or h % f or w % f:
@@ -120,6 +126,7 @@ class SSZGenerator(nn.Module):
         self.checkpointing = checkpointing
         self.fill_columns = fill_columns
         self.empty_offset = float(empty_offset)
+        self.fill_threshold = float(fill_threshold)
         self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -234,35 +241,35 @@ class SSZGenerator(nn.Module):
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
         if not self.training:
-            logits = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns)
+            logits = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
+                                     fill_threshold=self.fill_threshold)
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
 
 
 def inference_rules(logits: torch.Tensor, depth_logits: torch.Tensor | None, *, empty_offset: float,
-                    fill: bool) -> torch.Tensor:
-    """The eval-mode rules of ``ModelConfig.empty_offset`` and ``fill_columns`` applied to a batch's logits.
+                    fill: bool, fill_threshold: float = FILL_SURFACE_PROBABILITY) -> torch.Tensor:
+    """The eval-mode rules of ``ModelConfig.empty_offset``, ``fill_columns`` and ``fill_threshold`` applied to a
+    batch's logits.
 
     Args:
         logits: ``(B, C, D, H, W)`` class logits (channel 0 = empty), any float dtype.
         depth_logits: ``(B, D + 1, H, W)`` column depth logits (needed with ``fill``).
         empty_offset: added to every cell's empty logit.
         fill: then :func:`fill_columns`.
+        fill_threshold: its ``threshold``.
 
     Returns:
         ``(B, C, D, H, W)`` logits (``logits`` itself when there is nothing to do).
     """
     if fill:
-        return fill_columns(logits, depth_logits, empty_offset)
+        return fill_columns(logits, depth_logits, empty_offset, fill_threshold)
     if empty_offset:
         return torch.cat([logits[:, :1] + empty_offset, logits[:, 1:]], dim=1)
     return logits
 
 
-FILL_SURFACE_PROBABILITY = 0.5
-""":func:`fill_columns` fills a column whose depth head gives "no surface" a probability below this."""
-
-
-def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset: float = 0.0) -> torch.Tensor:
+def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset: float = 0.0,
+                 threshold: float = FILL_SURFACE_PROBABILITY) -> torch.Tensor:
     """Give every column that the depth head believes has a surface at least one occupied cell.
 
     The argmax of a column's logits can leave it empty everywhere while the column depth head is confident that
@@ -270,7 +277,7 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset:
     spreads over many slices so that no single cell is more likely occupied than empty, and the predicted model
     shows a hole (5.6 % of the own-view pixels where the truth has a surface, in the first 256 test samples, for
     the model shipped before this rule existed; docs/model.md). For such a column (no cell with ``argmax != 0``,
-    and the depth head's probability of "no surface" below :data:`FILL_SURFACE_PROBABILITY`) the cell with the largest
+    and the depth head's probability of "no surface" below ``threshold``) the cell with the largest
     ``P(occupied) = 1 - P(empty)`` has its empty logit lowered just below its best occupied class's, so that it
     becomes that class's surface; every other logit is returned unchanged. Columns that the volume already
     fills, and columns that the head thinks see nothing, are untouched.
@@ -280,6 +287,8 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset:
         depth_logits: ``(B, D + 1, H, W)`` float logits of each column's first-surface slice (bin D = no surface).
         empty_offset: added to every cell's empty logit first (``ModelConfig.empty_offset``; the same as calling
             this on the shifted logits, in one pass).
+        threshold: fill a column whose "no surface" probability is below this (``ModelConfig.fill_threshold``,
+            in (0, 1]; 1 fills every empty column but those where the head is certain of "no surface").
 
     Returns:
         ``(B, C, D, H, W)`` logits, ``logits``' dtype.
@@ -288,7 +297,7 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset:
     occupied = logits[:, 1:]
     top = occupied.amax(dim=1)  # (B, D, H, W): the best occupied class's logit
     no_surface = torch.softmax(depth_logits.float(), dim=1)[:, -1]  # (B, H, W)
-    fill = ~(top > empty).any(dim=1) & (no_surface < FILL_SURFACE_PROBABILITY)
+    fill = ~(top > empty).any(dim=1) & (no_surface < threshold)
     # log P(occupied) - log P(empty) rises with P(occupied): one log-sum-exp, over the occupied classes only.
     odds = torch.logsumexp(occupied.float(), dim=1) - empty.float()
     cell = torch.zeros_like(empty, dtype=torch.bool).scatter_(1, odds.argmax(dim=1, keepdim=True), fill.unsqueeze(1))
