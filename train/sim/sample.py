@@ -153,6 +153,26 @@ class SampleMaker:
         raise RuntimeError(f"split {split!r} scene {scene}: no room among {MAX_ROOM_ATTEMPTS} attempts had free "
                            "floor for the robot; loosen config.room or config.trajectory")
 
+    def scene_of(self, split: str, index: int) -> tuple[Any, np.ndarray]:
+        """The room of sample ``index`` of ``split`` and its camera pose, without rendering or labelling it.
+
+        Returns:
+            ``(Scene, pose (4, 4) float64)``: the pose is the sample's ``pose``.
+
+        Raises:
+            ConfigError: an unknown split or an index outside it.
+        """
+        room, frame = self._locate(split, index)
+        return room.scene, room.poses[frame].copy()
+
+    def _locate(self, split: str, index: int) -> tuple[_Room, int]:
+        """The loaded room of sample ``index`` and its frame; ConfigError for an index outside the split."""
+        n = self.config.split_samples(split)
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
+            raise ConfigError(f"sample index {index!r} is outside split {split!r} of {n} samples")
+        scene, frame = divmod(int(index), self.config.samples_per_scene)
+        return self._load_room(split, scene), frame
+
     def make(self, split: str, index: int) -> Sample:
         """Sample ``index`` of ``split``.
 
@@ -161,13 +181,8 @@ class SampleMaker:
         """
         from fruxel.kernels.fruxelize import fruxelize
 
-        n = self.config.split_samples(split)
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
-            raise ConfigError(f"sample index {index!r} is outside split {split!r} of {n} samples")
-        index = int(index)
-        scene, frame = divmod(index, self.config.samples_per_scene)
-        room = self._load_room(split, scene)
-        pose = room.poses[frame]
+        room, frame = self._locate(split, index)
+        index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
         if self._renderer is None:
             from .images import SceneRenderer

@@ -1,0 +1,104 @@
+"""Split a model's own-view first-hit errors by what the truth allows (see fruxel.train.eval.own_view).
+
+    python scripts/own_view_errors.py MODEL --data data/eval64 [--split test] [--samples 512] [--json OUT]
+
+For each sample of a data set made by ``fruxel-sim generate``, the room is rebuilt from the data set's seed and each
+grid column's centre ray is cast against its labelled meshes (what the camera sees); the truth's own-view pixels
+are then split into clean / aliased / near / far, and the model's own-view accuracy is counted in each. Also
+prints the share of errors in near-uniform images (pixel standard deviation below ``--uniform``, in 0-255 units:
+the camera close to a plain surface). Runs on the CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from fruxel.cli.common import OneLineParser, UsageError, run
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog="own_view_errors.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("model", help="trained model (.safetensors or checkpoint)")
+    p.add_argument("--data", required=True, help="data set folder (fruxel-sim generate)")
+    p.add_argument("--split", default="test", help="split (default test)")
+    p.add_argument("--samples", type=int, default=512, help="first N samples of the split (default 512)")
+    p.add_argument("--batch", type=int, default=16, help="samples per batch")
+    p.add_argument("--uniform", type=float, default=4.0,
+                   help="an image whose pixel standard deviation (0-255, mean over RGB) is below this counts as "
+                   "near-uniform (default 4)")
+    p.add_argument("--json", default=None, help="also write the summary as JSON here")
+    return p
+
+
+def _main(args: argparse.Namespace) -> None:
+    import json
+
+    import torch
+    from tqdm import tqdm
+
+    from fruxel.io import atomic_write
+    from fruxel.train.eval.metrics import first_surface
+    from fruxel.train.eval.own_view import CATEGORIES, OwnViewBreakdown, visible_surface
+    from fruxel.train.eval.samples import EvalData, batches, data_set_manifest, split_size
+    from fruxel.train.export import load_generator
+    from fruxel.train.sim.sample import SampleMaker
+
+    if args.samples < 1 or args.batch < 1 or not args.uniform >= 0:
+        raise UsageError("--samples and --batch must be >= 1 and --uniform >= 0")
+    generator, config, _ = load_generator(args.model)
+    manifest = data_set_manifest(args.data, config)
+    data = EvalData(source="shards", root=args.data, seed=manifest.seed)
+    count = min(args.samples, split_size(data, config, args.split))
+    grid = manifest.config.grid
+    maker = SampleMaker(manifest.config, manifest.seed, backend="warp-cpu", device="cpu")
+    total, uniform = OwnViewBreakdown(), OwnViewBreakdown()
+    n_uniform = index = 0
+    meshes_of: dict[int, list] = {}
+    try:
+        with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
+            for image, labels in batches(data, config, args.split, count, args.batch):
+                pred = first_surface(generator(image.permute(0, 3, 1, 2).float() / 255).logits.argmax(1)).numpy()
+                truth = first_surface(labels.long()).numpy()
+                spread = image.float().std(dim=(1, 2)).mean(dim=1).numpy()  # (B,): per channel, then averaged
+                for b in range(len(labels)):
+                    scene, pose = maker.scene_of(args.split, index)
+                    if id(scene) not in meshes_of:  # consecutive samples share a room
+                        meshes_of = {id(scene): scene.labelled_meshes()}
+                    seen = visible_surface(meshes_of[id(scene)], grid, pose)
+                    total.add(pred[b], truth[b], *seen, grid)
+                    if spread[b] < args.uniform:
+                        uniform.add(pred[b], truth[b], *seen, grid)
+                        n_uniform += 1
+                    index += 1
+                bar.update(len(labels))
+    finally:
+        maker.close()
+    s = total.summary()
+    u = uniform.summary()
+    lost = 100.0 - s["accuracy"]
+    print(f"{count} samples of {args.data} split {args.split}: own-view accuracy {s['accuracy']:.2f} % over "
+          f"{s['pixels']} pixels where the truth hits")
+    print("| pixels | share % | model accuracy % | points lost |\n| --- | ---: | ---: | ---: |")
+    for name in CATEGORIES:
+        c = s[name]
+        acc = "n/a" if c["accuracy"] is None else f"{c['accuracy']:.2f}"
+        print(f"| {name} | {c['share']:.2f} | {acc} | {c['lost']:.2f} |")
+    u_lost = (100.0 - u["accuracy"]) * u["pixels"] / s["pixels"] if u["pixels"] else 0.0
+    print(f"near-uniform images (pixel std < {args.uniform:g}): {n_uniform} of {count} samples, "
+          f"{100.0 * u['pixels'] / s['pixels']:.2f} % of the pixels, {u_lost:.2f} of the {lost:.2f} points lost")
+    if args.json:
+        out = {"model": args.model, "data": args.data, "split": args.split, "samples": count, **s,
+               "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost}}
+        with atomic_write(args.json, "w") as f:
+            f.write(json.dumps(out, indent=1, default=float) + "\n")
+        print(f"wrote {args.json}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run(_main, _parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,106 @@
+"""Own-view error breakdown (train/eval/own_view.py): the truth of fruxelize against what the camera sees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fruxel.grid import FruxelGrid
+from fruxel.kernels.fruxelize import fruxelize
+from fruxel.train.eval.metrics import first_surface
+from fruxel.train.eval.own_view import CATEGORIES, OwnViewBreakdown, visible_surface
+from fruxel.train.sim.scene import boxes
+
+GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+WALL, BOARD, NEAR = 1, 4, 5
+
+
+def _scene() -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """In the identity camera frame (z forward, y down): a thick wall across the view at 5-5.5 m; a 1 cm board in
+    front of the left third, between two slices' centres (no cell centre inside it); a thick box in the right
+    third, which contains centres; and a box closer than z_near in the bottom quarter's middle."""
+    dz = GRID.dz
+    gap = GRID.z_near + 4.0 * dz  # a slice boundary: the centres are dz / 2 either side
+    wall = boxes([[-20, -20, 5.0]], [[20, 20, 5.5]])
+    board = boxes([[-20, -20, gap - 0.005]], [[-0.5, 20, gap + 0.005]])
+    thick = boxes([[0.5, -20, gap - 0.3]], [[20, 20, gap + 0.3]])
+    near = boxes([[-0.2, 0.1, 0.2]], [[0.2, 0.3, 0.45]])
+    return [(*wall, WALL), (*board, BOARD), (*thick, BOARD), (*near, NEAR)]
+
+
+def test_visible_surface_and_the_breakdown_of_a_constructed_scene() -> None:
+    meshes = _scene()
+    pose = np.eye(4)
+    labels, depth = visible_surface(meshes, GRID, pose)
+    truth = first_surface(torch.from_numpy(fruxelize(meshes, GRID, pose))[None].long())[0].numpy()
+    centre = GRID.cell_to_point(np.zeros(16, int), np.full(16, 8), np.arange(16))
+    u = centre[:, 0] / centre[:, 2]  # x / z of each column
+    left, right = u * (GRID.z_near + 4.0 * GRID.dz) < -0.5, u * (GRID.z_near + 3.5 * GRID.dz) > 0.5
+    row = 3  # above the near box
+    # The board is seen where it is; the truth does not have it (no centre inside) and shows the wall behind.
+    assert (labels[row, left] == BOARD).all() and (truth[row, left] == WALL).all()
+    np.testing.assert_allclose(depth[row, left], GRID.z_near + 4.0 * GRID.dz - 0.005, atol=1e-6)
+    # The thick box is in both.
+    assert (labels[row, right] == BOARD).all() and (truth[row, right] == BOARD).all()
+    # The near box is seen before z_near; the truth starts behind it.
+    near = depth < GRID.z_near
+    assert near.any() and (labels[near] == NEAR).all() and not (truth == NEAR).any()
+
+    b = OwnViewBreakdown()
+    b.add(truth, truth, labels, depth, GRID)  # the truth itself: right everywhere
+    hit = truth != 0
+    assert int(b.hits.sum()) == int(hit.sum()) and (b.correct == b.hits).all()
+    s = b.summary()
+    assert s["accuracy"] == 100.0 and s["far"]["share"] == 0.0
+    assert s["aliased"]["share"] > 10.0 and s["near"]["share"] > 0.0 and s["clean"]["share"] > 30.0
+    assert sum(s[c]["share"] for c in CATEGORIES) == pytest.approx(100.0)
+
+    seen = OwnViewBreakdown()
+    seen.add(np.where((depth >= GRID.z_near) & (depth <= GRID.z_far), labels, 0), truth, labels, depth, GRID)
+    r = seen.summary()  # a perfect reader of the image: right on clean pixels, wrong on the others
+    assert r["clean"]["accuracy"] == 100.0 and r["aliased"]["accuracy"] == 0.0 and r["near"]["accuracy"] == 0.0
+    assert r["accuracy"] == pytest.approx(r["clean"]["share"])
+    assert r["aliased"]["lost"] + r["near"]["lost"] == pytest.approx(100.0 - r["accuracy"])
+
+
+def test_empty_breakdown_has_no_numbers() -> None:
+    s = OwnViewBreakdown().summary()
+    assert s["pixels"] == 0 and s["accuracy"] is None and s["clean"]["accuracy"] is None
+
+
+def test_own_view_errors_script(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:  # noqa: ANN001
+    import dataclasses
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from fruxel.train.config import ModelConfig, TrainConfig
+    from fruxel.train.engine.trainer import sim_config
+    from fruxel.train.export import build_generator, save_shipped
+    from fruxel.train.sim.writer import generate
+
+    spec = importlib.util.spec_from_file_location("own_view_errors",
+                                                  Path(__file__).parents[2] / "scripts" / "own_view_errors.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    cfg = ModelConfig(grid=GRID, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
+                      decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    data = tmp_path / "data"
+    generate(str(data), dataclasses.replace(sim_config(TrainConfig(model=cfg)), splits=(("test", 3),), shard_size=4),
+             0, progress=False)
+    model = tmp_path / "m.safetensors"
+    torch.manual_seed(0)
+    save_shipped(model, build_generator(cfg), cfg, {}, half=False)
+    out = tmp_path / "o.json"
+    assert script.main([str(model), "--data", str(data), "--samples", "3", "--batch", "2", "--uniform", "1000",
+                        "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    report = json.loads(out.read_text())
+    assert report["samples"] == 3 and report["pixels"] > 0 and "| clean |" in printed
+    assert sum(report[c]["share"] for c in CATEGORIES) == pytest.approx(100.0)
+    # --uniform 1000: every image counts as near-uniform, so that part is the whole.
+    assert report["uniform"]["samples"] == 3 and report["uniform"]["pixels"] == report["pixels"]
+    assert report["uniform"]["points_lost"] == pytest.approx(100.0 - report["accuracy"])
+    assert script.main([str(model), "--data", str(data), "--samples", "0"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
