@@ -3,8 +3,9 @@
     python scripts/calibrate.py MODEL.safetensors --data data/eval64 --out CALIBRATED.safetensors [--fill]
 
 Predicts ``--samples`` samples of the data set's ``--split`` (default ``train``: never the test split the model is
-evaluated on) once, counts mIoU, completion IoU and own-view first-hit accuracy at every ``--offsets`` value added
-to the empty logit (with ``--fill``: and ``fill_columns`` after it at every ``--thresholds`` value), prints the
+evaluated on) once, counts mIoU, completion IoU, own-view and novel-view first-hit accuracy (the novel views unless
+``--no-novel``) at every ``--offsets`` value added to the empty logit (with ``--fill``: and ``fill_columns`` after it
+at every ``--thresholds`` value), prints the
 table, picks the rules by :func:`fruxel.train.eval.calibrate.choose_rules` and writes the model with
 ``empty_offset`` (and ``fill_columns``, ``fill_threshold``) set, the sweep recorded in its ``training`` metadata
 under ``calibration``.
@@ -34,6 +35,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--fill", action="store_true", help="set fill_columns and calibrate with it")
     p.add_argument("--thresholds", type=float, nargs="+", default=list(DEFAULT_THRESHOLDS),
                    help="with --fill: fill_threshold values to try, in (0, 1]; the model's own is always added")
+    p.add_argument("--no-novel", dest="novel", action="store_false",
+                   help="leave the novel views out of the sweep and of the choice (faster)")
+    p.add_argument("--backend", default=None, help="kernel backend of the novel views (default: the best available)")
     p.add_argument("--batch", type=int, default=16, help="samples per batch")
     p.add_argument("--out", required=True, help="calibrated model file to write (.safetensors)")
     return p
@@ -76,22 +80,25 @@ def _main(args: argparse.Namespace) -> None:
                 bar.update(len(labels))
 
     accs = sweep_rules(generator, images(batches(data, config, args.split, count, args.batch)), offsets, thresholds,
-                       config.num_classes, fill=args.fill, device=torch.device("cpu"))
+                       config.num_classes, fill=args.fill, device=torch.device("cpu"),
+                       grid=config.grid if args.novel else None, backend=args.backend)
     summaries = {r: a.summary() for r, a in accs.items()}
     offset, threshold = best = choose_rules(summaries, (0.0, config.fill_threshold))
     print(f"{count} samples of {args.data} split {args.split}, fill_columns {args.fill}")
-    print("| empty offset | fill threshold | mIoU | completion IoU | own view % | sum |\n"
-          "| ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| empty offset | fill threshold | mIoU | completion IoU | own view % | novel view % | sum |\n"
+          "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r, s in summaries.items():
         mark = " (chosen)" if r == best else ""
         t = f"{r[1]:.2f}" if args.fill else "-"
+        novel = f"{s['novel_view_accuracy']:.2f}" if args.novel else "-"
         print(f"| {r[0]:+.2f}{mark} | {t} | {s['miou']:.2f} | {s['completion_iou']:.2f} | "
-              f"{s['own_view_accuracy']:.2f} | {rules_score(s):.2f} |")
+              f"{s['own_view_accuracy']:.2f} | {novel} | {rules_score(s):.2f} |")
     calibrated = dataclasses.replace(config, empty_offset=offset, fill_columns=bool(args.fill),
                                      fill_threshold=threshold)
     generator.empty_offset, generator.fill_columns, generator.fill_threshold = offset, bool(args.fill), threshold
     sweep = {(f"{r[0]:g}/{r[1]:g}" if args.fill else f"{r[0]:g}"):
-             {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy")} for r, s in summaries.items()}
+             {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy", "novel_view_accuracy")
+              if s[k] is not None} for r, s in summaries.items()}
     training = {**training, "calibration": {"data": args.data, "split": args.split, "samples": count,
                                             "fill_columns": bool(args.fill), "empty_offset": offset,
                                             **({"fill_threshold": threshold} if args.fill else {}), "sweep": sweep}}

@@ -28,6 +28,11 @@ def test_choose_rules_takes_the_best_sum_of_the_three_targets() -> None:
     s = {(0.0, 0.5): _summary(50, 55, 90), (0.5, 0.5): _summary(51, 56, 89.8), (1.0, 0.5): _summary(52, 57, 87.0),
          (0.5, 0.7): _summary(50.8, 55.7, 91.0), (-0.5, 0.5): _summary(49, 54, 91)}
     assert rules_score(s[(0.5, 0.7)]) == pytest.approx(197.5)
+    assert rules_score({**s[(0.5, 0.7)], "novel_view_accuracy": 80.0}) == pytest.approx(277.5)
+    assert rules_score({**s[(0.5, 0.7)], "novel_view_accuracy": None}) == pytest.approx(197.5)
+    # Counted novel views take part in the choice: (0.5, 0.7) loses them.
+    novel = {r: {**v, "novel_view_accuracy": 70.0 if r == (0.5, 0.7) else 80.0} for r, v in s.items()}
+    assert choose_rules(novel, (0.0, 0.5)) == (0.5, 0.5)
     # (1.0, 0.5) has the best IoUs but loses 3 points of own view; (0.5, 0.7) trades 0.5 IoU points for 1.2 own view.
     assert choose_rules(s, (0.0, 0.5)) == (0.5, 0.7)
     del s[(0.5, 0.7)]
@@ -63,7 +68,7 @@ def test_sweep_counts_what_the_calibrated_model_predicts(tmp_path: Path) -> None
     labels = (torch.rand(4, 16, 16, 16) < 0.1).to(torch.uint8) * torch.randint(1, 7, (4, 16, 16, 16),
                                                                                dtype=torch.uint8)
     pairs = [(images[:2], labels[:2]), (images[2:], labels[2:])]
-    accs = sweep_rules(gen, pairs, [0.0, 1.5], [0.5, 0.9], 7, fill=True, device=torch.device("cpu"))
+    accs = sweep_rules(gen, pairs, [0.0, 1.5], [0.5, 0.9], 7, fill=True, device=torch.device("cpu"), grid=cfg.grid)
     assert set(accs) == {(0.0, 0.5), (0.0, 0.9), (1.5, 0.5), (1.5, 0.9)}
     assert gen.training and gen.empty_offset == 0.3 and gen.fill_columns and gen.fill_threshold == 0.6
     occupied = {}
@@ -71,14 +76,17 @@ def test_sweep_counts_what_the_calibrated_model_predicts(tmp_path: Path) -> None
         other = build_generator(dataclasses.replace(cfg, fill_columns=True, empty_offset=offset,
                                                     fill_threshold=threshold))
         other.load_state_dict(gen.state_dict())
-        acc, _ = evaluate(other, pairs, cfg.grid, cfg.classes, device=torch.device("cpu"), novel=False)
+        acc, _ = evaluate(other, pairs, cfg.grid, cfg.classes, device=torch.device("cpu"))
         got = accs[(offset, threshold)]
         assert (acc.conf == got.conf).all() and acc.own_correct == got.own_correct
+        assert got.novel_pixels > 0 and (acc.novel_pixels, acc.novel_correct, acc.depth_pixels) == (
+            got.novel_pixels, got.novel_correct, got.depth_pixels)
         occupied[(offset, threshold)] = int(acc.conf[:, 1:].sum())
     assert occupied[(1.5, 0.5)] < occupied[(0.0, 0.5)]  # the offset does move the decision
     assert occupied[(1.5, 0.9)] > occupied[(1.5, 0.5)]  # and the threshold fills more columns
     plain = sweep_rules(gen, pairs, [0.0], [0.5, 0.9], 7, fill=False, device=torch.device("cpu"))
     assert set(plain) == {(0.0, 0.6)}  # without fill_columns the threshold is not swept
+    assert plain[(0.0, 0.6)].novel_pixels == 0  # and without a grid no novel views are counted
 
 
 def test_calibrate_script_writes_the_chosen_offset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -101,16 +109,18 @@ def test_calibrate_script_writes_the_chosen_offset(tmp_path: Path, capsys: pytes
     _, written, training = read_weights(out)
     assert written.fill_columns and written.empty_offset in (0.0, 0.5) and written.fill_threshold in (0.5, 0.9)
     assert f"empty_offset {written.empty_offset:g}" in printed and "(chosen)" in printed
-    assert f"fill_threshold {written.fill_threshold:g}" in printed
+    assert f"fill_threshold {written.fill_threshold:g}" in printed and "novel view %" in printed
     cal = training["calibration"]
+    assert all("novel_view_accuracy" in v for v in cal["sweep"].values())
     assert training["steps"] == 7 and cal["samples"] == 4 and set(cal["sweep"]) == {"0/0.5", "0/0.9", "0.5/0.5",
                                                                                       "0.5/0.9"}
     assert cal["fill_threshold"] == written.fill_threshold
     json.dumps(training)
-    assert main([str(model), "--data", str(data), "--samples", "4", "--offsets", "0.5", "--batch", "2",
+    assert main([str(model), "--data", str(data), "--samples", "4", "--offsets", "0.5", "--batch", "2", "--no-novel",
                  "--out", str(tmp_path / "plain.safetensors")]) == 0
     _, written, training = read_weights(tmp_path / "plain.safetensors")
     assert not written.fill_columns and set(training["calibration"]["sweep"]) == {"0", "0.5"}
+    assert not any("novel_view_accuracy" in v for v in training["calibration"]["sweep"].values())
     capsys.readouterr()
     assert main([str(model), "--data", str(data), "--out", str(tmp_path / "x.bin")]) == 2
     assert "must end in .safetensors" in capsys.readouterr().err

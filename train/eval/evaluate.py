@@ -22,7 +22,7 @@ def novel_cameras(grid: FruxelGrid) -> list[Any]:
 
 
 def count_views(acc: Accumulator, pred: torch.Tensor, target: torch.Tensor, grid: FruxelGrid,
-                cameras: list[Any], backend: str | None = None) -> None:
+                cameras: list[Any], backend: str | None = None, target_hits: list[Any] | None = None) -> None:
     """Add the novel-view counts of a batch: ``first_hit`` of prediction and truth from each camera.
 
     Args:
@@ -31,12 +31,14 @@ def count_views(acc: Accumulator, pred: torch.Tensor, target: torch.Tensor, grid
         grid: their grid.
         cameras: the viewing cameras.
         backend: kernel backend (None: the best available).
+        target_hits: the truth's ``first_hit`` per camera when already computed (several predictions of one
+            batch), else None.
     """
     from fruxel import kernels
 
-    for cam in cameras:
+    for c, cam in enumerate(cameras):
         hp = kernels.first_hit(pred, grid, cam, backend=backend)
-        ht = kernels.first_hit(target, grid, cam, backend=backend)
+        ht = target_hits[c] if target_hits is not None else kernels.first_hit(target, grid, cam, backend=backend)
         acc.add_views(_host(hp.label), _host(hp.depth), _host(ht.label), _host(ht.depth))
 
 
