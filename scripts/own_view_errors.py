@@ -55,7 +55,7 @@ def _main(args: argparse.Namespace) -> None:
     maker = SampleMaker(manifest.config, manifest.seed, backend="warp-cpu", device="cpu")
     total, uniform = OwnViewBreakdown(), OwnViewBreakdown()
     n_uniform = index = 0
-    meshes_of: dict[int, list] = {}
+    room, meshes = None, []
     try:
         with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
             for image, labels in batches(data, config, args.split, count, args.batch):
@@ -64,9 +64,9 @@ def _main(args: argparse.Namespace) -> None:
                 spread = image.float().std(dim=(1, 2)).mean(dim=1).numpy()  # (B,): per channel, then averaged
                 for b in range(len(labels)):
                     scene, pose = maker.scene_of(args.split, index)
-                    if id(scene) not in meshes_of:  # consecutive samples share a room
-                        meshes_of = {id(scene): scene.labelled_meshes()}
-                    seen = visible_surface(meshes_of[id(scene)], grid, pose)
+                    if scene is not room:  # consecutive samples share a room (held here: an id could be reused)
+                        room, meshes = scene, scene.labelled_meshes()
+                    seen = visible_surface(meshes, grid, pose)
                     total.add(pred[b], truth[b], *seen, grid)
                     if spread[b] < args.uniform:
                         uniform.add(pred[b], truth[b], *seen, grid)
