@@ -40,7 +40,7 @@ def _main(args: argparse.Namespace) -> None:
 
     from fruxel.io import atomic_write
     from fruxel.train.eval.metrics import first_surface
-    from fruxel.train.eval.own_view import CATEGORIES, OwnViewBreakdown, visible_surface
+    from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, visible_surface
     from fruxel.train.eval.samples import EvalData, batches, data_set_manifest, split_size
     from fruxel.train.export import load_generator
     from fruxel.train.sim.sample import SampleMaker
@@ -55,7 +55,7 @@ def _main(args: argparse.Namespace) -> None:
     maker = SampleMaker(manifest.config, manifest.seed, backend="warp-cpu", device="cpu")
     total, uniform = OwnViewBreakdown(), OwnViewBreakdown()
     n_uniform = index = 0
-    room, meshes = None, []
+    room, meshes = None, None
     try:
         with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
             for image, labels in batches(data, config, args.split, count, args.batch):
@@ -65,7 +65,7 @@ def _main(args: argparse.Namespace) -> None:
                 for b in range(len(labels)):
                     scene, pose = maker.scene_of(args.split, index)
                     if scene is not room:  # consecutive samples share a room (held here: an id could be reused)
-                        room, meshes = scene, scene.labelled_meshes()
+                        room, meshes = scene, JoinedMeshes(scene.labelled_meshes())
                     seen = visible_surface(meshes, grid, pose)
                     total.add(pred[b], truth[b], *seen, grid)
                     if spread[b] < args.uniform:

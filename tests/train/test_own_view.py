@@ -9,7 +9,7 @@ import torch
 from fruxel.grid import FruxelGrid
 from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.eval.metrics import first_surface
-from fruxel.train.eval.own_view import CATEGORIES, OwnViewBreakdown, visible_surface
+from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, visible_surface
 from fruxel.train.sim.scene import boxes
 
 GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
@@ -33,6 +33,10 @@ def test_visible_surface_and_the_breakdown_of_a_constructed_scene() -> None:
     meshes = _scene()
     pose = np.eye(4)
     labels, depth = visible_surface(meshes, GRID, pose)
+    joined = JoinedMeshes(meshes)  # joined once, as for many poses of one scene: the same answer
+    for _ in range(2):
+        again = visible_surface(joined, GRID, pose)
+        assert np.array_equal(again[0], labels) and np.array_equal(again[1], depth)
     truth = first_surface(torch.from_numpy(fruxelize(meshes, GRID, pose))[None].long())[0].numpy()
     centre = GRID.cell_to_point(np.zeros(16, int), np.full(16, 8), np.arange(16))
     u = centre[:, 0] / centre[:, 2]  # x / z of each column

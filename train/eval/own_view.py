@@ -32,13 +32,33 @@ CATEGORIES = ("clean", "aliased", "near", "far")
 """The kinds of own-view pixel, in the order of :attr:`OwnViewBreakdown.hits`."""
 
 
-def visible_surface(meshes: Sequence[tuple[np.ndarray, np.ndarray, int]], grid: FruxelGrid, pose: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """The first surface along each grid column's centre ray, as a camera sees it.
+class JoinedMeshes:
+    """Labelled meshes joined into one mesh for many :func:`visible_surface` calls (the ray queries' acceleration
+    structure is built with the first call and kept, as ``fruxelize``'s ``MeshSet`` keeps its upload).
 
     Args:
         meshes: ``(vertices (V, 3) float, faces (F, 3) int, label)`` per solid, world frame, metres (the input of
             ``fruxelize``, e.g. ``Scene.labelled_meshes()``).
+    """
+
+    def __init__(self, meshes: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> None:
+        import trimesh
+
+        verts = [np.asarray(v, dtype=np.float64) for v, _, _ in meshes]
+        start = np.cumsum([0] + [len(v) for v in verts[:-1]])
+        faces = np.concatenate([np.asarray(f, dtype=np.int64) + s for (_, f, _), s in zip(meshes, start, strict=True)])
+        self.mesh = trimesh.Trimesh(np.concatenate(verts), faces, process=False)
+        """The joined mesh."""
+        self.face_label = np.concatenate([np.full(len(f), int(lab), dtype=np.int64) for _, f, lab in meshes])
+        """``(F,)`` int64 label of each face of :attr:`mesh`."""
+
+
+def visible_surface(meshes: JoinedMeshes | Sequence[tuple[np.ndarray, np.ndarray, int]], grid: FruxelGrid,
+                    pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first surface along each grid column's centre ray, as a camera sees it.
+
+    Args:
+        meshes: a :class:`JoinedMeshes` (faster for many poses of one scene), or the labelled meshes it takes.
         grid: the grid.
         pose: ``(4, 4)`` grid-camera-to-world transform, OpenCV axes.
 
@@ -47,8 +67,7 @@ def visible_surface(meshes: Sequence[tuple[np.ndarray, np.ndarray, int]], grid: 
         the camera's z axis in metres (from the optical centre, not from ``z_near``); 0 and ``inf`` where the ray
         hits nothing.
     """
-    import trimesh
-
+    joined = meshes if isinstance(meshes, JoinedMeshes) else JoinedMeshes(meshes)
     h, w = grid.height, grid.width
     j, i = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     d = grid.cell_to_point(np.zeros_like(j), j, i).reshape(-1, 3)
@@ -56,15 +75,10 @@ def visible_surface(meshes: Sequence[tuple[np.ndarray, np.ndarray, int]], grid: 
     pose = np.asarray(pose, dtype=np.float64)
     origins = np.repeat(pose[None, :3, 3], len(d), axis=0)
     dirs = d @ pose[:3, :3].T
-    verts = [np.asarray(v, dtype=np.float64) for v, _, _ in meshes]
-    start = np.cumsum([0] + [len(v) for v in verts[:-1]])
-    faces = np.concatenate([np.asarray(f, dtype=np.int64) + s for (_, f, _), s in zip(meshes, start, strict=True)])
-    face_label = np.concatenate([np.full(len(f), int(lab), dtype=np.int64) for _, f, lab in meshes])
-    mesh = trimesh.Trimesh(np.concatenate(verts), faces, process=False)
-    tri, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    tri, ray, loc = joined.mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
     labels = np.zeros(len(d), dtype=np.int64)
     depth = np.full(len(d), np.inf)
-    labels[ray] = face_label[tri]
+    labels[ray] = joined.face_label[tri]
     depth[ray] = (loc - origins[ray]) @ pose[:3, 2]
     return labels.reshape(h, w), depth.reshape(h, w)
 
