@@ -76,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RobotDemoConfig, "device", type=device_name, metavar="cpu|cuda[:N]")
     config_option(p, RobotDemoConfig, "checkpoint", metavar="FILE")
     config_option(p, RobotDemoConfig, "threads", type=positive_int, metavar="N")
+    config_option(p, RobotDemoConfig, "compile")
     p.add_argument("--out", type=Path, default=None, metavar="FILE",
                    help=f"write the video here (.mp4 or .gif) instead of showing the viewer (default without a "
                    f"display: {DEFAULT_OUT})")

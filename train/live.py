@@ -202,6 +202,9 @@ class RobotDemoConfig:
     (:func:`fruxel.train.predict.share_cpu`)."""
     chase: ChaseView = field(default_factory=ChaseView)
     """Where the chase camera rides."""
+    compile: bool = False
+    """On CUDA, compile SSZ's forward pass with ``torch.compile`` before the drive (about half a minute) and replay
+    the compiled pass as a CUDA graph (:class:`fruxel.train.predict.Predictor`)."""
 
     def check(self) -> None:
         """Raise :class:`LiveError` for impossible settings."""
@@ -250,7 +253,7 @@ class RobotDemo:
         config.check()
         self.config = config
         share_cpu(config.threads)
-        self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1)
+        self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile)
         mc = self.predictor.config
         self.grid, self.classes = mc.grid, mc.classes
         cam_w = config.size

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -161,69 +161,118 @@ def to_tensor(images: Sequence[np.ndarray], device: torch.device | str = "cpu") 
     return t.permute(0, 3, 1, 2).float().div_(255.0).contiguous()
 
 
+PRECISIONS = ("bfloat16", "autocast")
+"""How a :class:`Predictor` holds the generator on CUDA: weights stored in bfloat16 (the default: no casts per
+call; the batch norms' statistics are rounded to bfloat16), or float32 weights under bfloat16 autocast (every call
+casts each weight again). On 64 test samples of the shipped model (CPU, bfloat16) the two agree on 99.95 % of the
+cells, as autocast and float32 do, and their mIoU, completion and own view differ by at most 0.03 points."""
+
+
 class Predictor:
     """Batched prediction with a trained generator.
 
     On CUDA each input shape's forward pass is captured once as a CUDA graph and replayed: at batch 1 the eager
     pass is bound by launching its 769 kernels from Python (11-24 ms on the H100 for ``ssz64``, against 1.8 ms of
-    kernel time; replayed, 2.1 ms), which the live robot demo pays every frame.
+    kernel time; replayed, 2.1 ms), which the live robot demo pays every frame. With ``compile`` the captured
+    pass is Inductor's (fused kernels; under a minute to compile): 1.0 ms with bfloat16 weights, 1.2 ms under
+    autocast (BENCHMARKS.md). Work that follows the logits (a shell, a ray cast) can join the same graph through
+    :meth:`run`.
 
     Args:
-        generator: the model, in eval mode.
+        generator: the model, in eval mode (moved to ``device``, and to bfloat16 with that precision, in place).
         config: its architecture.
         device: where to predict.
         batch: images per forward pass.
         graphs: replay CUDA graphs on CUDA (False: always the eager pass).
+        compile: on CUDA, run the forward pass through ``torch.compile`` (Inductor, without its own CUDA graphs:
+            the graphs here capture the compiled pass). Ignored on the CPU.
+        precision: one of :data:`PRECISIONS`, on CUDA (the CPU predicts in float32).
+
+    Raises:
+        ValueError: an unknown precision.
     """
 
     MAX_GRAPHS = 4
-    """Input shapes kept captured at once (a batched run needs two: the full batches and the last one)."""
+    """Captures kept at once (a batched run needs two: the full batches and the last one)."""
 
     def __init__(self, generator: torch.nn.Module, config: ModelConfig, device: torch.device | str = "cpu",
-                 batch: int = 8, graphs: bool = True) -> None:
+                 batch: int = 8, graphs: bool = True, compile: bool = False, precision: str = "bfloat16") -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.device = torch.device(device)
+        cuda = self.device.type == "cuda"
+        self.precision = precision if cuda else "float32"
         self.generator = generator.to(self.device).eval()
+        if self.precision == "bfloat16":
+            self.generator.to(torch.bfloat16)
         self.config = config
         self.batch = max(1, int(batch))
-        self.graphs = bool(graphs) and self.device.type == "cuda"
-        self._graphs: dict[tuple[int, ...], tuple[Any, torch.Tensor, torch.Tensor]] = {}
+        self.graphs = bool(graphs) and cuda
+        self.compiled = bool(compile) and cuda
+        self._pass = torch.compile(self._eager) if self.compiled else self._eager
+        self._graphs: dict[tuple[Any, ...], tuple[Any, torch.Tensor, Any]] = {}
 
-    def _forward(self, images: torch.Tensor) -> torch.Tensor:
-        cuda = self.device.type == "cuda"
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cuda):
+    def _eager(self, images: torch.Tensor) -> torch.Tensor:
+        if self.precision == "bfloat16":
+            return self.generator(images.to(torch.bfloat16)).logits.float()
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "autocast"):
             return self.generator(images).logits.float()
+
+    def _forward(self, images: torch.Tensor, then: Callable[[torch.Tensor], Any] | None = None) -> Any:
+        logits = self._pass(images)
+        return logits if then is None else then(logits)
 
     @torch.no_grad()
     def logits(self, images: torch.Tensor) -> torch.Tensor:
         """``(B, 3, h, w)`` float images -> ``(B, C, D, H, W)`` float32 logits (bfloat16 compute on CUDA)."""
+        out = self.run(images)
+        # A graph writes the same buffer on every replay: a caller keeps its own copy.
+        return out.clone() if self.graphs else out
+
+    @torch.no_grad()
+    def run(self, images: torch.Tensor, then: Callable[[torch.Tensor], Any] | None = None) -> Any:
+        """``then(logits)`` of a batch (the logits themselves without ``then``); on CUDA with graphs the forward
+        pass and ``then`` are captured together, once per input shape and ``then``, and replayed.
+
+        Args:
+            images: ``(B, 3, h, w)`` float RGB in [0, 1].
+            then: work on the ``(B, C, D, H, W)`` float32 logits that returns tensors (e.g. a ``kernels.shell``
+                and ``kernels.first_hit`` of torch CUDA tensors). To be captured it must never wait for the GPU
+                (no ``.item()``, no copy to the host, no size that depends on the data).
+
+        Returns:
+            What ``then`` returns. Replayed, these are the graph's own buffers: the next call with the same shape
+            and ``then`` overwrites them (copy what you keep).
+        """
         images = images.to(self.device)
         if not self.graphs:
-            return self._forward(images)
-        key = tuple(images.shape)
+            return self._forward(images, then)
+        key = (tuple(images.shape), images.dtype, then)
         entry = self._graphs.get(key)
         if entry is None:
-            entry = self._capture(images)
+            entry = self._capture(images, then)
             if len(self._graphs) >= self.MAX_GRAPHS:
                 self._graphs.pop(next(iter(self._graphs)))
             self._graphs[key] = entry
         graph, static_in, static_out = entry
         static_in.copy_(images)
         graph.replay()
-        # The graph writes the same buffer on every replay: a caller keeps its own copy.
-        return static_out.clone()
+        return static_out
 
-    def _capture(self, images: torch.Tensor) -> tuple[Any, torch.Tensor, torch.Tensor]:
+    def _capture(self, images: torch.Tensor, then: Callable[[torch.Tensor], Any] | None
+                 ) -> tuple[Any, torch.Tensor, Any]:
         static_in = images.clone()
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):
-            # Warm-up off the capture: cuDNN chooses its algorithms and the allocator settles.
-            for _ in range(2):
-                self._forward(static_in)
+            # Warm-up off the capture: Inductor compiles, cuDNN chooses its algorithms, Warp loads its modules and
+            # the allocator settles.
+            for _ in range(3 if self.compiled else 2):
+                self._forward(static_in, then)
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph):
-            static_out = self._forward(static_in)
+            static_out = self._forward(static_in, then)
         return graph, static_in, static_out
 
     def predict(self, images: Iterable[np.ndarray]) -> Iterator[torch.Tensor]:
@@ -260,14 +309,14 @@ def default_model() -> str:
     return str(os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "ssz64.safetensors"))
 
 
-def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True
-                   ) -> Predictor:
+def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
+                   compile: bool = False, precision: str = "bfloat16") -> Predictor:
     """A :class:`Predictor` of a shipped model or training checkpoint (the shipped default when ``path`` is
-    None), on ``device`` (CUDA when present); ``graphs`` as :class:`Predictor`'s."""
+    None), on ``device`` (CUDA when present); ``graphs``, ``compile`` and ``precision`` as :class:`Predictor`'s."""
     from .export import load_generator
 
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     gen, config, _ = load_generator(path or default_model(), device=dev)
-    return Predictor(gen, config, dev, batch, graphs)
+    return Predictor(gen, config, dev, batch, graphs, compile, precision)
 
 

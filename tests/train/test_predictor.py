@@ -11,10 +11,10 @@ from fruxel.train.export import build_generator
 from fruxel.train.predict import Predictor
 
 
-def _predictor(device: str, graphs: bool, seed: int = 0) -> Predictor:
+def _predictor(device: str, graphs: bool, seed: int = 0, **kw: object) -> Predictor:
     torch.manual_seed(seed)
     m = preset("tiny").model
-    return Predictor(build_generator(m), m, device, batch=2, graphs=graphs)
+    return Predictor(build_generator(m), m, device, batch=2, graphs=graphs, **kw)
 
 
 def test_cpu_runs_the_eager_pass() -> None:
@@ -26,6 +26,49 @@ def test_cpu_runs_the_eager_pass() -> None:
     got = p.logits(x)
     assert got.shape == (2, p.config.num_classes, *p.config.grid.shape) and got.dtype == torch.float32
     assert torch.equal(got, want)
+
+
+def test_cpu_predicts_in_float32_and_run_applies_then() -> None:
+    p = _predictor("cpu", graphs=True, compile=True, precision="bfloat16")
+    assert p.precision == "float32" and not p.compiled  # both are CUDA options
+    assert next(p.generator.parameters()).dtype == torch.float32
+    x = torch.rand(1, 3, *p.config.image_size)
+    logits = p.logits(x)
+    labels = p.run(x, then=lambda z: z.argmax(1).to(torch.uint8))
+    assert labels.shape == (1, *p.config.grid.shape) and labels.dtype == torch.uint8
+    assert torch.equal(labels, logits.argmax(1).to(torch.uint8))
+
+
+def test_unknown_precision_is_refused() -> None:
+    with pytest.raises(ValueError, match="precision must be one of"):
+        _predictor("cpu", graphs=True, precision="float16")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+@pytest.mark.parametrize("compile", [False, True])
+def test_cuda_graph_of_logits_and_kernels_replays_the_eager_pipeline(compile: bool) -> None:
+    """Predictor.run captures the forward pass and Warp kernels on the logits in one graph; every replay gives
+    what the same work gives uncaptured, for each new image."""
+    from fruxel import kernels
+
+    graphed, eager = _predictor("cuda", graphs=True, compile=compile), _predictor("cuda", graphs=False)
+    assert graphed.precision == "bfloat16" and next(graphed.generator.parameters()).dtype == torch.bfloat16
+    grid = graphed.config.grid
+
+    def labels_shell(logits: torch.Tensor) -> torch.Tensor:
+        return kernels.shell(logits.argmax(1).to(torch.uint8), grid, [grid.camera()])
+
+    torch.manual_seed(2)
+    for _ in range(3):
+        x = torch.rand(1, 3, *graphed.config.image_size, device="cuda")
+        got = graphed.run(x, then=labels_shell).clone()
+        want_logits = eager.logits(x)
+        want = labels_shell(want_logits)
+        # bfloat16 compute in both, but compiled kernels round differently: compare where the argmax is clear.
+        top2 = want_logits.topk(2, dim=1).values
+        clear = (top2[:, 0] - top2[:, 1]) > 0.1
+        assert (got == want)[clear].float().mean() > 0.999
+    assert len(graphed._graphs) == 1
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
