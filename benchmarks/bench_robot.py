@@ -43,7 +43,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     from fruxel.train.live import RobotDemo, RobotDemoConfig, summarise
 
     config = RobotDemoConfig(frames=args.frames, scene=args.scene, size=args.size, backend=args.backend,
-                             device=args.device, threads=args.threads, shell=args.shell)
+                             device=args.device, threads=args.threads, shell=args.shell, compile=args.compile)
     machine = common.machine_info(["torch", "warp-lang", "pyopencl", "pyrender"])
     demo = RobotDemo(config)
     frames, pictures = [], []
@@ -65,6 +65,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "machine": machine,
         "load_average_after": common.load_average(),
         "device": str(demo.predictor.device),
+        "compiled": demo.predictor.compiled,
         "torch_threads": torch.get_num_threads(),
         "kernels": registry.describe(config.backend, config.device, probe),
         "opengl": gl_renderer_name(),
@@ -100,14 +101,17 @@ def markdown(results: list[dict[str, Any]]) -> str:
         target = TARGET_FPS.get(dev)
         verdict = "" if target is None else f">= {target:g} FPS: {'met' if s['fps_mean'] >= target else 'missed'}"
         st = s["stages_ms"]
+        compiled = " (compiled)" if r.get("compiled") else ""
         who = f"{m['cpu']}, {m['cores']} cores" + (f", {m['gpu']}" if m.get("gpu") else "") + f" ({m['date']})"
         lines.append(
-            f"| {who} | {r['device']} | {r['torch_threads']} | {r.get('kernels', '')} | {r.get('opengl', '')} | "
+            f"| {who} | {r['device']}{compiled} | {r['torch_threads']} | {r.get('kernels', '')} | "
+            f"{r.get('opengl', '')} | "
             f"{g['width']}x{g['height']}x{g['depth']} | "
             f"{s['frames']} | {s['fps_mean']:.1f} | {s['ms_median']:.0f}, {s['ms_p90']:.0f} | {st['input']:.1f} | "
             f"{st['ssz']:.1f} | {st['shell']:.1f} | {st['mesh']:.1f} | {st['draw']:.1f} | {st['compose']:.1f} | "
             f"{m['load_average']:.1f} before, {r['load_average_after']:.1f} after | {verdict} |")
-    return "\n".join(lines) + "\n"
+    notes = [r["note"] for r in results if r.get("note")]
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: CUDA when present)")
     p.add_argument("--backend", choices=("warp", "opencl"), default=None, help="kernel backend (default: best)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: half the cores)")
+    p.add_argument("--compile", action="store_true", help="compile SSZ first (fruxel-robot --compile; CUDA only)")
     p.add_argument("--tag", default="cpu", help="name of the result (results/robot-TAG.json)")
     p.add_argument("--out", type=Path, default=None, help="results JSON (default benchmarks/results/robot-TAG.json)")
     p.add_argument("--video", type=Path, default=None, help="also write the frames to this .mp4 or .gif")

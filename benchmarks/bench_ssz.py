@@ -18,7 +18,9 @@ Parts (``--parts``, default all):
   CUDA graph (:class:`~fruxel.train.predict.Predictor`); medians over the rounds.
 * ``latency``: batch 1, image -> logits, and image -> logits -> own-view ``shell`` -> ``first_hit`` of a
   512 x 512 view -> shaded image, per preset, eager and compiled (``torch.compile(mode="reduce-overhead")``,
-  CUDA graphs); median of ``--repeat`` calls, synchronised.
+  CUDA graphs); with ``--predictor``, also through fruxel's own
+  :class:`~fruxel.train.predict.Predictor` (the compiled pass, and the pass with the shell and ray cast, each
+  replayed as one CUDA graph); median of ``--repeat`` calls, synchronised.
 
 Run ``python benchmarks/bench_ssz.py --device cuda --out $OUT/ssz-h100`` on the H100 (writes ``PREFIX.json``);
 ``--render`` re-renders the "## SSZ" section of BENCHMARKS.md from every ``benchmarks/results/ssz*.json``.
@@ -181,7 +183,8 @@ def bench_pointwise(device: Any, rounds: int = 5, batch: int = 32) -> list[dict[
     y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=device, dtype=torch.uint8)
     x1 = torch.rand(1, 3, *m.image_size, device=device)
     forwards = {"matmul (Pointwise3d)": Pointwise3d.forward, "nn.Conv3d (cuDNN)": nn.Conv3d.forward}
-    predictors = {k: Predictor(g, m, device, batch=1) for k in forwards}
+    # Autocast keeps g's float32 weights, which the training rounds share.
+    predictors = {k: Predictor(g, m, device, batch=1, precision="autocast") for k in forwards}
     times: dict[str, dict[str, list[float]]] = {k: {"train": [], "logits": []} for k in forwards}
 
     def step() -> None:
@@ -322,6 +325,65 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
     return row
 
 
+def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: str, compile: bool = True,
+                            model_override: dict[str, Any] | None = None, checkpoint: str | None = None
+                            ) -> dict[str, Any]:
+    """Batch-1 latency through fruxel's :class:`~fruxel.train.predict.Predictor` (CUDA): the forward pass
+    (``torch.compile``d with ``compile``) replayed as one CUDA graph, and image -> logits -> own-view shell ->
+    512^2 ``first_hit`` replayed as one graph (:meth:`~fruxel.train.predict.Predictor.run`) followed by the
+    shading and the copy of the image to the host. The shell keeps the argmax labels' first hits, as the shell of
+    the logits does under its argmax rule. ``checkpoint``: a model file instead of the preset's random weights."""
+    import numpy as np
+    import torch
+
+    from fruxel import kernels
+    from fruxel.camera import Camera, orbit_direction
+    from fruxel.render.raycast import shade
+    from fruxel.train.config import preset as get_preset
+    from fruxel.train.export import build_generator, load_generator
+    from fruxel.train.predict import Predictor
+
+    if checkpoint:
+        gen, m, _ = load_generator(checkpoint)
+        m = dataclasses.replace(m, **(model_override or {}))
+        for field, attr in (("fill_columns", "fill_columns"), ("empty_offset", "empty_offset"),
+                            ("fill_threshold", "fill_threshold")):
+            setattr(gen, attr, getattr(m, field))
+    else:
+        m = dataclasses.replace(get_preset(preset).model, **(model_override or {}))
+        gen = build_generator(m)
+    t0 = time.perf_counter()
+    pred = Predictor(gen, m, device, batch=1, compile=compile, precision=precision)
+    h, w = m.image_size
+    x = torch.rand(1, 3, h, w, device=device)
+    pred.logits(x)  # compiles and captures
+    setup_s = time.perf_counter() - t0
+    logits_ms = _median_ms(lambda: pred.logits(x), device, repeat, warm=5)
+    grid = m.grid
+    centre = grid.centre()
+    eye = centre + 1.2 * float(np.linalg.norm(grid.bounds()[1] - grid.bounds()[0])) * orbit_direction(0.6, 0.4)
+    cam = Camera.look_at(eye, centre, width=512, height=512, hfov=60.0)
+    palette = np.asarray(m.classes.palette(), dtype=np.uint8)
+    own = [grid.camera()]
+
+    def hits_of(logits: Any) -> Any:
+        kept = kernels.shell(logits.argmax(1).to(torch.uint8), grid, own)
+        return kernels.first_hit(kept, grid, cam)
+
+    def full() -> Any:
+        hits = pred.run(x, then=hits_of)
+        one = type(hits)(label=hits.label[0], cell=hits.cell[0], depth=hits.depth[0], normal=hits.normal[0])
+        return shade(one, cam, palette)
+
+    row = {"preset": preset if not checkpoint else f"{preset} ({Path(checkpoint).name})",
+           "compiled": compile, "graphed": True, "form": f"Predictor, {precision}",
+           **({"model_override": model_override} if model_override else {}),
+           "setup_s": setup_s, "logits_ms": logits_ms, "full_ms": _median_ms(full, device, repeat, warm=5)}
+    print(f"latency {row['preset']} {row['form']} compiled={compile}: image->logits {row['logits_ms']:.2f} ms, "
+          f"->shell->raycast 512^2 {row['full_ms']:.2f} ms (setup {setup_s:.0f} s)", flush=True)
+    return row
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", nargs="+", default=["layers", "variants", "pointwise", "train", "latency"],
@@ -337,6 +399,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frozen", action="store_true", help="latency part: also compile with Inductor's freezing")
     p.add_argument("--forms", nargs="+", default=["channels-last"], choices=LATENCY_FORMS,
                    help="latency part on CUDA: also the compiled generator in these forms (LATENCY_FORMS)")
+    p.add_argument("--predictor", nargs="*", default=None, choices=["bfloat16", "autocast"],
+                   help="latency part on CUDA: also fruxel's Predictor (compiled pass and pipeline replayed as CUDA "
+                        "graphs) in these precisions (none given: bfloat16)")
+    p.add_argument("--checkpoint", default=None,
+                   help="latency part, Predictor rows: also this model file (its own inference rules)")
     p.add_argument("--model-override", default="{}",
                    help='latency part: JSON fields of the presets\' ModelConfig, e.g. \'{"fill_columns": true}\'')
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
@@ -368,6 +435,13 @@ def main(argv: list[str] | None = None) -> int:
         if device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, form=f, model_override=mo)
                                   for pr in args.presets for f in args.forms if f != "channels-last"]
+        if args.predictor is not None and device.type == "cuda":
+            for prec in args.predictor or ["bfloat16"]:
+                result["latency"] += [bench_predictor_latency(pr, device, args.repeat, prec, model_override=mo)
+                                      for pr in args.presets]
+                if args.checkpoint:
+                    result["latency"].append(bench_predictor_latency(args.presets[0], device, args.repeat, prec,
+                                                                     checkpoint=args.checkpoint))
         if args.frozen and device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True, model_override=mo)
                                   for pr in args.presets]
