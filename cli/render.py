@@ -590,6 +590,11 @@ def run_render(args: argparse.Namespace) -> list[Path]:
     inp, photo = load_source(args)
     opts = _render_options(args)
     frames = FrameRenderer(inp, opts)
+    empty = not inp.any_occupied(opts.threshold)
+    if empty:
+        # Not an error (an untrained or thresholded model can be empty), but a blank picture needs a reason.
+        rule = f" at --threshold {opts.threshold:g}" if inp.is_scores and opts.threshold is not None else ""
+        print(f"{PROG}: note: {inp.name}: every cell is empty{rule}; the picture shows no model", file=sys.stderr)
     pictures: Any = frames
     if photo is None:
         camera = viewing_camera(args.camera, inp.grid, args.size)
@@ -620,6 +625,10 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
     else:
         image, fmt = pictures.image(camera), image_format(target)
+        if empty and photo is None:
+            from fruxel.render.legend import draw_note
+
+            image = draw_note(image, f"{inp.name}: every cell is empty")
         outputs.append((target, lambda tmp: save_image(tmp, image, fmt)))
     if args.export is not None:
         from fruxel.mesh import encode_mesh

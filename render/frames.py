@@ -79,6 +79,17 @@ class RenderInput:
         """True for float scores, False for labels."""
         return len(self.volume.shape) == 5
 
+    def any_occupied(self, threshold: float | None = None) -> bool:
+        """Whether any cell is occupied: a non-zero label, or for scores the rule of
+        :attr:`RenderOptions.threshold` (``threshold``; None: the argmax)."""
+        if not self.is_scores:
+            return bool(np.any(self.volume))
+        from fruxel.model import labels_from_scores
+
+        from .shading import to_numpy
+
+        return bool(np.any(labels_from_scores(to_numpy(self.volume[0]), threshold=threshold, axis=0)))
+
 
 # ---------------------------------------------------------------------------------------------------- cameras
 def default_camera(grid: FruxelGrid, width: int, height: int, points: Any = None) -> Camera:

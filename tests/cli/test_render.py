@@ -276,6 +276,29 @@ def _one_error_line(rc: int, err: str, *words: str) -> None:
         assert w in lines[0]
 
 
+@pytest.mark.parametrize("kind", ["labels", "logits"])
+def test_empty_model_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
+    """A model without an occupied cell (an untrained network's, say) renders, with a note on stderr and in the
+    picture instead of a blank image; a model with cells gets no note."""
+    empty = fruxel.FruxelModel(np.zeros(MODEL.grid.shape, np.uint8), MODEL.grid, MODEL.classes)
+    path = tmp_path / "empty.npz"
+    if kind == "labels":
+        fruxel.save(path, empty)
+    else:
+        scores = np.zeros((len(MODEL.classes), *MODEL.grid.shape), np.float32)
+        scores[0] = 1.0
+        fruxel.save_logits(path, scores, MODEL.grid, MODEL.classes)
+    assert run_cli(path, "--backend", BACKEND, "--size", "160x120", "--out", tmp_path / "out") == 0
+    captured = capsys.readouterr()
+    assert error_lines(captured.err) == [
+        "fruxel-render: note: empty: every cell is empty; the picture shows no model"]
+    img = read_png(tmp_path / "out" / "empty_mesh.png")
+    assert 0 < foreground_share(img) < 0.2  # the note's text and panel, nothing else
+    assert np.all(img[60:, :] == 255)  # below the note: background only
+    assert run_cli("--backend", BACKEND, "--size", "160x120", "--out", tmp_path / "room") == 0
+    assert "note" not in capsys.readouterr().err
+
+
 def test_missing_model(tmp_path: Path) -> None:
     out = subprocess_cli(str(tmp_path / "nope.npz"), "--out", str(tmp_path))
     _one_error_line(out.returncode, out.stderr, "nope.npz")
