@@ -346,9 +346,8 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
     if checkpoint:
         gen, m, _ = load_generator(checkpoint)
         m = dataclasses.replace(m, **(model_override or {}))
-        for field, attr in (("fill_columns", "fill_columns"), ("empty_offset", "empty_offset"),
-                            ("fill_threshold", "fill_threshold")):
-            setattr(gen, attr, getattr(m, field))
+        for name in ("fill_columns", "empty_offset", "fill_threshold"):  # the rules are the module's attributes
+            setattr(gen, name, getattr(m, name))
     else:
         m = dataclasses.replace(get_preset(preset).model, **(model_override or {}))
         gen = build_generator(m)

@@ -625,10 +625,11 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
     else:
         image, fmt = pictures.image(camera), image_format(target)
-        if empty and photo is None:
-            from fruxel.render.legend import draw_note
+        if empty and photo is None and args.mode != "both":
+            # "both" (and the photo comparison) caption their panels already, the mesh's with "0 triangles".
+            from fruxel.render.legend import draw_caption
 
-            image = draw_note(image, f"{inp.name}: every cell is empty")
+            image = draw_caption(image, f"{inp.name}: every cell is empty")
         outputs.append((target, lambda tmp: save_image(tmp, image, fmt)))
     if args.export is not None:
         from fruxel.mesh import encode_mesh

@@ -199,20 +199,3 @@ def draw_caption(image: Any, text: str, font_size: int | None = None) -> np.ndar
 
     return _draw_on(img, (box[0] - pad, box[1] - pad, box[2] + pad + 1, box[3] + pad + 1), draw)
 
-
-def draw_note(image: Any, text: str) -> np.ndarray:
-    """A copy of ``image`` (``(h, w, 3)`` uint8 RGB) with one line of ``text`` at its top left, on a light panel."""
-    from PIL import Image, ImageDraw
-
-    img = np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3])
-    s = _scale(img.shape[0])
-    pad = max(2, round(PAD * s))
-    font = default_font(max(8, round(11 * s)))
-    _, _, w, h = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
-
-    def draw(d: Any, dx: int, dy: int) -> None:
-        d.rectangle([pad + dx, pad + dy, 3 * pad + w + dx, 3 * pad + h + dy], fill=(255, 255, 255, 220),
-                    outline=(90, 90, 90, 255))
-        d.text((2 * pad + dx, 2 * pad + dy), text, fill=(20, 20, 20, 255), font=font)
-
-    return _draw_on(img, (0, 0, 4 * pad + w, 4 * pad + h), draw)

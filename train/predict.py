@@ -174,9 +174,9 @@ class Predictor:
     On CUDA each input shape's forward pass is captured once as a CUDA graph and replayed: at batch 1 the eager
     pass is bound by launching its 769 kernels from Python (11-24 ms on the H100 for ``ssz64``, against 1.8 ms of
     kernel time; replayed, 2.1 ms), which the live robot demo pays every frame. With ``compile`` the captured
-    pass is Inductor's (fused kernels; under a minute to compile): 1.0 ms with bfloat16 weights, 1.2 ms under
-    autocast (BENCHMARKS.md). Work that follows the logits (a shell, a ray cast) can join the same graph through
-    :meth:`run`.
+    pass is Inductor's (fused kernels; under a minute to compile): 0.9 ms with bfloat16 weights, 1.1 ms under
+    autocast (BENCHMARKS.md, ``ssz-h100-graphs.json``). Work that follows the logits (a shell, a ray cast) can
+    join the same graph through :meth:`run`.
 
     Args:
         generator: the model, in eval mode (moved to ``device``, and to bfloat16 with that precision, in place).
