@@ -391,24 +391,24 @@ def test_batches_close_waits_for_the_workers(tmp_path: Path, abort: bool) -> Non
     """``Batches.close`` stops the workers and waits for them: the worker's stream is finalised before it returns.
     A worker that dies from a signal as it exits (the data no longer needed) gives one warning naming the signal,
     never an exception (torch's SIGCHLD handler raises one when it sees the death first, a race)."""
-    marker = tmp_path / "closed"
-    batches = Batches(lambda block, skip: _MarkedStream(str(marker), abort), 2, 1)
-    assert next(batches)["index"].tolist() == [0, 1]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        batches.close()
-    assert marker.read_text() == "closed"
-    # Only this warning is the subject: others that shutting a process pool down may raise (a ResourceWarning for
-    # a pipe, say) are not.
-    messages = [str(w.message) for w in caught if "data workers" in str(w.message)]
-    if abort:
-        assert len(messages) == 1 and "SIGABRT" in messages[0], messages
-    else:
-        # A worker with nothing wrong can still die as its interpreter tears down (a spawned worker runs every
-        # imported library's exit handlers; on the shared CI machine one ended by SIGABRT in 2 of 3 runs): that is
-        # the case this handling exists for, so the clean worker may give the one warning, never anything else.
-        assert len(messages) <= 1 and all("by SIG" in m for m in messages), messages
-    batches.close()  # idempotent
+    # A clean worker could die as its interpreter tore down (torch aborts there now and then: SIGABRT in 3 of 8
+    # runs of a bare stream before the workers learnt to skip the teardown), so the clean case runs three times.
+    for attempt in range(1 if abort else 3):
+        marker = tmp_path / f"closed{attempt}"
+        batches = Batches(lambda block, skip, m=str(marker): _MarkedStream(m, abort), 2, 1)
+        assert next(batches)["index"].tolist() == [0, 1]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            batches.close()
+        assert marker.read_text() == "closed"
+        # Only this warning is the subject: others that shutting a process pool down may raise (a ResourceWarning
+        # for a pipe, say) are not.
+        messages = [str(w.message) for w in caught if "data workers" in str(w.message)]
+        if abort:  # an exit handler registered after the worker's start runs before the skip, and aborts
+            assert len(messages) == 1 and "SIGABRT" in messages[0], messages
+        else:
+            assert messages == [], messages
+        batches.close()  # idempotent
 
 
 def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) -> None:
