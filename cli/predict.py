@@ -128,6 +128,9 @@ def _writers(logits: Any, grid: Any, classes: Any, files: list[Path]) -> list[tu
 def _main(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; --out is the folder the predictions go to")
+    if not args.out.exists() and args.out.suffix.lower() == ".npz":  # a file name meant, not a folder to make
+        raise UsageError(f"--out {args.out}: --out is the folder the predictions go to, as NAME.npz for each image; "
+                         f"give a folder")
     targets = output_names(args.images, args.out, args.logits)
 
     from fruxel.train.predict import ImageError, load_image, load_predictor, prepare_image

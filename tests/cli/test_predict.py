@@ -183,6 +183,9 @@ def test_out_must_be_a_folder(shipped_model: Path, tmp_path: Path, capsys: pytes
     (tmp_path / "file").write_text("")
     assert predict_cli.main([str(img), "--checkpoint", str(shipped_model), "--out", str(tmp_path / "file")]) == 2
     assert "--out" in error_line(capsys)
+    # A file name that does not exist yet is not made into a folder of that name.
+    assert predict_cli.main([str(img), "--checkpoint", str(shipped_model), "--out", str(tmp_path / "x.npz")]) == 2
+    assert "--out" in error_line(capsys) and not (tmp_path / "x.npz").exists()
 
 
 class CreatesFile:
