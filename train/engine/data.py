@@ -167,13 +167,15 @@ def _init_worker(_: int) -> None:
         os.environ.setdefault("LP_NUM_THREADS", "1")
     # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
     # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
-    # zeros in 3 of 8 runs on torch 2.13). Registered after the imports, this runs before their exit handlers and
-    # ends the process at once; the worker's loop has returned and its stream is finalised by then (Batches.close),
-    # and the process's contexts (EGL, CUDA) are released by the kernel.
+    # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream
+    # imports later still run, then this ends the process, skipping those of what was imported before (torch's) and
+    # the teardown. The worker's loop has returned and its stream is finalised by then (Batches.close), and the
+    # process's contexts (EGL, CUDA) are released by the kernel.
     atexit.register(_exit_now)
 
 
 def _exit_now() -> None:
+    """End this process with status 0 at once, with Python's own output flushed."""
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
