@@ -24,8 +24,8 @@ IoU, own- and novel-view first-hit accuracy and novel-view depth error.
 Outputs, written together into ``--out`` (default ``out/``): ``report.md`` (tables, the command line, model file,
 samples, data source and machine), ``report.json`` (the same numbers with the confusion matrices and counts
 behind them) and ``examples.png`` (image | truth and prediction from the grid's own camera | truth and prediction
-from a novel pose). Errors are one line ``fruxel-eval: error: ...`` with exit status 2
-(:func:`fruxel.cli.common.run`).
+from a novel pose; not written with ``--examples 0``). Errors are one line ``fruxel-eval: error: ...`` with exit
+status 2 (:func:`fruxel.cli.common.run`).
 """
 
 from __future__ import annotations
@@ -92,8 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", default=None, metavar="NAME",
                    help="kernel backend of the views and the oracle: warp, opencl, warp-cpu, warp-cuda (default: the "
                    "best available)")
-    p.add_argument("--examples", type=positive_int, default=4, metavar="N",
-                   help="samples shown in examples.png (default 4)")
+    p.add_argument("--examples", type=non_negative_int, default=4, metavar="N",
+                   help="samples shown in examples.png (default 4; 0: no picture)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     return p
 
@@ -192,7 +192,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     with torch.no_grad():
         # Examples spread over the samples: consecutive samples are frames of one room.
-        shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))
+        shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))  # 0: none
         accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), grid, classes,
                                           device=device, backend=args.backend, keep=shown.tolist())
 
@@ -207,7 +207,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
               "augment": data.augment if data.source == "stream" else None, "split": args.split, "samples": count,
               "indices": f"indices 0..{count - 1}"},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
-        seconds=time.perf_counter() - started)
+        seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None)
     text = markdown_report(report)
     res = report["results"]
 
@@ -218,13 +218,16 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     title = (f"{Path(path).name}, {count} {args.split} samples: mIoU "
              + ", ".join(f"{RULES[r]} {miou(r)}" for r in res))
     out = args.out
-    written = write_outputs([
+    outputs = [
         (out / "report.md", lambda tmp: tmp.write_text(text, encoding="utf-8")),
         # default=str: a training summary read from a checkpoint may hold values JSON has no type for.
         (out / "report.json", lambda tmp: tmp.write_text(json.dumps(report, indent=2, default=str) + "\n",
                                                           encoding="utf-8")),
-        (out / "examples.png", lambda tmp: example_sheet(kept, grid, classes, tmp, title=title, backend=args.backend)),
-    ])
+    ]
+    if args.examples:
+        outputs.append((out / "examples.png",
+                        lambda tmp: example_sheet(kept, grid, classes, tmp, title=title, backend=args.backend)))
+    written = write_outputs(outputs)
     if not args.quiet:
         print(title)
         for p in written:

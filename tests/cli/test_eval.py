@@ -147,12 +147,15 @@ def test_data_set_split_end_to_end(shipped_model: Path, checkpoint_model: Path, 
     assert report["data"]["seed"] == 5 and report["data"]["split"] == "test"
     # The same weights in the shipped form give the same numbers.
     out2 = tmp_path / "report2"
+    # No prior and no example picture asked for: neither is made, and the report does not point at a picture.
     assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(data_set), "--samples", "2",
-                          "--prior-samples", "0", "--out", str(out2), "-q"]) == 0
+                          "--prior-samples", "0", "--examples", "0", "--out", str(out2), "-q"]) == 0
     r2 = json.loads((out2 / "report.json").read_text())
     assert list(r2["results"]) == ["model", "oracle"] and r2["prior"] is None
     assert r2["data"]["samples"] == 2
-    assert "per-cell prior" not in (out2 / "report.md").read_text().split("## Metrics")[1]
+    assert r2["examples"] is None and sorted(p.name for p in out2.iterdir()) == ["report.json", "report.md"]
+    md2 = (out2 / "report.md").read_text()
+    assert "per-cell prior" not in md2.split("## Metrics")[1] and "examples.png" not in md2
 
 
 # ---------------------------------------------------------------------------------------------------- bad input
