@@ -49,6 +49,10 @@ class ModelConfig:
     """L: resolution levels; every grid axis must be divisible by ``2^(L-1)``."""
     stem: int = 24
     """Channels of the 2D stem (at half the image resolution)."""
+    image_branch: int = 0
+    """Channels of a branch that works at the image's full resolution before the stem's stride-2 convolution and
+    adds its result to the stem's output (0 = none; needs ``image_scale >= 1``). It starts as a zero term, so a
+    model fine-tuned (``run.init``) from weights without it starts as that model."""
     encoder: tuple[int, ...] = (32, 48, 96, 160, 224)
     """Channels of the 2D encoder per level."""
     encoder_blocks: tuple[int, ...] = (2, 2, 3, 3, 2)
@@ -111,8 +115,11 @@ class ModelConfig:
         _positive_int(f"{path}.expand", self.expand)
         _positive_int(f"{path}.encoder_expand", self.encoder_expand)
         _positive_int(f"{path}.group_width", self.group_width)
+        _positive_int(f"{path}.image_branch", self.image_branch, allow_zero=True)
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
             raise ConfigError(f"{path}.image_scale must be an integer in [0, 4], got {self.image_scale!r}")
+        if self.image_branch and not self.image_scale:
+            raise ConfigError(f"{path}.image_branch needs {path}.image_scale >= 1 (an image larger than the grid)")
         for name in ("encoder", "encoder_blocks", "topdown", "decoder", "decoder_blocks"):
             seq = getattr(self, name)
             if len(seq) != self.levels:

@@ -121,6 +121,36 @@ def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
     assert fused.surface_head.weight.grad.abs().sum() > 0
 
 
+def test_image_branch_starts_as_the_model_without_it_and_learns() -> None:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
+                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    torch.manual_seed(0)
+    plain = build_generator(cfg).eval()
+    branched = build_generator(dataclasses.replace(cfg, image_branch=4)).eval()
+    missing, unexpected = branched.load_state_dict(plain.state_dict(), strict=False)
+    assert missing and all(k.startswith("image_branch.") for k in missing) and not unexpected
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(branched(image).logits, plain(image).logits)
+    # Its last BatchNorm starts at zero but gets a gradient; once it is not zero the branch changes the output.
+    branched.train()
+    branched(image).logits.square().mean().backward()
+    last = branched.image_branch[-1]
+    assert last.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        last.weight.fill_(1.0)
+        branched.eval()
+        assert (branched(image).logits - plain(image).logits).abs().max() > 1e-3
+
+
+def test_image_branch_needs_a_larger_image() -> None:
+    with pytest.raises(ConfigError, match="image_branch needs model.image_scale >= 1"):
+        ModelConfig(image_scale=0, image_branch=8).check()
+    with pytest.raises(ConfigError, match="model.image_branch"):
+        ModelConfig(image_branch=-1).check()
+
+
 def test_surface_fusion_needs_the_depth_head() -> None:
     with pytest.raises(ConfigError, match="surface_fusion needs model.lift"):
         ModelConfig(lift="copy", surface_fusion=True).check()

@@ -75,6 +75,8 @@ class SSZGenerator(nn.Module):
         image_scale: k: the image is ``2^k`` times the grid's width and height.
         levels: L, resolution levels of the encoder and decoder (the coarsest is the grid over ``2^(L-1)``).
         stem: channels of the stem.
+        image_branch: channels of the full-resolution image branch added to the stem's output (0 = none; needs
+            ``image_scale >= 1``).
         encoder: E_s, channels of encoder level s (length L).
         encoder_blocks: inverted residual blocks per encoder level (length L).
         topdown: T_s, channels of the top-down path at level s (length L).
@@ -96,7 +98,8 @@ class SSZGenerator(nn.Module):
     """
 
     def __init__(self, *, classes: int, grid_shape: tuple[int, int, int], image_scale: int, levels: int,
-                 stem: int, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...], topdown: tuple[int, ...],
+                 stem: int, image_branch: int = 0, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...],
+                 topdown: tuple[int, ...],
                  decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, encoder_expand: int = 4,
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
@@ -133,6 +136,20 @@ class SSZGenerator(nn.Module):
         # Stem: image resolution down to the grid's (k halvings); with k = 0 a stride-1 convolution.
         self.stem = nn.Sequential(nn.Conv2d(3, stem, 3, stride=2 if image_scale else 1, padding=1, bias=False),
                                   nn.BatchNorm2d(stem), act2d())
+        # The stem reads each 2x2 block of pixels once, through one strided 3x3 convolution. The branch works at the
+        # image's own resolution first, for what is finer than a column: the edges of boards one or two pixels wide
+        # and label boundaries inside a column. Its last BatchNorm starts at zero, so that weights trained without
+        # it (``run.init``) start as the model they were.
+        self.image_branch: nn.Module | None = None
+        if image_branch:
+            if not image_scale:
+                raise ValueError("image_branch needs image_scale >= 1 (an image larger than the grid)")
+            last = nn.BatchNorm2d(stem)
+            nn.init.zeros_(last.weight)
+            self.image_branch = nn.Sequential(
+                nn.Conv2d(3, image_branch, 3, padding=1, bias=False), nn.BatchNorm2d(image_branch), act2d(),
+                InvertedResidual2d(image_branch, encoder_expand),
+                nn.Conv2d(image_branch, stem, 3, stride=2, padding=1, bias=False), last)
         self.stem_down = nn.Sequential(*[Down2d(stem, stem) for _ in range(max(image_scale - 1, 0))])
 
         enc = []
@@ -176,7 +193,10 @@ class SSZGenerator(nn.Module):
         if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
             raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
         x = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
-        x = self.stem_down(self.stem(x))
+        s0 = self.stem(x)
+        if self.image_branch is not None:
+            s0 = s0 + self.image_branch(x)
+        x = self.stem_down(s0)
         feats = []
         for s, stage in enumerate(self.encoder):
             x = stage(x)
