@@ -136,8 +136,8 @@ class SSZGenerator(nn.Module):
         # Stem: image resolution down to the grid's (k halvings); with k = 0 a stride-1 convolution.
         self.stem = nn.Sequential(nn.Conv2d(3, stem, 3, stride=2 if image_scale else 1, padding=1, bias=False),
                                   nn.BatchNorm2d(stem), act2d())
-        # The stem reads each 2x2 block of pixels once, through one strided 3x3 convolution. The branch works at the
-        # image's own resolution first, for what is finer than a column: the edges of boards one or two pixels wide
+        # The stem halves the image's resolution in its first layer, a strided 3x3 convolution. The branch works at
+        # the image's own resolution first, for what is finer than a column: the edges of boards one or two pixels wide
         # and label boundaries inside a column. Its last BatchNorm starts at zero, so that weights trained without
         # it (``run.init``) start as the model they were.
         self.image_branch: nn.Module | None = None
