@@ -55,7 +55,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         lift=config.lift, upsample=config.upsample, group_width=config.group_width,
                         full_res_spatial=config.full_res_spatial, surface_fusion=config.surface_fusion,
                         fill_columns=config.fill_columns, empty_offset=config.empty_offset,
-                        fill_threshold=config.fill_threshold,
+                        fill_threshold=config.fill_threshold, first_hit_label=config.first_hit_label,
                         checkpointing=checkpointing)
 
 
@@ -144,8 +144,11 @@ def read_weights(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor],
     if not os.path.isfile(path):
         raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
     with open(path, "rb") as f:
-        head = f.read(8)
-    if head[:2] == b"PK" or head[:1] == b"\x80":
+        head = f.read(9)
+    # safetensors: an 8-byte little-endian header length, then the JSON header. Its first byte can be 0x80 (a
+    # header of 128 + 256 k bytes), so the JSON's opening brace is checked before the pickle and zip magics.
+    safetensors = head[8:9] == b"{" and int.from_bytes(head[:8], "little") < os.path.getsize(path)
+    if not safetensors and (head[:2] == b"PK" or head[:1] == b"\x80"):
         from .engine.checkpoint import read_checkpoint
 
         ckpt = read_checkpoint(path)
