@@ -202,7 +202,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         accs, classes,
         model={"file": str(path), "grid": grid.to_dict(), "image_size": list(mc.image_size), "training": training,
                "inference_rules": {"fill_columns": mc.fill_columns, "empty_offset": mc.empty_offset,
-                                   "fill_threshold": mc.fill_threshold}},
+                                   "fill_threshold": mc.fill_threshold, "first_hit_label": mc.first_hit_label}},
         data={"source": data.describe(), "kind": data.source, "root": data.root or None, "seed": data.seed,
               "augment": data.augment if data.source == "stream" else None, "split": args.split, "samples": count,
               "indices": f"indices 0..{count - 1}"},

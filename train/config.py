@@ -95,6 +95,13 @@ class ModelConfig:
     fill_threshold: float = 0.5
     """``fill_columns`` fills a column whose depth head gives "no surface" a probability below this, in (0, 1]
     (1 fills every column the volume leaves empty); chosen with ``empty_offset`` by ``scripts/calibrate.py``."""
+    first_hit_label: bool = False
+    """At inference (eval mode), after ``empty_offset`` and ``fill_columns``: give each column's first occupied
+    cell the class most likely to be the column's first hit
+    (:func:`fruxel.train.models.generator.first_hit_label`), which is what the grid's own camera shows of it. Where
+    a thin board is spread over several cells, none of them alone more likely occupied than empty, the cells
+    together can still make it the likeliest first hit. Training is unchanged; off here for the same reason as
+    ``surface_fusion``."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -169,6 +176,11 @@ class LossConfig:
     the ground truth's first occupied slice (or "no surface")."""
     surface: float = 0.5
     """Weight of the cross-entropy of the columns' first-surface class against the ground truth's."""
+    first_hit: float = 0.0
+    """Weight of the own view's first-hit cross-entropy: each column's first-hit distribution over "miss" and the
+    classes (:func:`fruxel.train.models.generator.first_hit_log_probs`, the cells taken as independent) against
+    the truth's first label, mean over the columns. The own-view term of the shell-aware losses computed on the
+    columns directly, without their kernels or novel views; what the ``first_hit_label`` rule decodes."""
     shell: bool = False
     """Add the shell-aware losses (:class:`fruxel.train.losses.ShellLoss`: own view and random novel views)."""
     shell_weight: float = 0.5
@@ -194,8 +206,8 @@ class LossConfig:
 
     def check(self, path: str = "loss") -> None:
         """Raise :class:`ConfigError` for impossible settings."""
-        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "shell_weight", "shell_own_view",
-                     "adversarial_weight", "discriminator_lr"):
+        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "first_hit", "shell_weight",
+                     "shell_own_view", "adversarial_weight", "discriminator_lr"):
             _finite_nonneg(f"{path}.{name}", getattr(self, name))
         for name in ("shell_views", "adversarial_start", "adversarial_ramp"):
             _positive_int(f"{path}.{name}", getattr(self, name), allow_zero=True)

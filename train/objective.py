@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from .config import LossConfig
+from .models.generator import first_hit_log_probs
 
 
 def class_frequencies(label_batches: Iterable[torch.Tensor], classes: int) -> np.ndarray:
@@ -123,7 +124,8 @@ class SSZObjective:
             labels: ``(B, D, H, W)`` integer ground-truth labels (uint8 is fine), on the logits' device.
 
         Returns:
-            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "shell": ...}`` scalar tensors
+            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "first_hit": ..., "shell": ...}``
+            scalar tensors
             (unweighted terms; ``total`` is the weighted sum); absent terms are left out.
         """
         c = self.config
@@ -131,6 +133,7 @@ class SSZObjective:
         target = labels.long()
         terms: dict[str, torch.Tensor] = {}
         total = logits.new_zeros(())
+        surface = None
         if c.ce:
             terms["ce"] = F.cross_entropy(logits, target, weight=self.weights)
             total = total + c.ce * terms["ce"]
@@ -145,6 +148,11 @@ class SSZObjective:
             if c.surface:
                 terms["surface"] = F.cross_entropy(out.surface_logits, surface)
                 total = total + c.surface * terms["surface"]
+        if c.first_hit:
+            if surface is None:
+                _, surface = surface_targets(target)
+            terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), surface)
+            total = total + c.first_hit * terms["first_hit"]
         if self.shell_loss is not None:
             terms["shell"] = self.shell_loss(logits, labels).total
             total = total + c.shell_weight * terms["shell"]

@@ -4,6 +4,7 @@ surface fusion that writes the image-side heads' answer into the logits."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import pytest
@@ -14,7 +15,13 @@ from fruxel.grid import FruxelGrid
 from fruxel.train.config import ConfigError, ModelConfig
 from fruxel.train.export import build_generator
 from fruxel.train.models.blocks import Pointwise3d, SurfaceFusion
-from fruxel.train.models.generator import FILL_SURFACE_PROBABILITY, fill_columns
+from fruxel.train.models.generator import (
+    FILL_SURFACE_PROBABILITY,
+    fill_columns,
+    first_hit_classes,
+    first_hit_label,
+    first_hit_log_probs,
+)
 
 
 @pytest.mark.parametrize("bias", [True, False])
@@ -254,3 +261,80 @@ def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) 
     for bad in (0.0, 1.5, math.nan):
         with pytest.raises(ConfigError, match=r"model.fill_threshold must be in \(0, 1\]"):
             ModelConfig(fill_threshold=bad).check()
+
+
+# --------------------------------------------------------------------------------------------- first_hit_label
+def _first_hit_reference(logits: torch.Tensor) -> torch.Tensor:
+    """``P(first hit = c)`` per column by enumerating every labelling of the column: (B, C, H, W) float64."""
+    p = torch.softmax(logits.double(), dim=1)
+    b_, c_, d_, h_, w_ = p.shape
+    out = torch.zeros(b_, c_, h_, w_, dtype=torch.float64)
+    for b, y, x in itertools.product(range(b_), range(h_), range(w_)):
+        for seq in itertools.product(range(c_), repeat=d_):
+            first = next((c for c in seq if c), 0)
+            out[b, first, y, x] += math.prod(float(p[b, c, k, y, x]) for k, c in enumerate(seq))
+    return out
+
+
+def test_first_hit_log_probs_is_the_columns_first_hit_distribution() -> None:
+    torch.manual_seed(2)
+    logits = torch.randn(2, 3, 4, 2, 3) * 2.5
+    logits[0, 0, 0, 0, 0] = -80.0  # a cell surely occupied: the cells behind it can never be the first hit
+    got = first_hit_log_probs(logits)
+    assert got.shape == (2, 3, 2, 3) and got.dtype == torch.float32
+    torch.testing.assert_close(got.exp().double(), _first_hit_reference(logits), rtol=1e-5, atol=1e-6)
+    shifted = logits.clone()
+    shifted[:, 0] += 1.3
+    torch.testing.assert_close(first_hit_log_probs(logits, 1.3), first_hit_log_probs(shifted))
+    assert torch.isfinite(got).all()
+
+
+def test_first_hit_label_names_the_board_the_cells_share() -> None:
+    """A board spread over three cells, each 40 % furniture and 60 % empty, in front of a wall: the argmax shows
+    the wall, the column's first hit is furniture with probability 1 - 0.6^3 = 0.78; only that cell changes."""
+    c, d = 5, 6
+    logits = torch.full((1, c, d, 2, 2), -20.0)
+    logits[:, 0] = 0.0  # empty everywhere ...
+    logits[0, 4, 1:4, 0, 0] = math.log(0.4 / 0.6)  # ... but column (0, 0): furniture 40 % in slices 1-3
+    logits[0, 0, 5, 0, 0] = -20.0
+    logits[0, 1, 5, 0, 0] = 5.0  # a wall in slice 5
+    logits[0, 1, 2, 1, 1] = 3.0  # column (1, 1): a wall in slice 2, nothing else
+    logits[0, 3, 4, 1, 1] = 9.0  # and a window behind it, which the first hit never is
+    torch.testing.assert_close(first_hit_log_probs(logits)[0, 4, 0, 0].exp(), torch.tensor(1 - 0.6 ** 3))
+    assert int(logits[0, :, 5, 0, 0].argmax()) == 1
+    out = first_hit_label(logits, logits)
+    labels, before = out.argmax(1), logits.argmax(1)
+    assert int(labels[0, 5, 0, 0]) == 4  # the wall's cell now shows the board ...
+    changed = (labels != before).nonzero().tolist()
+    assert changed == [[0, 5, 0, 0]]  # ... and nothing else changed: columns without a hit stay empty
+    torch.testing.assert_close(out[:, :, :5], logits[:, :, :5], rtol=0, atol=0)
+    # After other rules, the first occupied cell of the ruled logits is relabelled (bfloat16 keeps the margin).
+    ruled = logits.clone()
+    ruled[0, 0, 3, 0, 0] = -30.0  # say a rule made slice 3 the first occupied cell, as furniture
+    ruled[0, 1, 3, 0, 0] = 2.0  # ... with wall slightly ahead of furniture there
+    out = first_hit_label(ruled.bfloat16(), logits)
+    assert out.dtype == torch.bfloat16 and int(out.argmax(1)[0, 3, 0, 0]) == 4
+    best = first_hit_classes(logits)
+    assert best.shape == (1, 2, 2) and int(best[0, 0, 0]) == 4 and int(best[0, 1, 1]) == 1
+    torch.testing.assert_close(first_hit_label(ruled, None, best=best), first_hit_label(ruled, logits))
+
+
+def test_generator_applies_first_hit_label_after_its_other_rules() -> None:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
+                      decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), fill_columns=True, empty_offset=0.5,
+                      fill_threshold=0.9)
+    torch.manual_seed(4)
+    plain = build_generator(cfg)
+    labelled = build_generator(dataclasses.replace(cfg, first_hit_label=True))
+    bare = build_generator(dataclasses.replace(cfg, fill_columns=False, empty_offset=0.0))
+    labelled.load_state_dict(plain.state_dict())
+    bare.load_state_dict(plain.state_dict())
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        plain.eval(), labelled.eval(), bare.eval()
+        ruled, raw, out = plain(image).logits, bare(image).logits, labelled(image).logits
+        torch.testing.assert_close(out, first_hit_label(ruled, raw))
+        assert not torch.equal(out.argmax(1), ruled.argmax(1))  # the random weights' first hits do change
+        labelled.train(), bare.train()
+        torch.testing.assert_close(labelled(image).logits, bare(image).logits)  # training sees no rule

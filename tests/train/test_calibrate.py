@@ -84,6 +84,24 @@ def test_sweep_counts_what_the_calibrated_model_predicts(tmp_path: Path) -> None
         occupied[(offset, threshold)] = int(acc.conf[:, 1:].sum())
     assert occupied[(1.5, 0.5)] < occupied[(0.0, 0.5)]  # the offset does move the decision
     assert occupied[(1.5, 0.9)] > occupied[(1.5, 0.5)]  # and the threshold fills more columns
+    # With first_hit_label, on weights whose occupied classes vary from cell to cell.
+    varied = build_generator(cfg)
+    varied.load_state_dict(gen.state_dict())
+    with torch.no_grad():  # about 30 % of the cells occupied, their classes varying from cell to cell
+        varied.head.weight.normal_(0.0, 3.0)
+        varied.head.bias.zero_()
+        varied.head.bias[0] = 3.0
+    labelled = sweep_rules(varied, pairs, [0.0, 1.5], [0.9], 7, fill=True, device=torch.device("cpu"),
+                           first_hit=True)
+    unlabelled = sweep_rules(varied, pairs, [1.5], [0.9], 7, fill=True, device=torch.device("cpu"))
+    assert not varied.first_hit_label
+    other = build_generator(dataclasses.replace(cfg, fill_columns=True, empty_offset=1.5, fill_threshold=0.9,
+                                                first_hit_label=True))
+    other.load_state_dict(varied.state_dict())
+    acc, _ = evaluate(other, pairs, cfg.grid, cfg.classes, device=torch.device("cpu"))
+    got = labelled[(1.5, 0.9)]
+    assert (acc.conf == got.conf).all() and acc.own_correct == got.own_correct
+    assert not (got.conf == unlabelled[(1.5, 0.9)].conf).all()  # the rule changes some first cells' classes
     plain = sweep_rules(gen, pairs, [0.0], [0.5, 0.9], 7, fill=False, device=torch.device("cpu"))
     assert set(plain) == {(0.0, 0.6)}  # without fill_columns the threshold is not swept
     assert plain[(0.0, 0.6)].novel_pixels == 0  # and without a grid no novel views are counted
@@ -122,6 +140,17 @@ def test_calibrate_script_writes_the_chosen_offset(tmp_path: Path, capsys: pytes
     assert not written.fill_columns and set(training["calibration"]["sweep"]) == {"0", "0.5"}
     assert not any("novel_view_accuracy" in v for v in training["calibration"]["sweep"].values())
     capsys.readouterr()
+    # Streamed samples (no --data) of a data seed, with first_hit_label.
+    assert main([str(model), "--seed", "3", "--samples", "2", "--offsets", "0.5", "--fill", "--thresholds", "0.9",
+                 "--first-hit-label", "--no-novel", "--batch", "2", "--out", str(tmp_path / "fh.safetensors")]) == 0
+    assert "the simulator (data seed 3)" in capsys.readouterr().out
+    _, written, training = read_weights(tmp_path / "fh.safetensors")
+    assert written.first_hit_label and written.fill_columns
+    cal = training["calibration"]
+    assert cal["first_hit_label"] and cal["data"] == "stream:seed=3" and cal["samples"] == 2
+    assert main([str(model), "--data", str(data), "--seed", "3", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--seed picks streamed samples" in err and len(err.strip().splitlines()) == 1
     assert main([str(model), "--data", str(data), "--out", str(tmp_path / "x.bin")]) == 2
     assert "must end in .safetensors" in capsys.readouterr().err
     for bad in ("0", "1.5", "nan"):

@@ -471,3 +471,53 @@ def test_shell_own_view_weight_reaches_the_shell_loss(tmp_path: Path, shards: Pa
     trainer._build()
     assert trainer.shell is not None and trainer.shell.config.weight_own_view == 1.5
     assert trainer.shell.config.own_view
+
+
+def test_first_hit_term_is_the_own_views_first_hit_cross_entropy() -> None:
+    """``loss.first_hit``: the mean over the columns of ``-log P(first hit = the truth's first label)``, with a
+    gradient to the logits; it matches the shell-aware losses' own-view term, which gets there through kernels."""
+    from fruxel.train.config import ConfigError, LossConfig
+    from fruxel.train.losses import ShellLoss, ShellLossConfig
+    from fruxel.train.models.generator import SSZOutput, first_hit_log_probs
+
+    config = tiny()
+    torch.manual_seed(5)
+    labels = (torch.rand(2, 16, 16, 16) < 0.08).to(torch.uint8) * torch.randint(1, 7, (2, 16, 16, 16),
+                                                                                dtype=torch.uint8)
+    logits = (torch.randn(2, 7, 16, 16, 16) * 2).requires_grad_()
+    out = SSZOutput(logits=logits, depth_logits=None, surface_logits=None)
+    only = LossConfig(ce=0.0, iou=0.0, depth=0.0, surface=0.0, first_hit=2.0)
+    terms = SSZObjective(only, torch.ones(7))(out, labels)
+    first = (labels != 0).to(torch.uint8).argmax(1, keepdim=True)
+    seen = labels.long().gather(1, first).squeeze(1) * (labels != 0).any(1)
+    expected = -first_hit_log_probs(logits.detach()).gather(1, seen.unsqueeze(1)).mean()
+    torch.testing.assert_close(terms["first_hit"], expected)
+    torch.testing.assert_close(terms["total"], 2.0 * expected)
+    terms["total"].backward()
+    assert logits.grad is not None and logits.grad.abs().sum() > 0
+    shell = ShellLoss(config.model.grid, ShellLossConfig(novel_views=0, weight_own_view=1.0, eps=0.0))
+    own = shell(logits.detach(), labels).own_view
+    torch.testing.assert_close(own, expected, rtol=1e-4, atol=1e-5)
+    assert "first_hit" not in SSZObjective(dataclasses.replace(only, first_hit=0.0, ce=1.0), torch.ones(7))(out, labels)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ConfigError, match="loss.first_hit"):
+            LossConfig(first_hit=bad).check()
+
+
+def test_a_shipped_file_whose_header_length_starts_with_0x80_is_not_taken_for_a_pickle(tmp_path: Path) -> None:
+    """A safetensors header of 128 + 256 k bytes starts the file with 0x80, pickle's protocol byte: the shipped
+    model of 2026-11-25 had one, and read as "not a fruxel SSZ checkpoint"."""
+    from fruxel.train.export import read_weights
+
+    config = tiny().model
+    gen = build_generator(config)
+    path = tmp_path / "m.safetensors"
+    for pad in range(300):
+        save_shipped(path, gen, config, {"note": "x" * pad}, half=False)
+        if path.read_bytes()[:1] == b"\x80":
+            break
+    assert path.read_bytes()[:1] == b"\x80"
+    state, written, training = read_weights(path)
+    assert written == config and training["note"] == "x" * pad and set(state) == set(gen.state_dict())
+    trained, _, _ = load_generator(path)
+    assert not trained.training

@@ -26,7 +26,7 @@ Rules = tuple[float, float]
 @torch.no_grad()
 def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], offsets: Sequence[float],
                 thresholds: Sequence[float], classes: int, *, fill: bool, device: torch.device,
-                grid: Any = None, backend: str | None = None) -> dict[Rules, Accumulator]:
+                grid: Any = None, backend: str | None = None, first_hit: bool = False) -> dict[Rules, Accumulator]:
     """Metrics (cell IoUs, completion, own view; novel views with ``grid``) of the generator's predictions under
     each pair of rules.
 
@@ -41,6 +41,8 @@ def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tens
         device: where to predict and count.
         grid: the labels' grid: also count the novel views of :func:`~.evaluate.novel_cameras` (None: not).
         backend: kernel backend of the novel views.
+        first_hit: apply :func:`~fruxel.train.models.generator.first_hit_label` after the other rules, in every
+            pair (``ModelConfig.first_hit_label``).
 
     Returns:
         An accumulator per ``(offset, threshold)``; without ``fill`` the threshold of every key is the generator's
@@ -48,31 +50,34 @@ def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tens
     """
     from fruxel import kernels
 
-    from ..models.generator import inference_rules
+    from ..models.generator import first_hit_classes, first_hit_label, inference_rules
     from .evaluate import count_views, novel_cameras
 
     cams = novel_cameras(grid) if grid is not None else []
 
     ts = [float(t) for t in thresholds] if fill else [generator.fill_threshold]
     accs = {(float(o), t): Accumulator(classes) for o in offsets for t in ts}
-    rules = (generator.training, generator.empty_offset, generator.fill_columns)
+    rules = (generator.training, generator.empty_offset, generator.fill_columns, generator.first_hit_label)
     generator.eval()
-    generator.empty_offset, generator.fill_columns = 0.0, False
+    generator.empty_offset, generator.fill_columns, generator.first_hit_label = 0.0, False, False
     try:
         for image, labels in batches:
             out = generator(image.to(device))
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
+            best = first_hit_classes(logits) if first_hit else None
             truth_hits = [kernels.first_hit(target, grid, cam, backend=backend) for cam in cams]
             for (o, t), acc in accs.items():
                 shifted = inference_rules(logits, out.depth_logits, empty_offset=o, fill=fill, fill_threshold=t)
+                if first_hit:
+                    shifted = first_hit_label(shifted, None, best=best)
                 pred = shifted.argmax(1).to(torch.uint8)
                 acc.add_volumes(pred, target)
                 if cams:
                     count_views(acc, pred, target, grid, cams, backend, truth_hits)
     finally:
         generator.train(rules[0])
-        generator.empty_offset, generator.fill_columns = rules[1], rules[2]
+        generator.empty_offset, generator.fill_columns, generator.first_hit_label = rules[1:]
     return accs
 
 

@@ -64,7 +64,7 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         classes: the class table of the labels.
         model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary),
             optionally ``inference_rules`` (``{"fill_columns": bool, "empty_offset": float, "fill_threshold":
-            float}``).
+            float, "first_hit_label": bool}``).
         data: the samples: ``source`` (in words), ``split``, ``samples``, and anything else worth keeping.
         prior: how the per-cell prior was made (``split``, ``samples``), None when it was not.
         machine: where it ran (CPU, GPU, versions, device, kernel backend).
@@ -122,11 +122,14 @@ def _plain(d: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
 
 
 def _rules_text(rules: Mapping[str, Any]) -> str:
-    """The model's inference rules (``ModelConfig.fill_columns``, ``empty_offset``, ``fill_threshold``) in words."""
+    """The model's inference rules (``ModelConfig.fill_columns``, ``empty_offset``, ``fill_threshold``,
+    ``first_hit_label``) in words."""
     parts = [f"empty logit {rules['empty_offset']:+g}"] if rules.get("empty_offset") else []
     if rules.get("fill_columns"):
         t = rules.get("fill_threshold")
         parts.append("fill_columns" + (f" (threshold {t:g})" if t is not None else ""))
+    if rules.get("first_hit_label"):
+        parts.append("first_hit_label")
     return ", ".join(parts) or "none (plain argmax)"
 
 

@@ -93,6 +93,7 @@ class SSZGenerator(nn.Module):
         fill_columns: in eval mode, pass the logits through :func:`fill_columns` (needs ``lift="depth"``).
         empty_offset: in eval mode, add this to the empty class's logits (before ``fill_columns``).
         fill_threshold: :func:`fill_columns`' ``threshold``, in (0, 1].
+        first_hit_label: in eval mode, then :func:`first_hit_label`.
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -104,7 +105,8 @@ class SSZGenerator(nn.Module):
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
-                 fill_threshold: float = FILL_SURFACE_PROBABILITY, checkpointing: bool = False) -> None:
+                 fill_threshold: float = FILL_SURFACE_PROBABILITY, first_hit_label: bool = False,
+                 checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -130,6 +132,7 @@ class SSZGenerator(nn.Module):
         self.fill_columns = fill_columns
         self.empty_offset = float(empty_offset)
         self.fill_threshold = float(fill_threshold)
+        self.first_hit_label = bool(first_hit_label)
         self.register_buffer("mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -261,9 +264,85 @@ class SSZGenerator(nn.Module):
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
         if not self.training:
-            logits = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
-                                     fill_threshold=self.fill_threshold)
+            ruled = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
+                                    fill_threshold=self.fill_threshold)
+            logits = first_hit_label(ruled, logits) if self.first_hit_label else ruled
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
+
+
+def first_hit_log_probs(logits: torch.Tensor, empty_offset: float = 0.0) -> torch.Tensor:
+    """Each column's distribution of the own view's first hit, from the cells' class distributions taken as
+    independent: ``P(first hit = c) = sum_k P(cells 0..k-1 empty) P(cell k = c)`` and ``P(miss) = P(all empty)``.
+
+    This is what the grid's own camera sees of the volume in expectation (a column is a pixel of the own view,
+    SPEC section 2), the own-view term of the shell-aware losses without their kernels. The training objective's
+    ``first_hit`` term is its cross-entropy against the truth's first label; the ``first_hit_label`` inference rule
+    takes its argmax over the occupied classes.
+
+    Args:
+        logits: ``(B, C, D, H, W)`` class logits (channel 0 = empty), any float dtype, grid frame.
+        empty_offset: added to every cell's empty logit first.
+
+    Returns:
+        ``(B, C, H, W)`` float32 log-probabilities: channel 0 the column's miss, channel c its first hit being
+        class c; they sum to 1 over the channels.
+    """
+    s = logits.float()
+    if empty_offset:
+        s = torch.cat([s[:, :1] + empty_offset, s[:, 1:]], dim=1)
+    log_p = torch.log_softmax(s, dim=1)
+    empty = log_p[:, 0]  # (B, D, H, W)
+    through = torch.cumsum(empty, dim=1)  # log P(cells 0..k empty)
+    # log P(cells 0..k-1 empty): the exclusive sum, shifted rather than subtracted (a cell surely occupied would
+    # subtract a log of 0).
+    before = torch.cat([torch.zeros_like(through[:, :1]), through[:, :-1]], dim=1)
+    hit = torch.logsumexp(before.unsqueeze(1) + log_p[:, 1:], dim=2)  # (B, C - 1, H, W)
+    return torch.cat([through[:, -1:], hit], dim=1)
+
+
+def first_hit_classes(raw: torch.Tensor) -> torch.Tensor:
+    """Each column's most likely first-hit class among the occupied ones, ``argmax_{c >= 1}`` of
+    :func:`first_hit_log_probs` of the raw logits ``(B, C, D, H, W)``: ``(B, H, W)`` int64 in ``[1, C)``."""
+    return first_hit_log_probs(raw)[:, 1:].argmax(dim=1) + 1
+
+
+def first_hit_label(logits: torch.Tensor, raw: torch.Tensor | None, *, best: torch.Tensor | None = None
+                    ) -> torch.Tensor:
+    """Give each column's first occupied cell the class most likely to be the column's first hit.
+
+    The argmax of each cell alone decides where a column's first occupied cell is and what it holds; the own
+    camera sees the first hit of the whole column. A board thinner than a cell, which the truth keeps only where it
+    crosses a cell centre, is often spread by the decoder over several cells, none of them more likely occupied
+    than empty, so the argmax shows the wall behind it; together those cells can still make furniture the likeliest
+    first hit. This rule takes the class ``c >= 1`` that maximises ``P(first hit = c)`` of
+    :func:`first_hit_log_probs` on the raw logits (the distribution the ``first_hit`` loss trains) and raises its
+    logit in the first occupied cell of ``logits`` just above that cell's best, so that the argmax is that class.
+    Only that cell's class can change: the volume's occupancy, the cells behind it and every logit of a cell whose
+    class stays are untouched, and empty columns stay empty.
+
+    Args:
+        logits: ``(B, C, D, H, W)`` logits after the other rules (:func:`inference_rules`), any float dtype, grid
+            frame.
+        raw: ``(B, C, D, H, W)`` the network's logits before them (the same or another float dtype); None when
+            ``best`` is given.
+        best: ``(B, H, W)`` int64, :func:`first_hit_classes` of ``raw`` computed beforehand (a sweep over the other
+            rules needs it once).
+
+    Returns:
+        ``(B, C, D, H, W)`` logits, ``logits``' dtype.
+    """
+    labels = logits.argmax(dim=1)  # (B, D, H, W)
+    occupied = labels != 0
+    first = occupied.to(torch.uint8).argmax(dim=1, keepdim=True)  # the first occupied slice (0 where none)
+    if best is None:
+        best = first_hit_classes(raw)
+    # The first occupied cell, where its class is not already the column's likeliest first hit.
+    cell = torch.zeros_like(occupied).scatter_(1, first, occupied.any(dim=1, keepdim=True))
+    cell &= labels != best.unsqueeze(1)
+    mask = F.one_hot(best, logits.shape[1]).permute(0, 3, 1, 2).unsqueeze(2).bool() & cell.unsqueeze(1)
+    top = logits.amax(dim=1, keepdim=True)
+    # Just above the cell's best, by a margin wider than the dtype's spacing at that size (bfloat16 keeps 8 bits).
+    return torch.where(mask, top + (1.0 + 0.02 * top.abs()), logits)
 
 
 def inference_rules(logits: torch.Tensor, depth_logits: torch.Tensor | None, *, empty_offset: float,
