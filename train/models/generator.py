@@ -275,7 +275,7 @@ def first_hit_log_probs(logits: torch.Tensor, empty_offset: float = 0.0) -> torc
     independent: ``P(first hit = c) = sum_k P(cells 0..k-1 empty) P(cell k = c)`` and ``P(miss) = P(all empty)``.
 
     This is what the grid's own camera sees of the volume in expectation (a column is a pixel of the own view,
-    SPEC section 2), the own-view term of the shell-aware losses without their kernels. The training objective's
+    SPEC section 1), the own-view term of the shell-aware losses without their kernels. The training objective's
     ``first_hit`` term is its cross-entropy against the truth's first label; the ``first_hit_label`` inference rule
     takes its argmax over the occupied classes.
 
