@@ -21,6 +21,12 @@ Parts (``--parts``, default all):
   CUDA graphs); with ``--predictor``, also through fruxel's own
   :class:`~fruxel.train.predict.Predictor` (the compiled pass, and the pass with the shell and ray cast, each
   replayed as one CUDA graph); median of ``--repeat`` calls, synchronised.
+* ``rules``: batch 1, image -> logits of a trained model (``--checkpoint``, default the shipped one) on the bundled
+  photo, with no inference rule, with the empty-logit offset and ``fill_columns``, and with ``first_hit_label``
+  after them (the model file's own offset and threshold), in alternating rounds of ``--repeat`` calls each; medians,
+  and each setting's time as a ratio of the plain pass measured in the same rounds. Trained logits, not a preset's
+  random ones: the rules' reductions over the depth axis are much slower on random logits, whose cumulative sums
+  reach denormal floats.
 
 Run ``python benchmarks/bench_ssz.py --device cuda --out $OUT/ssz-h100`` on the H100 (writes ``PREFIX.json``);
 ``--render`` re-renders the "## SSZ" section of BENCHMARKS.md from every ``benchmarks/results/ssz*.json``.
@@ -385,8 +391,8 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--parts", nargs="+", default=["layers", "variants", "pointwise", "train", "latency"],
-                   choices=["layers", "variants", "pointwise", "train", "latency"])
+    p.add_argument("--parts", nargs="+", default=["layers", "variants", "pointwise", "train", "latency", "rules"],
+                   choices=["layers", "variants", "pointwise", "train", "latency", "rules"])
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
                    help="GROUP_WIDTH,CHANNELS_LAST,COMPILE,UPSAMPLE specs of the variants part")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
@@ -402,7 +408,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="latency part on CUDA: also fruxel's Predictor (compiled pass and pipeline replayed as CUDA "
                         "graphs) in these precisions (none given: bfloat16)")
     p.add_argument("--checkpoint", default=None,
-                   help="latency part, Predictor rows: also this model file (its own inference rules)")
+                   help="latency part, Predictor rows: also this model file (its own inference rules); rules "
+                        "part: the model (default: the shipped one)")
     p.add_argument("--model-override", default="{}",
                    help='latency part: JSON fields of the presets\' ModelConfig, e.g. \'{"fill_columns": true}\'')
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
@@ -444,11 +451,53 @@ def main(argv: list[str] | None = None) -> int:
         if args.frozen and device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True, model_override=mo)
                                   for pr in args.presets]
+    if "rules" in args.parts:
+        result["rules"] = bench_rules(device, args.repeat, args.checkpoint)
     out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     print(f"wrote {out}.json")
     return 0
+
+
+def bench_rules(device: Any, repeat: int, checkpoint: str | None = None) -> list[dict[str, Any]]:
+    """``rules`` part (module docstring): batch-1 image -> logits of a trained model under each set of inference
+    rules, in alternating rounds; medians and ratios to the plain pass."""
+    import torch
+
+    from fruxel.data import PHOTO
+    from fruxel.train.export import load_generator
+    from fruxel.train.predict import default_model, load_image, prepare_image, to_tensor
+
+    path = checkpoint or default_model()
+    gen, m, _ = load_generator(path, device)
+    x = to_tensor([prepare_image(load_image(PHOTO), m)], device)
+    both = f"offset {m.empty_offset:g} + fill_columns {m.fill_threshold:g}"
+    settings = {"none": (0.0, False, False), both: (m.empty_offset, True, False),
+                f"{both} + first_hit_label": (m.empty_offset, True, True)}
+    times: dict[str, list[float]] = {k: [] for k in settings}
+
+    def call() -> None:
+        with torch.no_grad():
+            gen(x)
+
+    for _ in range(3):
+        call()
+    for _ in range(repeat):
+        for name, (offset, fill, label) in settings.items():
+            gen.empty_offset, gen.fill_columns, gen.first_hit_label = offset, fill, label
+            _sync(device)
+            t = time.perf_counter()
+            call()
+            _sync(device)
+            times[name].append((time.perf_counter() - t) * 1000.0)
+    plain = statistics.median(times["none"])
+    rows = [{"model": Path(path).name, "rules": name, "logits_ms": statistics.median(times[name]),
+             "ratio": statistics.median(times[name]) / plain} for name in settings]
+    for r in rows:
+        print(f"rules {r['rules']}: image->logits {r['logits_ms']:.2f} ms ({r['ratio']:.2f} x the plain pass)",
+              flush=True)
+    return rows
 
 
 def _override(row: dict[str, Any]) -> str:
@@ -516,6 +565,11 @@ def render() -> None:
                       f"{x['compiled']}{', frozen' if x.get('frozen') else ''} | "
                       f"{_fmt(x['logits_ms'], 2)} | {_fmt(x['full_ms'], 2)} | "
                       f"{x.get('note', '')} |" for x in r["latency"]]
+            lines.append("")
+        if r.get("rules"):
+            lines += [f"Inference rules, batch 1, the bundled photo, `{r['rules'][0]['model']}` (alternating rounds, "
+                      "medians):", "", "| rules | image -> logits, ms | against no rule |", "| --- | ---: | ---: |"]
+            lines += [f"| {x['rules']} | {_fmt(x['logits_ms'], 2)} | {x['ratio']:.2f} x |" for x in r["rules"]]
             lines.append("")
     common.replace_section(common.BENCHMARKS_MD, SECTION, "\n".join(lines))
     print(f"rendered {SECTION} of {common.BENCHMARKS_MD}")
