@@ -133,14 +133,13 @@ class SSZObjective:
         target = labels.long()
         terms: dict[str, torch.Tensor] = {}
         total = logits.new_zeros(())
-        surface = None
         if c.ce:
             terms["ce"] = F.cross_entropy(logits, target, weight=self.weights)
             total = total + c.ce * terms["ce"]
         if c.iou:
             terms["iou"] = soft_iou_loss(torch.softmax(logits, dim=1), target)
             total = total + c.iou * terms["iou"]
-        if (c.depth and out.depth_logits is not None) or c.surface:
+        if (c.depth and out.depth_logits is not None) or c.surface or c.first_hit:
             depth_bin, surface = surface_targets(target)
             if c.depth and out.depth_logits is not None:
                 terms["depth"] = F.cross_entropy(out.depth_logits, depth_bin)
@@ -148,11 +147,9 @@ class SSZObjective:
             if c.surface:
                 terms["surface"] = F.cross_entropy(out.surface_logits, surface)
                 total = total + c.surface * terms["surface"]
-        if c.first_hit:
-            if surface is None:
-                _, surface = surface_targets(target)
-            terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), surface)
-            total = total + c.first_hit * terms["first_hit"]
+            if c.first_hit:
+                terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), surface)
+                total = total + c.first_hit * terms["first_hit"]
         if self.shell_loss is not None:
             terms["shell"] = self.shell_loss(logits, labels).total
             total = total + c.shell_weight * terms["shell"]

@@ -331,12 +331,10 @@ def first_hit_label(logits: torch.Tensor, raw: torch.Tensor | None, *, best: tor
     Returns:
         ``(B, C, D, H, W)`` logits, ``logits``' dtype.
     """
-    # A cell is occupied where its argmax is not empty (a tie goes to empty, as argmax takes the first). A running
-    # maximum over the few classes, rather than an argmax across the channel axis: 20 ms less at 64^3 on 2 cores.
-    top = logits[:, 1]
-    for c in range(2, logits.shape[1]):
-        top = torch.maximum(top, logits[:, c])
-    occupied = top > logits[:, 0]  # (B, D, H, W)
+    # A cell is occupied where its argmax is not empty (a tie goes to empty, as argmax takes the first), as in
+    # fill_columns; compared through the best occupied logit because an argmax across the channel axis takes
+    # 20 ms at 64^3 on 2 cores, the maximum well under 1 ms.
+    occupied = logits[:, 1:].amax(dim=1) > logits[:, 0]  # (B, D, H, W)
     first = occupied.to(torch.uint8).argmax(dim=1, keepdim=True)  # (B, 1, H, W): the first occupied slice (0: none)
     if best is None:
         best = first_hit_classes(raw)
