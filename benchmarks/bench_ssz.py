@@ -22,8 +22,9 @@ Parts (``--parts``, default all):
   :class:`~fruxel.train.predict.Predictor` (the compiled pass, and the pass with the shell and ray cast, each
   replayed as one CUDA graph); median of ``--repeat`` calls, synchronised.
 * ``rules``: batch 1, image -> logits of a trained model (``--checkpoint``, default the shipped one) on the bundled
-  photo, with no inference rule, with the empty-logit offset and ``fill_columns``, and with ``first_hit_label``
-  after them (the model file's own offset and threshold), in alternating rounds of ``--repeat`` calls each; medians,
+  photo, with no inference rule, with the empty-logit offset and ``fill_columns``, with ``first_hit_label`` after
+  them, and with ``flip_average`` before them all (the model file's own offset and threshold), in alternating rounds
+  of ``--repeat`` calls each; medians,
   and each setting's time as a ratio of the plain pass measured in the same rounds. Trained logits, not a preset's
   random ones: the rules' reductions over the depth axis are much slower on random logits, whose cumulative sums
   reach denormal floats.
@@ -473,8 +474,9 @@ def bench_rules(device: Any, repeat: int, checkpoint: str | None = None) -> list
     gen, m, _ = load_generator(path, device)
     x = to_tensor([prepare_image(load_image(PHOTO), m)], device)
     both = f"offset {m.empty_offset:g} + fill_columns {m.fill_threshold:g}"
-    settings = {"none": (0.0, False, False), both: (m.empty_offset, True, False),
-                f"{both} + first_hit_label": (m.empty_offset, True, True)}
+    settings = {"none": (0.0, False, False, False), both: (m.empty_offset, True, False, False),
+                f"{both} + first_hit_label": (m.empty_offset, True, True, False),
+                f"flip_average + {both} + first_hit_label": (m.empty_offset, True, True, True)}
     times: dict[str, list[float]] = {k: [] for k in settings}
 
     def call() -> None:
@@ -484,8 +486,8 @@ def bench_rules(device: Any, repeat: int, checkpoint: str | None = None) -> list
     for _ in range(3):
         call()
     for _ in range(repeat):
-        for name, (offset, fill, label) in settings.items():
-            gen.empty_offset, gen.fill_columns, gen.first_hit_label = offset, fill, label
+        for name, (offset, fill, label, flip) in settings.items():
+            gen.empty_offset, gen.fill_columns, gen.first_hit_label, gen.flip_average = offset, fill, label, flip
             _sync(device)
             t = time.perf_counter()
             call()

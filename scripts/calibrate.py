@@ -9,9 +9,11 @@ evaluated on; without ``--data``, the simulator's ``--split`` streamed with data
 calibration can draw rooms no training run drew) once, counts mIoU, completion IoU, own-view and novel-view
 first-hit accuracy (the novel views unless ``--no-novel``) at every ``--offsets`` value added to the empty logit
 (with ``--fill``: and ``fill_columns`` after it at every ``--thresholds`` value; with ``--first-hit-label``,
-``first_hit_label`` last in every pair), prints the table, picks the rules by
+``first_hit_label`` last in every pair; with ``--flip-average``, every prediction the average of the image's and
+its mirror image's), prints the table, picks the rules by
 :func:`fruxel.train.eval.calibrate.choose_rules` and writes the model with ``empty_offset`` (and ``fill_columns``,
-``fill_threshold``, ``first_hit_label``) set, the sweep recorded in its ``training`` metadata under ``calibration``.
+``fill_threshold``, ``first_hit_label``, ``flip_average``) set, the sweep recorded in its ``training`` metadata
+under ``calibration``.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --fill: fill_threshold values to try, in (0, 1]; the model's own is always added")
     p.add_argument("--first-hit-label", action="store_true",
                    help="set first_hit_label and calibrate with it (after the other rules, in every pair)")
+    p.add_argument("--flip-average", action="store_true",
+                   help="set flip_average and calibrate with it (the image and its mirror image averaged first)")
     p.add_argument("--no-novel", dest="novel", action="store_false",
                    help="leave the novel views out of the sweep and of the choice (faster)")
     p.add_argument("--backend", default=None, help="kernel backend of the novel views (default: the best available)")
@@ -97,6 +101,7 @@ def _main(args: argparse.Namespace) -> None:
                 yield image.permute(0, 3, 1, 2).float() / 255, labels
                 bar.update(len(labels))
 
+    generator.flip_average = bool(args.flip_average)
     generator.to(device)
     pairs = batches(data, config, args.split, count, args.batch, workers=args.workers)
     accs = sweep_rules(generator, images(pairs), offsets, thresholds, config.num_classes, fill=args.fill,
@@ -106,7 +111,7 @@ def _main(args: argparse.Namespace) -> None:
     offset, threshold = best = choose_rules(summaries, (0.0, config.fill_threshold))
     source = args.data or f"the simulator (data seed {data.seed})"
     print(f"{count} samples of {source} split {args.split}, fill_columns {args.fill}, "
-          f"first_hit_label {args.first_hit_label}")
+          f"first_hit_label {args.first_hit_label}, flip_average {args.flip_average}")
     print("| empty offset | fill threshold | mIoU | completion IoU | own view % | novel view % | sum |\n"
           "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r, s in summaries.items():
@@ -116,7 +121,8 @@ def _main(args: argparse.Namespace) -> None:
         print(f"| {r[0]:+.2f}{mark} | {t} | {s['miou']:.2f} | {s['completion_iou']:.2f} | "
               f"{s['own_view_accuracy']:.2f} | {novel} | {rules_score(s):.2f} |")
     calibrated = dataclasses.replace(config, empty_offset=offset, fill_columns=bool(args.fill),
-                                     fill_threshold=threshold, first_hit_label=bool(args.first_hit_label))
+                                     fill_threshold=threshold, first_hit_label=bool(args.first_hit_label),
+                                     flip_average=bool(args.flip_average))
     generator.empty_offset, generator.fill_columns, generator.fill_threshold = offset, bool(args.fill), threshold
     generator.first_hit_label = bool(args.first_hit_label)
     generator.cpu()
@@ -125,11 +131,13 @@ def _main(args: argparse.Namespace) -> None:
               if s[k] is not None} for r, s in summaries.items()}
     training = {**training, "calibration": {"data": args.data or f"stream:seed={data.seed}", "split": args.split,
                                             "samples": count, "fill_columns": bool(args.fill),
-                                            "first_hit_label": bool(args.first_hit_label), "empty_offset": offset,
+                                            "first_hit_label": bool(args.first_hit_label),
+                                            "flip_average": bool(args.flip_average), "empty_offset": offset,
                                             **({"fill_threshold": threshold} if args.fill else {}), "sweep": sweep}}
     save_shipped(args.out, generator, calibrated, training, half=True)
     print(f"wrote {args.out}: empty_offset {offset:g}, fill_columns {args.fill}"
-          + (f", fill_threshold {threshold:g}" if args.fill else "") + f", first_hit_label {args.first_hit_label}")
+          + (f", fill_threshold {threshold:g}" if args.fill else "") + f", first_hit_label {args.first_hit_label}"
+          + f", flip_average {args.flip_average}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -102,6 +102,11 @@ class ModelConfig:
     a thin board is spread over several cells, none of them alone more likely occupied than empty, the cells
     together can still make it the likeliest first hit. Training is unchanged; off here for the same reason as
     ``surface_fusion``."""
+    flip_average: bool = False
+    """At inference (eval mode), before the other rules: predict the image and its mirror image (left and right
+    swapped) as one batch and average the logits, the mirror's mirrored back (test-time augmentation; twice the
+    network's work). The grid's own camera is centred (SPEC section 1), so the mirror image is the mirrored room
+    seen through the mirrored grid. Training is unchanged; off here for the same reason as ``surface_fusion``."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 

@@ -90,7 +90,7 @@ def check_report(out: Path, accs: dict[str, Accumulator], samples: int, examples
         assert f"{miou:.1f}" in md.split("## Metrics")[1].splitlines()[4]
     assert report["command"] in md and "## IoU per class (%)" in md and "![examples](examples.png)" in md
     rules = report["model"]["inference_rules"]
-    assert set(rules) == {"fill_columns", "empty_offset", "fill_threshold", "first_hit_label"}
+    assert set(rules) == {"fill_columns", "empty_offset", "fill_threshold", "first_hit_label", "flip_average"}
     assert f"inference rules: {_rules_text(rules)}" in md
     sheet = np.asarray(Image.open(out / "examples.png").convert("RGB"))
     # Five 192-pixel tiles and the legend column per row, one row per example under two lines of text.

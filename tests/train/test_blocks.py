@@ -21,6 +21,7 @@ from fruxel.train.models.generator import (
     first_hit_classes,
     first_hit_label,
     first_hit_log_probs,
+    inference_rules,
 )
 
 
@@ -338,3 +339,42 @@ def test_generator_applies_first_hit_label_after_its_other_rules() -> None:
         assert not torch.equal(out.argmax(1), ruled.argmax(1))  # the random weights' first hits do change
         labelled.train(), bare.train()
         torch.testing.assert_close(labelled(image).logits, bare(image).logits)  # training sees no rule
+
+
+# ------------------------------------------------------------------------------------------------------ flip_average
+def _small_config(**kw: object) -> ModelConfig:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    return ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
+                       decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), **kw)
+
+
+def test_flip_average_averages_the_image_and_its_mirror_before_the_rules() -> None:
+    cfg = _small_config(surface_fusion=True, fill_columns=True, empty_offset=0.5, fill_threshold=0.9,
+                        first_hit_label=True)
+    torch.manual_seed(5)
+    ruled = build_generator(cfg)
+    flipped = build_generator(dataclasses.replace(cfg, flip_average=True))
+    bare = build_generator(dataclasses.replace(cfg, fill_columns=False, empty_offset=0.0, first_hit_label=False))
+    for g in (flipped, bare):
+        g.load_state_dict(ruled.state_dict())
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        ruled.eval(), flipped.eval(), bare.eval()
+        a, m = bare(image), bare(image.flip(-1))
+        # The mirror's outputs mirrored back along W (the last axis), then averaged.
+        raw = (a.logits + m.logits.flip(-1)) / 2
+        depth = (a.depth_logits + m.depth_logits.flip(-1)) / 2
+        out = flipped(image)
+        torch.testing.assert_close(out.depth_logits, depth)
+        torch.testing.assert_close(out.surface_logits, (a.surface_logits + m.surface_logits.flip(-1)) / 2)
+        want = first_hit_label(inference_rules(raw, depth, empty_offset=0.5, fill=True, fill_threshold=0.9), raw)
+        torch.testing.assert_close(out.logits, want)
+        assert not torch.allclose(out.logits, ruled(image).logits, atol=1e-3)  # the mirror does change the answer
+        # The average is mirror-symmetric: the mirror image's prediction is the prediction mirrored.
+        torch.testing.assert_close(flipped(image.flip(-1)).logits, out.logits.flip(-1))
+        # One batch of both images (the GPU's way) gives what two passes (the CPU's) give.
+        for x, y in zip(*(flipped._mirror_passes(image, batched=b) for b in (True, False)), strict=True):
+            for u, v in zip(x, y, strict=True):
+                torch.testing.assert_close(u, v)
+        flipped.train(), ruled.train()
+        torch.testing.assert_close(flipped(image).logits, ruled(image).logits)  # training sees one pass

@@ -148,6 +148,15 @@ def test_calibrate_script_writes_the_chosen_offset(tmp_path: Path, capsys: pytes
     assert written.first_hit_label and written.fill_columns
     cal = training["calibration"]
     assert cal["first_hit_label"] and cal["data"] == "stream:seed=3" and cal["samples"] == 2
+    assert not written.flip_average and not cal["flip_average"]
+    # With flip_average: the sweep is of the mirrored average (other numbers than without), and the model keeps it.
+    assert main([str(model), "--seed", "3", "--samples", "2", "--offsets", "0.5", "--fill", "--thresholds", "0.9",
+                 "--first-hit-label", "--flip-average", "--no-novel", "--batch", "2",
+                 "--out", str(tmp_path / "flip.safetensors")]) == 0
+    assert "flip_average True" in capsys.readouterr().out
+    _, flipped, flip_training = read_weights(tmp_path / "flip.safetensors")
+    assert flipped.flip_average and flip_training["calibration"]["flip_average"]
+    assert flip_training["calibration"]["sweep"] != cal["sweep"]
     assert main([str(model), "--data", str(data), "--seed", "3", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "--seed picks streamed samples" in err and len(err.strip().splitlines()) == 1

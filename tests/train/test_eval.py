@@ -271,3 +271,5 @@ def test_report_names_the_inference_rules() -> None:
     assert (_rules_text({"fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8, "first_hit_label": True})
             == "empty logit +1, fill_columns (threshold 0.8), first_hit_label")
     assert _rules_text({"fill_columns": False, "empty_offset": 0.0, "first_hit_label": False}) == "none (plain argmax)"
+    assert (_rules_text({"flip_average": True, "fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8})
+            == "flip_average, empty logit +1, fill_columns (threshold 0.8)")

@@ -32,7 +32,8 @@ def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tens
 
     Args:
         generator: an :class:`~fruxel.train.models.generator.SSZGenerator`; its own inference rules are switched
-            off for the sweep and restored after it.
+            off for the sweep and restored after it, all but ``flip_average``, which the rules swept act on (the
+            averaged logits are what they shift).
         batches: ``(images (B, 3, h, w) float in [0, 1], labels (B, D, H, W) integer)`` pairs.
         offsets: the offsets to try, added to every cell's empty logit (channel 0).
         thresholds: the ``fill_threshold`` values to try with each offset, in (0, 1] (ignored without ``fill``).

@@ -64,7 +64,7 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         classes: the class table of the labels.
         model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary),
             optionally ``inference_rules`` (``{"fill_columns": bool, "empty_offset": float, "fill_threshold":
-            float, "first_hit_label": bool}``).
+            float, "first_hit_label": bool, "flip_average": bool}``).
         data: the samples: ``source`` (in words), ``split``, ``samples``, and anything else worth keeping.
         prior: how the per-cell prior was made (``split``, ``samples``), None when it was not.
         machine: where it ran (CPU, GPU, versions, device, kernel backend).
@@ -122,9 +122,11 @@ def _plain(d: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
 
 
 def _rules_text(rules: Mapping[str, Any]) -> str:
-    """The model's inference rules (``ModelConfig.fill_columns``, ``empty_offset``, ``fill_threshold``,
-    ``first_hit_label``) in words."""
-    parts = [f"empty logit {rules['empty_offset']:+g}"] if rules.get("empty_offset") else []
+    """The model's inference rules (``ModelConfig.flip_average``, ``fill_columns``, ``empty_offset``,
+    ``fill_threshold``, ``first_hit_label``) in words."""
+    parts = ["flip_average"] if rules.get("flip_average") else []
+    if rules.get("empty_offset"):
+        parts.append(f"empty logit {rules['empty_offset']:+g}")
     if rules.get("fill_columns"):
         t = rules.get("fill_threshold")
         parts.append("fill_columns" + (f" (threshold {t:g})" if t is not None else ""))
