@@ -4,7 +4,8 @@
 
 For each sample of a data set made by ``fruxel-sim generate``, the room is rebuilt from the data set's seed and each
 grid column's centre ray is cast against its labelled meshes (what the camera sees); the truth's own-view pixels
-are then split into clean / aliased / near / far, and the model's own-view accuracy is counted in each. Also
+are then split into clean / aliased / near / far (and the clean ones by the depth of their first solid along the
+ray: under one slice or not), and the model's own-view accuracy is counted in each. Also
 prints the share of errors in near-uniform images (pixel standard deviation below ``--uniform``, in 0-255 units:
 the camera close to a plain surface). Runs on the CPU.
 """
@@ -40,7 +41,13 @@ def _main(args: argparse.Namespace) -> None:
 
     from fruxel.io import atomic_write
     from fruxel.train.eval.metrics import first_surface
-    from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, visible_surface
+    from fruxel.train.eval.own_view import (
+        CATEGORIES,
+        JoinedMeshes,
+        OwnViewBreakdown,
+        surface_extent,
+        visible_surface,
+    )
     from fruxel.train.eval.samples import EvalData, batches, data_set_manifest, split_size
     from fruxel.train.export import load_generator
     from fruxel.train.sim.sample import SampleMaker
@@ -67,9 +74,10 @@ def _main(args: argparse.Namespace) -> None:
                     if scene is not room:  # consecutive samples share a room (held here: an id could be reused)
                         room, meshes = scene, JoinedMeshes(scene.labelled_meshes())
                     seen = visible_surface(meshes, grid, pose)
-                    total.add(pred[b], truth[b], *seen, grid)
+                    extent = surface_extent(meshes, grid, pose, seen[1])
+                    total.add(pred[b], truth[b], *seen, grid, extent)
                     if spread[b] < args.uniform:
-                        uniform.add(pred[b], truth[b], *seen, grid)
+                        uniform.add(pred[b], truth[b], *seen, grid, extent)
                         n_uniform += 1
                     index += 1
                 bar.update(len(labels))
@@ -81,10 +89,11 @@ def _main(args: argparse.Namespace) -> None:
     print(f"{count} samples of {args.data} split {args.split}: own-view accuracy {s['accuracy']:.2f} % over "
           f"{s['pixels']} pixels where the truth hits")
     print("| pixels | share % | model accuracy % | points lost |\n| --- | ---: | ---: | ---: |")
-    for name in CATEGORIES:
+    for name in (*CATEGORIES[:1], "clean_thin", "clean_thick", *CATEGORIES[1:]):
         c = s[name]
         acc = "n/a" if c["accuracy"] is None else f"{c['accuracy']:.2f}"
-        print(f"| {name} | {c['share']:.2f} | {acc} | {c['lost']:.2f} |")
+        label = {"clean_thin": "clean, first solid under a slice deep", "clean_thick": "clean, deeper"}.get(name, name)
+        print(f"| {label} | {c['share']:.2f} | {acc} | {c['lost']:.2f} |")
     u_lost = (100.0 - u["accuracy"]) * u["pixels"] / s["pixels"] if u["pixels"] else 0.0
     print(f"near-uniform images (pixel std < {args.uniform:g}): {n_uniform} of {count} samples, "
           f"{100.0 * u['pixels'] / s['pixels']:.2f} % of the pixels, {u_lost:.2f} of the {lost:.2f} points lost")

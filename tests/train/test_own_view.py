@@ -9,7 +9,7 @@ import torch
 from fruxel.grid import FruxelGrid
 from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.eval.metrics import first_surface
-from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, visible_surface
+from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, surface_extent, visible_surface
 from fruxel.train.sim.scene import boxes
 
 GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
@@ -68,6 +68,36 @@ def test_visible_surface_and_the_breakdown_of_a_constructed_scene() -> None:
     assert r["aliased"]["lost"] + r["near"]["lost"] == pytest.approx(100.0 - r["accuracy"])
 
 
+def test_surface_extent_splits_the_clean_pixels_by_depth_along_the_ray() -> None:
+    # A 3 cm board around a slice's centre plane in front of the left part (the truth keeps it: clean, but thin),
+    # and the 0.5 m wall behind.
+    plane = GRID.z_near + 4.5 * GRID.dz
+    wall = boxes([[-20, -20, 5.0]], [[20, 20, 5.5]])
+    board = boxes([[-20, -20, plane - 0.015]], [[-0.5, 20, plane + 0.015]])
+    meshes = [(*wall, WALL), (*board, BOARD)]
+    pose = np.eye(4)
+    joined = JoinedMeshes(meshes)
+    labels, depth = visible_surface(joined, GRID, pose)
+    extent = surface_extent(joined, GRID, pose, depth)
+    truth = first_surface(torch.from_numpy(fruxelize(meshes, GRID, pose))[None].long())[0].numpy()
+    on_board, on_wall = labels == BOARD, labels == WALL
+    assert on_board.sum() > 20 and on_wall.sum() > 20 and (truth[on_board] == BOARD).all()
+    np.testing.assert_allclose(extent[on_board], 0.03, atol=1e-6)
+    np.testing.assert_allclose(extent[on_wall], 0.5, atol=1e-6)
+    assert np.isinf(surface_extent(joined, GRID, pose, np.full_like(depth, np.inf))).all()
+    # A prediction wrong on the board alone loses exactly the thin clean pixels.
+    b = OwnViewBreakdown()
+    b.add(np.where(on_board, WALL, truth), truth, labels, depth, GRID, extent)
+    s = b.summary()
+    assert s["clean"]["share"] == 100.0
+    assert s["clean_thin"]["share"] == pytest.approx(100.0 * on_board.sum() / (truth != 0).sum())
+    assert s["clean_thin"]["accuracy"] == 0.0 and s["clean_thick"]["accuracy"] == 100.0
+    assert s["clean_thin"]["lost"] + s["clean_thick"]["lost"] == pytest.approx(s["clean"]["lost"])
+    plain = OwnViewBreakdown()
+    plain.add(truth, truth, labels, depth, GRID)  # without extents: no split
+    assert "clean_thin" not in plain.summary()
+
+
 def test_empty_breakdown_has_no_numbers() -> None:
     s = OwnViewBreakdown().summary()
     assert s["pixels"] == 0 and s["accuracy"] is None and s["clean"]["accuracy"] is None
@@ -103,6 +133,8 @@ def test_own_view_errors_script(tmp_path, capsys: pytest.CaptureFixture[str]) ->
     report = json.loads(out.read_text())
     assert report["samples"] == 3 and report["pixels"] > 0 and "| clean |" in printed
     assert sum(report[c]["share"] for c in CATEGORIES) == pytest.approx(100.0)
+    assert report["clean_thin"]["share"] + report["clean_thick"]["share"] == pytest.approx(report["clean"]["share"])
+    assert "| clean, first solid under a slice deep |" in printed
     # --uniform 1000: every image counts as near-uniform, so that part is the whole.
     assert report["uniform"]["samples"] == 3 and report["uniform"]["pixels"] == report["pixels"]
     assert report["uniform"]["points_lost"] == pytest.approx(100.0 - report["accuracy"])

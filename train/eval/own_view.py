@@ -15,7 +15,9 @@ pixels into
 * ``far``: the first surface seen lies beyond ``z_far``, or nothing is hit (the truth still hits: a rare grazing
   case),
 
-and counts a prediction's own-view accuracy in each (``scripts/own_view_errors.py``).
+and counts a prediction's own-view accuracy in each (``scripts/own_view_errors.py``). :func:`surface_extent` splits
+the clean pixels further by how deep the first solid is along the ray: under a slice, whether the truth keeps it
+depends on where within the slice it lies.
 """
 
 from __future__ import annotations
@@ -75,12 +77,57 @@ def visible_surface(meshes: JoinedMeshes | Sequence[tuple[np.ndarray, np.ndarray
     pose = np.asarray(pose, dtype=np.float64)
     origins = np.repeat(pose[None, :3, 3], len(d), axis=0)
     dirs = d @ pose[:3, :3].T
-    tri, ray, loc = joined.mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    tri, ray, loc = _first_crossing(joined, origins, dirs)
     labels = np.zeros(len(d), dtype=np.int64)
     depth = np.full(len(d), np.inf)
     labels[ray] = joined.face_label[tri]
     depth[ray] = (loc - origins[ray]) @ pose[:3, 2]
     return labels.reshape(h, w), depth.reshape(h, w)
+
+
+def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """How deep, along each column's centre ray, the solid behind the first surface of :func:`visible_surface`
+    reaches: the depth of the next surface the ray crosses (the solid's back face, for the closed, separate solids
+    of a simulated room) minus the first surface's.
+
+    A solid thinner than a slice (``grid.dz``) along the ray holds a cell centre or not depending on where, within
+    a slice, it lies: whether the truth keeps it is a matter of centimetres that the image barely shows.
+
+    Args:
+        meshes: the scene's :class:`JoinedMeshes`.
+        grid: the grid.
+        pose: ``(4, 4)`` grid-camera-to-world transform, OpenCV axes.
+        depth: ``(H, W)`` float64 first-surface depths of :func:`visible_surface` (``inf``: nothing hit).
+
+    Returns:
+        ``(H, W)`` float64 extent along the camera's z axis in metres; ``inf`` where nothing is hit, or where the
+        ray finds no surface behind the first one.
+    """
+    h, w = grid.height, grid.width
+    j, i = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    d = grid.cell_to_point(np.zeros_like(j), j, i).reshape(-1, 3)
+    d = d / d[:, 2:3]  # z = 1: the ray parameter is the depth
+    pose = np.asarray(pose, dtype=np.float64)
+    start = np.asarray(depth, dtype=np.float64).reshape(-1)
+    hit = np.isfinite(start)
+    extent = np.full(h * w, np.inf)
+    if not hit.any():
+        return extent.reshape(h, w)
+    # From just behind the first surface: the ray is inside the solid, and its first crossing is the way out.
+    eps = 1e-4
+    dirs = d[hit] @ pose[:3, :3].T
+    origins = pose[None, :3, 3] + dirs * (start[hit, None] + eps)
+    _, ray, loc = _first_crossing(meshes, origins, dirs)
+    rows = np.flatnonzero(hit)[ray]
+    extent[rows] = (loc - origins[ray]) @ pose[:3, 2] + eps
+    return extent.reshape(h, w)
+
+
+def _first_crossing(meshes: JoinedMeshes, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                      np.ndarray]:
+    """The first crossing of each ray with the joined mesh: ``(face (K,), ray (K,), location (K, 3))`` for the K
+    rays that cross it (trimesh's ``intersects_id`` without multiple hits)."""
+    return meshes.mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
 
 
 @dataclass
@@ -91,9 +138,16 @@ class OwnViewBreakdown:
     """Pixels per category."""
     correct: np.ndarray = field(default_factory=lambda: np.zeros(len(CATEGORIES), dtype=np.int64))
     """... of which the prediction's first hit has the truth's label."""
+    thin_hits: int = 0
+    """``clean`` pixels whose first solid is thinner than a slice along the ray (counted when
+    :meth:`add` gets ``seen_extent``)."""
+    thin_correct: int = 0
+    """... of which the prediction's first hit has the truth's label."""
+    extents: int = 0
+    """Views counted with ``seen_extent``."""
 
     def add(self, pred: np.ndarray, truth: np.ndarray, seen_label: np.ndarray, seen_depth: np.ndarray,
-            grid: FruxelGrid) -> None:
+            grid: FruxelGrid, seen_extent: np.ndarray | None = None) -> None:
         """Count one view.
 
         Args:
@@ -101,6 +155,8 @@ class OwnViewBreakdown:
                 :func:`fruxel.train.eval.metrics.first_surface` of the prediction and of the truth.
             seen_label, seen_depth: :func:`visible_surface` of the same view.
             grid: the grid.
+            seen_extent: ``(H, W)`` :func:`surface_extent` of the same view, to split the clean pixels into thin
+                (first solid under ``grid.dz`` deep along the ray) and the rest; None: not split.
         """
         hit = truth != 0
         in_range = (seen_depth >= grid.z_near) & (seen_depth <= grid.z_far)
@@ -110,16 +166,29 @@ class OwnViewBreakdown:
         for c, m in enumerate(kinds):
             self.hits[c] += int((hit & m).sum())
             self.correct[c] += int((hit & m & ok).sum())
+        if seen_extent is not None:
+            thin = hit & kinds[0] & (seen_extent < grid.dz)
+            self.thin_hits += int(thin.sum())
+            self.thin_correct += int((thin & ok).sum())
+            self.extents += 1
 
     def summary(self) -> dict[str, Any]:
         """Per category: its share of the truth's own-view pixels and the prediction's accuracy there (percent,
         None for an empty category); ``accuracy``: over all of them; ``lost``: points of that accuracy lost in each
-        category."""
+        category. With extents counted, ``clean_thin`` and ``clean_thick`` split the clean pixels the same way."""
         total = int(self.hits.sum())
+
+        def part(n: int, k: int) -> dict[str, float | None]:
+            return {"share": 100.0 * n / total if total else None, "accuracy": 100.0 * k / n if n else None,
+                    "lost": 100.0 * (n - k) / total if total else None}
+
         out: dict[str, Any] = {"pixels": total,
                                "accuracy": 100.0 * int(self.correct.sum()) / total if total else None}
         for c, name in enumerate(CATEGORIES):
             n, k = int(self.hits[c]), int(self.correct[c])
-            out[name] = {"share": 100.0 * n / total if total else None, "accuracy": 100.0 * k / n if n else None,
-                         "lost": 100.0 * (n - k) / total if total else None}
+            out[name] = part(n, k)
+        if self.extents:
+            n, k = int(self.hits[0]), int(self.correct[0])
+            out["clean_thin"] = part(self.thin_hits, self.thin_correct)
+            out["clean_thick"] = part(n - self.thin_hits, k - self.thin_correct)
         return out
