@@ -77,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RobotDemoConfig, "checkpoint", metavar="FILE")
     config_option(p, RobotDemoConfig, "threads", type=positive_int, metavar="N")
     config_option(p, RobotDemoConfig, "compile")
+    config_option(p, RobotDemoConfig, "flip_average")
     p.add_argument("--out", type=Path, default=None, metavar="FILE",
                    help=f"write the video here (.mp4 or .gif) instead of showing the viewer (default without a "
                    f"display: {DEFAULT_OUT})")
