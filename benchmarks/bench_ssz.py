@@ -353,7 +353,8 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
     if checkpoint:
         gen, m, _ = load_generator(checkpoint)
         m = dataclasses.replace(m, **(model_override or {}))
-        for name in ("fill_columns", "empty_offset", "fill_threshold"):  # the rules are the module's attributes
+        # The rules are the module's attributes, read at every call.
+        for name in ("fill_columns", "empty_offset", "fill_threshold", "first_hit_label", "flip_average"):
             setattr(gen, name, getattr(m, name))
     else:
         m = dataclasses.replace(get_preset(preset).model, **(model_override or {}))
