@@ -20,8 +20,8 @@ from fruxel.train.predict import default_model, load_image, load_predictor, prep
 
 ROOT = Path(__file__).resolve().parents[2]
 
-OWN_VIEW_FLOOR = 95.7
-"""Own-view first-hit accuracy (percent) the shipped model must reach on the bundled photo. Measured: 98.7 % (CPU,
+OWN_VIEW_FLOOR = 95.5
+"""Own-view first-hit accuracy (percent) the shipped model must reach on the bundled photo. Measured: 98.5 % (CPU,
 torch 2.x, float32); the floor is three points below it, so that rounding on another machine cannot fail the test
 while a broken model, a wrong input mapping or a truth out of step with the photo does."""
 
