@@ -26,6 +26,10 @@ cell's empty logit (a decision threshold chosen after training); with the second
 that the volume leaves empty but whose depth head says it has a surface gets one surface cell, where the volume
 finds a surface most likely.
 
+``flip_average``, also eval mode only and before those, predicts the image and its mirror image and averages the
+two answers, the mirror's mirrored back along W (the grid's own camera is centred, SPEC section 1); ``first_hit_label``
+(:func:`first_hit_label`) comes after them.
+
 With ``surface_fusion`` the heads also speak in the output directly: :class:`~.blocks.SurfaceFusion` adds to
 every cell's logits a learnt mix of the log-probabilities that the column's surface lies behind, in front of or
 in this cell with each class; the own view's first hit is then the heads' answer wherever the decoder is unsure.
