@@ -43,7 +43,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     from fruxel.train.live import RobotDemo, RobotDemoConfig, summarise
 
     config = RobotDemoConfig(frames=args.frames, scene=args.scene, size=args.size, backend=args.backend,
-                             device=args.device, threads=args.threads, shell=args.shell, compile=args.compile)
+                             device=args.device, threads=args.threads, shell=args.shell, compile=args.compile,
+                             flip_average=not args.no_flip_average)
     machine = common.machine_info(["torch", "warp-lang", "pyopencl", "pyrender"])
     demo = RobotDemo(config)
     frames, pictures = [], []
@@ -66,6 +67,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "load_average_after": common.load_average(),
         "device": str(demo.predictor.device),
         "compiled": demo.predictor.compiled,
+        "flip_average": demo.predictor.generator.flip_average,
         "torch_threads": torch.get_num_threads(),
         "kernels": registry.describe(config.backend, config.device, probe),
         "opengl": gl_renderer_name(),
@@ -87,7 +89,8 @@ def markdown(results: list[dict[str, Any]]) -> str:
         "the logits, greedy mesh, pyrender draw of the chase view, the composed three-panel picture); the "
         "simulator's rendering of the camera image (a stand-in for a real camera) and the ground truth are not "
         "timed. Mean over the frames after the first; milliseconds per stage; *threads* are torch's CPU threads "
-        "for SSZ. On the shared 2-core machine another process kept about one core busy during these runs (load "
+        "for SSZ; *mirror-averaged*: the model's `flip_average` rule on (two SSZ passes a frame). On the shared "
+        "2-core machine another process kept about one core busy during these runs (load "
         "average about 4): torch's two threads then wait for each other at every operation, and one thread ran 10 "
         "to 20 times faster; fruxel-robot therefore gives SSZ half the cores by default (`--threads`).", "",
         "| machine | SSZ device | threads | kernels | OpenGL | grid | frames | FPS | ms a frame (median, p90) | "
@@ -102,6 +105,7 @@ def markdown(results: list[dict[str, Any]]) -> str:
         verdict = "" if target is None else f">= {target:g} FPS: {'met' if s['fps_mean'] >= target else 'missed'}"
         st = s["stages_ms"]
         compiled = " (compiled)" if r.get("compiled") else ""
+        compiled += ", mirror-averaged" if r.get("flip_average") else ""
         who = f"{m['cpu']}, {m['cores']} cores" + (f", {m['gpu']}" if m.get("gpu") else "") + f" ({m['date']})"
         lines.append(
             f"| {who} | {r['device']}{compiled} | {r['torch_threads']} | {r.get('kernels', '')} | "
@@ -125,6 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backend", choices=("warp", "opencl"), default=None, help="kernel backend (default: best)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: half the cores)")
     p.add_argument("--compile", action="store_true", help="compile SSZ first (fruxel-robot --compile; CUDA only)")
+    p.add_argument("--no-flip-average", action="store_true",
+                   help="SSZ once a frame even where the model averages each image with its mirror image "
+                   "(fruxel-robot --no-flip-average)")
     p.add_argument("--tag", default="cpu", help="name of the result (results/robot-TAG.json)")
     p.add_argument("--out", type=Path, default=None, help="results JSON (default benchmarks/results/robot-TAG.json)")
     p.add_argument("--video", type=Path, default=None, help="also write the frames to this .mp4 or .gif")
