@@ -346,6 +346,7 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
     from fruxel import kernels
     from fruxel.camera import Camera, orbit_direction
     from fruxel.render.raycast import shade
+    from fruxel.train.config import INFERENCE_RULES
     from fruxel.train.config import preset as get_preset
     from fruxel.train.export import build_generator, load_generator
     from fruxel.train.predict import Predictor
@@ -353,8 +354,7 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
     if checkpoint:
         gen, m, _ = load_generator(checkpoint)
         m = dataclasses.replace(m, **(model_override or {}))
-        # The rules are the module's attributes, read at every call.
-        for name in ("fill_columns", "empty_offset", "fill_threshold", "first_hit_label", "flip_average"):
+        for name in INFERENCE_RULES:
             setattr(gen, name, getattr(m, name))
     else:
         m = dataclasses.replace(get_preset(preset).model, **(model_override or {}))

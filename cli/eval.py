@@ -137,6 +137,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     from fruxel.kernels.registry import describe
     from fruxel.render.table1 import machine_info
+    from fruxel.train.config import INFERENCE_RULES
     from fruxel.train.engine.data import to_device
     from fruxel.train.eval.baselines import CellPrior, oracle_prediction, prior_prediction
     from fruxel.train.eval.evaluate import evaluate_predictions, generator_predict
@@ -201,9 +202,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     report = build_report(
         accs, classes,
         model={"file": str(path), "grid": grid.to_dict(), "image_size": list(mc.image_size), "training": training,
-               "inference_rules": {"fill_columns": mc.fill_columns, "empty_offset": mc.empty_offset,
-                                   "fill_threshold": mc.fill_threshold, "first_hit_label": mc.first_hit_label,
-                                   "flip_average": mc.flip_average}},
+               "inference_rules": {name: getattr(mc, name) for name in INFERENCE_RULES}},
         data={"source": data.describe(), "kind": data.source, "root": data.root or None, "seed": data.seed,
               "augment": data.augment if data.source == "stream" else None, "split": args.split, "samples": count,
               "indices": f"indices 0..{count - 1}"},

@@ -123,8 +123,6 @@ def _main(args: argparse.Namespace) -> None:
     calibrated = dataclasses.replace(config, empty_offset=offset, fill_columns=bool(args.fill),
                                      fill_threshold=threshold, first_hit_label=bool(args.first_hit_label),
                                      flip_average=bool(args.flip_average))
-    generator.empty_offset, generator.fill_columns, generator.fill_threshold = offset, bool(args.fill), threshold
-    generator.first_hit_label = bool(args.first_hit_label)
     generator.cpu()
     sweep = {(f"{r[0]:g}/{r[1]:g}" if args.fill else f"{r[0]:g}"):
              {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy", "novel_view_accuracy")

@@ -104,9 +104,10 @@ class ModelConfig:
     ``surface_fusion``."""
     flip_average: bool = False
     """At inference (eval mode), before the other rules: predict the image and its mirror image (left and right
-    swapped) as one batch and average the logits, the mirror's mirrored back (test-time augmentation; twice the
-    network's work). The grid's own camera is centred (SPEC section 1), so the mirror image is the mirrored room
-    seen through the mirrored grid. Training is unchanged; off here for the same reason as ``surface_fusion``."""
+    swapped; one batch on a GPU, two passes on the CPU) and average the logits, the mirror's mirrored back
+    (test-time augmentation; twice the network's work). The grid's own camera is centred (SPEC section 1), so the
+    mirror image is the mirrored room seen through the mirrored grid. Training is unchanged; off here for the same
+    reason as ``surface_fusion``."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -162,7 +163,13 @@ class ModelConfig:
             raise ConfigError(f"{path}: image width {w} (grid width x 2^image_scale) must be in [16, 1024]")
 
 
+INFERENCE_RULES = ("flip_average", "empty_offset", "fill_columns", "fill_threshold", "first_hit_label")
+"""The :class:`ModelConfig` fields that are SSZ's eval-mode inference rules: attributes of the same names on the
+generator, read at every call, so a loaded model's rules can be changed in place."""
+
+
 # ---------------------------------------------------------------------------------------------------- losses
+
 @dataclass(frozen=True)
 class LossConfig:
     """Terms of the generator's objective and their weights; every term is a mean, so weights compare."""

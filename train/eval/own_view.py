@@ -70,19 +70,15 @@ def visible_surface(meshes: JoinedMeshes | Sequence[tuple[np.ndarray, np.ndarray
         hits nothing.
     """
     joined = meshes if isinstance(meshes, JoinedMeshes) else JoinedMeshes(meshes)
-    h, w = grid.height, grid.width
-    j, i = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    d = grid.cell_to_point(np.zeros_like(j), j, i).reshape(-1, 3)
-    d = d / d[:, 2:3]  # z = 1: the ray parameter is the depth
     pose = np.asarray(pose, dtype=np.float64)
-    origins = np.repeat(pose[None, :3, 3], len(d), axis=0)
-    dirs = d @ pose[:3, :3].T
+    dirs = _centre_rays(grid, pose)
+    origins = np.repeat(pose[None, :3, 3], len(dirs), axis=0)
     tri, ray, loc = _first_crossing(joined, origins, dirs)
-    labels = np.zeros(len(d), dtype=np.int64)
-    depth = np.full(len(d), np.inf)
+    labels = np.zeros(len(dirs), dtype=np.int64)
+    depth = np.full(len(dirs), np.inf)
     labels[ray] = joined.face_label[tri]
     depth[ray] = (loc - origins[ray]) @ pose[:3, 2]
-    return labels.reshape(h, w), depth.reshape(h, w)
+    return labels.reshape(grid.height, grid.width), depth.reshape(grid.height, grid.width)
 
 
 def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -104,9 +100,6 @@ def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, dep
         ray finds no surface behind the first one.
     """
     h, w = grid.height, grid.width
-    j, i = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    d = grid.cell_to_point(np.zeros_like(j), j, i).reshape(-1, 3)
-    d = d / d[:, 2:3]  # z = 1: the ray parameter is the depth
     pose = np.asarray(pose, dtype=np.float64)
     start = np.asarray(depth, dtype=np.float64).reshape(-1)
     hit = np.isfinite(start)
@@ -115,12 +108,20 @@ def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, dep
         return extent.reshape(h, w)
     # From just behind the first surface: the ray is inside the solid, and its first crossing is the way out.
     eps = 1e-4
-    dirs = d[hit] @ pose[:3, :3].T
+    dirs = _centre_rays(grid, pose)[hit]
     origins = pose[None, :3, 3] + dirs * (start[hit, None] + eps)
     _, ray, loc = _first_crossing(meshes, origins, dirs)
     rows = np.flatnonzero(hit)[ray]
     extent[rows] = (loc - origins[ray]) @ pose[:3, 2] + eps
     return extent.reshape(h, w)
+
+
+def _centre_rays(grid: FruxelGrid, pose: np.ndarray) -> np.ndarray:
+    """``(H * W, 3)`` float64 world-frame directions of the columns' centre rays, row-major, scaled to z = 1 in
+    the camera frame (so that a ray parameter is a depth)."""
+    j, i = np.meshgrid(np.arange(grid.height), np.arange(grid.width), indexing="ij")
+    d = grid.cell_to_point(np.zeros_like(j), j, i).reshape(-1, 3)
+    return (d / d[:, 2:3]) @ pose[:3, :3].T
 
 
 def _first_crossing(meshes: JoinedMeshes, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray,

@@ -268,9 +268,9 @@ class SSZGenerator(nn.Module):
 
     def _mirror_passes(self, image: torch.Tensor, *, batched: bool) -> tuple[tuple, tuple]:
         """:meth:`_predict` of the image and of its mirror image (W reversed): as one batch, or (``batched``
-        False) one after the other. On 2 CPU cores one batch of two took 3.0 times a single image's pass
-        (cache-bound), two passes 1.9 times (benchmarks/bench_ssz.py --parts rules); on a GPU one batch is the
-        cheaper."""
+        False) one after the other. On 2 CPU cores, image -> logits with the rules took 3.0 times the plain pass
+        as one batch of two (cache-bound) and 2.0 times as two passes (benchmarks/bench_ssz.py --parts rules); on a
+        GPU one batch is the cheaper."""
         if not batched:
             return self._predict(image), self._predict(image.flip(-1))
         b = image.shape[0]
