@@ -53,6 +53,12 @@ class ModelConfig:
     """Channels of a branch that works at the image's full resolution before the stem's stride-2 convolution and
     adds its result to the stem's output (0 = none; needs ``image_scale >= 1``). It starts as a zero term, so a
     model fine-tuned (``run.init``) from weights without it starts as that model."""
+    detail_branch: int = 0
+    """Channels of a branch that reads the image at twice the resolution ``image_scale`` gives (0 = none): the
+    input image is then ``2^(k+1)`` times the grid, the stem sees it averaged over 2 x 2 pixels, and the branch
+    (two stride-2 convolutions around an inverted residual block) adds what only the finer image holds to the
+    stem's output: where a board thinner than a cell lies against the column's centre ray. It starts as a zero
+    term, so a model fine-tuned (``run.init``) from weights without it starts as that model on the pooled image."""
     encoder: tuple[int, ...] = (32, 48, 96, 160, 224)
     """Channels of the 2D encoder per level."""
     encoder_blocks: tuple[int, ...] = (2, 2, 3, 3, 2)
@@ -114,7 +120,8 @@ class ModelConfig:
     @property
     def image_size(self) -> tuple[int, int]:
         """``(height, width)`` of the input image in pixels."""
-        return self.grid.height << self.image_scale, self.grid.width << self.image_scale
+        k = self.image_scale + (1 if self.detail_branch else 0)
+        return self.grid.height << k, self.grid.width << k
 
     @property
     def num_classes(self) -> int:
@@ -129,8 +136,12 @@ class ModelConfig:
         _positive_int(f"{path}.encoder_expand", self.encoder_expand)
         _positive_int(f"{path}.group_width", self.group_width)
         _positive_int(f"{path}.image_branch", self.image_branch, allow_zero=True)
+        _positive_int(f"{path}.detail_branch", self.detail_branch, allow_zero=True)
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
             raise ConfigError(f"{path}.image_scale must be an integer in [0, 4], got {self.image_scale!r}")
+        if self.detail_branch and self.image_scale > 3:
+            raise ConfigError(f"{path}.detail_branch doubles the image: it needs {path}.image_scale <= 3, got "
+                              f"{self.image_scale}")
         if self.image_branch and not self.image_scale:
             raise ConfigError(f"{path}.image_branch needs {path}.image_scale >= 1 (an image larger than the grid)")
         for name in ("encoder", "encoder_blocks", "topdown", "decoder", "decoder_blocks"):

@@ -48,7 +48,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
     g = config.grid
     return SSZGenerator(classes=config.num_classes, grid_shape=(g.depth, g.height, g.width),
                         image_scale=config.image_scale, levels=config.levels, stem=config.stem,
-                        image_branch=config.image_branch,
+                        image_branch=config.image_branch, detail_branch=config.detail_branch,
                         encoder=config.encoder, encoder_blocks=config.encoder_blocks, topdown=config.topdown,
                         decoder=config.decoder, decoder_blocks=config.decoder_blocks, expand=config.expand,
                         encoder_expand=config.encoder_expand,

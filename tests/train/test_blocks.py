@@ -159,6 +159,50 @@ def test_image_branch_needs_a_larger_image() -> None:
         ModelConfig(image_branch=-1).check()
 
 
+@pytest.mark.parametrize("image_scale", [0, 1])
+def test_detail_branch_reads_a_twice_larger_image_and_starts_as_the_model_on_the_pooled_image(
+        image_scale: int) -> None:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    cfg = ModelConfig(grid=grid, image_scale=image_scale, levels=3, stem=8, encoder=(8, 8, 8),
+                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    detailed_cfg = dataclasses.replace(cfg, detail_branch=4)
+    assert detailed_cfg.image_size == (32 << image_scale, 32 << image_scale) == tuple(2 * n for n in cfg.image_size)
+    torch.manual_seed(0)
+    plain = build_generator(cfg).eval()
+    detailed = build_generator(detailed_cfg).eval()
+    missing, unexpected = detailed.load_state_dict(plain.state_dict(), strict=False)
+    assert missing and all(k.startswith("detail_branch.") for k in missing) and not unexpected
+    fine = torch.rand(2, 3, *detailed_cfg.image_size)
+    pooled = torch.nn.functional.avg_pool2d(fine, 2)
+    with torch.no_grad():
+        torch.testing.assert_close(detailed(fine).logits, plain(pooled).logits)
+    with pytest.raises(ValueError, match="image must be"):
+        detailed(pooled)
+    # Its last BatchNorm starts at zero but gets a gradient; once it is not zero, the finer image's content that the
+    # pooled one does not hold changes the output.
+    detailed.train()
+    detailed(fine).logits.square().mean().backward()
+    last = detailed.detail_branch[-1]
+    assert last.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        last.weight.fill_(1.0)
+        detailed.eval()
+        # Two images with the same 2 x 2 averages: only the branch can tell them apart.
+        checker = torch.tensor([[0.1, -0.1], [-0.1, 0.1]]).repeat(fine.shape[2] // 2, fine.shape[3] // 2)
+        other = (fine + checker).clamp(0, 1)
+        other = other - torch.nn.functional.interpolate(torch.nn.functional.avg_pool2d(other - fine, 2),
+                                                        scale_factor=2.0, mode="nearest")
+        torch.testing.assert_close(torch.nn.functional.avg_pool2d(other, 2), pooled)
+        assert (detailed(fine).logits - detailed(other).logits).abs().max() > 1e-3
+
+
+def test_detail_branch_config_is_checked() -> None:
+    with pytest.raises(ConfigError, match="model.detail_branch"):
+        ModelConfig(detail_branch=-1).check()
+    with pytest.raises(ConfigError, match="detail_branch doubles the image"):
+        ModelConfig(image_scale=4, detail_branch=8).check()
+
+
 def test_surface_fusion_needs_the_depth_head() -> None:
     with pytest.raises(ConfigError, match="surface_fusion needs model.lift"):
         ModelConfig(lift="copy", surface_fusion=True).check()

@@ -4,6 +4,8 @@ Architecture (``L`` = ``config.levels``; level ``s`` has the grid's resolution d
 
     image (B, 3, h, w), w = W * 2^k
       | normalise; stem: 3x3 stride-2 conv, then k-1 depthwise/pointwise halvings        (2D, to H x W)
+      |   [+ image_branch at w; with detail_branch the image is twice as large, the stem reads it 2x2-pooled and
+      |    the branch the image itself]
       | encoder level s = 0 .. L-1: [halving], inverted residual blocks -> e_s          (B, E_s, H_s, W_s)
       | global context: mean over the image, pointwise, added to e_{L-1}
       | top-down path: t_{L-1} = e_{L-1}; t_s = block(up(t_{s+1}) + lateral(e_s))      (B, T_s, H_s, W_s)
@@ -34,7 +36,8 @@ With ``surface_fusion`` the heads also speak in the output directly: :class:`~.b
 every cell's logits a learnt mix of the log-probabilities that the column's surface lies behind, in front of or
 in this cell with each class; the own view's first hit is then the heads' answer wherever the decoder is unsure.
 
-Shapes: ``D, H, W`` must be divisible by ``2^(L-1)``; the image must be ``(H * 2^k, W * 2^k)`` with ``k >= 0``.
+Shapes: ``D, H, W`` must be divisible by ``2^(L-1)``; the image must be ``(H * 2^k, W * 2^k)`` with ``k >= 0``
+(``k + 1`` with ``detail_branch``).
 """
 
 from __future__ import annotations
@@ -81,6 +84,8 @@ class SSZGenerator(nn.Module):
         stem: channels of the stem.
         image_branch: channels of the full-resolution image branch added to the stem's output (0 = none; needs
             ``image_scale >= 1``).
+        detail_branch: channels of a branch that reads an image twice as large (``2^(k+1)`` times the grid) while
+            the stem reads it averaged over 2 x 2 pixels; its result is added to the stem's output (0 = none).
         encoder: E_s, channels of encoder level s (length L).
         encoder_blocks: inverted residual blocks per encoder level (length L).
         topdown: T_s, channels of the top-down path at level s (length L).
@@ -105,8 +110,8 @@ class SSZGenerator(nn.Module):
     """
 
     def __init__(self, *, classes: int, grid_shape: tuple[int, int, int], image_scale: int, levels: int,
-                 stem: int, image_branch: int = 0, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...],
-                 topdown: tuple[int, ...],
+                 stem: int, image_branch: int = 0, detail_branch: int = 0, encoder: tuple[int, ...],
+                 encoder_blocks: tuple[int, ...], topdown: tuple[int, ...],
                  decoder: tuple[int, ...], decoder_blocks: tuple[int, ...], expand: int, encoder_expand: int = 4,
                  lift: str = "depth",
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
@@ -160,6 +165,19 @@ class SSZGenerator(nn.Module):
                 nn.Conv2d(3, image_branch, 3, padding=1, bias=False), nn.BatchNorm2d(image_branch), act2d(),
                 InvertedResidual2d(image_branch, encoder_expand),
                 nn.Conv2d(image_branch, stem, 3, stride=2, padding=1, bias=False), last)
+        # The detail branch reads an image twice as large as the stem's, where a column is 4 pixels wide instead of
+        # 2: its centre ray then passes between two pixels' centres that lie a quarter of a column apart, so a leg or
+        # a board's edge holding the cell centres or not shows in the image. Two stride-2 convolutions bring it to
+        # the stem's output resolution; its last BatchNorm starts at zero, so that weights trained without it
+        # (``run.init``) start as the model they were on the pooled image.
+        self.detail_branch: nn.Module | None = None
+        if detail_branch:
+            last = nn.BatchNorm2d(stem)
+            nn.init.zeros_(last.weight)
+            self.detail_branch = nn.Sequential(
+                nn.Conv2d(3, detail_branch, 3, stride=2, padding=1, bias=False), nn.BatchNorm2d(detail_branch),
+                act2d(), InvertedResidual2d(detail_branch, encoder_expand),
+                nn.Conv2d(detail_branch, stem, 3, stride=2 if image_scale else 1, padding=1, bias=False), last)
         self.stem_down = nn.Sequential(*[Down2d(stem, stem) for _ in range(max(image_scale - 1, 0))])
 
         enc = []
@@ -199,11 +217,16 @@ class SSZGenerator(nn.Module):
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
         """Top-down image features ``t_s``, ``(B, T_s, H / 2^s, W / 2^s)`` for s = 0 .. L-1."""
         d, h, w = self.grid_shape
-        k = self.image_scale
+        k = self.image_scale + (1 if self.detail_branch is not None else 0)
         if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
             raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
         x = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
+        fine = None
+        if self.detail_branch is not None:
+            fine, x = x, F.avg_pool2d(x, 2)
         s0 = self.stem(x)
+        if fine is not None:
+            s0 = s0 + self.detail_branch(fine)
         if self.image_branch is not None:
             s0 = s0 + self.image_branch(x)
         x = self.stem_down(s0)
