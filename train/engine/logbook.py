@@ -109,7 +109,8 @@ def plot_curves(rows: list[dict[str, Any]], path: str, title: str = "") -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     for k in losses:
         xs, ys = series(rows, k)
-        axes[0].plot(xs, ys, label=k.split("/", 1)[1], lw=1.2)
+        # A short run logs a few points; a line through one point is invisible, so few points are marked.
+        axes[0].plot(xs, ys, label=k.split("/", 1)[1], lw=1.2, marker="o" if len(xs) < 30 else None, ms=3)
     axes[0].set_yscale("log")
     axes[0].set_xlabel("step")
     axes[0].set_title("training losses")
