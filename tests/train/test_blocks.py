@@ -25,6 +25,12 @@ from fruxel.train.models.generator import (
 )
 
 
+def _small_config(**kw: object) -> ModelConfig:
+    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
+    return ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
+                       decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), **kw)
+
+
 @pytest.mark.parametrize("bias", [True, False])
 @pytest.mark.parametrize("layout", ["contiguous", "channels_last", "strided"])
 def test_pointwise3d_is_the_1x1x1_convolution(bias: bool, layout: str) -> None:
@@ -106,9 +112,7 @@ def test_surface_fusion_marks_the_most_likely_slice_of_an_unsure_column() -> Non
 
 
 def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
-                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    cfg = _small_config()
     torch.manual_seed(0)
     plain = build_generator(cfg)
     fused = build_generator(dataclasses.replace(cfg, surface_fusion=True))
@@ -130,9 +134,7 @@ def test_surface_fusion_starts_as_the_decoder_alone_and_learns() -> None:
 
 
 def test_image_branch_starts_as_the_model_without_it_and_learns() -> None:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
-                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    cfg = _small_config()
     torch.manual_seed(0)
     plain = build_generator(cfg).eval()
     branched = build_generator(dataclasses.replace(cfg, image_branch=4)).eval()
@@ -162,9 +164,7 @@ def test_image_branch_needs_a_larger_image() -> None:
 @pytest.mark.parametrize("image_scale", [0, 1])
 def test_detail_branch_reads_a_twice_larger_image_and_starts_as_the_model_on_the_pooled_image(
         image_scale: int) -> None:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    cfg = ModelConfig(grid=grid, image_scale=image_scale, levels=3, stem=8, encoder=(8, 8, 8),
-                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    cfg = _small_config(image_scale=image_scale)
     detailed_cfg = dataclasses.replace(cfg, detail_branch=4)
     assert detailed_cfg.image_size == (32 << image_scale, 32 << image_scale) == tuple(2 * n for n in cfg.image_size)
     torch.manual_seed(0)
@@ -278,9 +278,7 @@ def test_fill_columns_gives_a_surface_to_the_columns_the_head_sees_one_in(dtype:
 
 @pytest.mark.parametrize("offset", [0.0, 0.7])
 def test_generator_applies_its_inference_rules_only_in_eval_mode(offset: float) -> None:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8),
-                      encoder_blocks=(1, 1, 1), topdown=(8, 8, 8), decoder=(8, 8, 8), decoder_blocks=(1, 1, 1))
+    cfg = _small_config()
     torch.manual_seed(0)
     plain = build_generator(cfg)
     with torch.no_grad():  # every cell empty, every column with a surface by the depth head
@@ -365,10 +363,7 @@ def test_first_hit_label_names_the_board_the_cells_share() -> None:
 
 
 def test_generator_applies_first_hit_label_after_its_other_rules() -> None:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    cfg = ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
-                      decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), fill_columns=True, empty_offset=0.5,
-                      fill_threshold=0.9)
+    cfg = _small_config(fill_columns=True, empty_offset=0.5, fill_threshold=0.9)
     torch.manual_seed(4)
     plain = build_generator(cfg)
     labelled = build_generator(dataclasses.replace(cfg, first_hit_label=True))
@@ -386,11 +381,6 @@ def test_generator_applies_first_hit_label_after_its_other_rules() -> None:
 
 
 # ------------------------------------------------------------------------------------------------------ flip_average
-def _small_config(**kw: object) -> ModelConfig:
-    grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    return ModelConfig(grid=grid, levels=3, stem=8, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1), topdown=(8, 8, 8),
-                       decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), **kw)
-
 
 def test_flip_average_averages_the_image_and_its_mirror_before_the_rules() -> None:
     cfg = _small_config(surface_fusion=True, fill_columns=True, empty_offset=0.5, fill_threshold=0.9,
