@@ -17,25 +17,48 @@ import json
 import sys
 from pathlib import Path
 
+from fruxel.cli.common import OneLineParser, UsageError, run
+
 ROWS = (("miou", "mIoU (%)"), ("completion_iou", "completion IoU (%)"), ("own_view_accuracy", "own-view accuracy (%)"),
         ("novel_view_accuracy", "novel-view accuracy (%)"), ("depth_error", "novel-view depth error (m)"))
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def _parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog="ablation_report.py", description=__doc__.split("\n\n")[0])
     p.add_argument("reports", nargs="+", help="NAME=report.json of each run, in ablation order")
     p.add_argument("--labels", nargs="+", help="what each run adds (default: the names)")
     p.add_argument("--png", type=Path, help="chart to write")
-    args = p.parse_args(argv)
+    return p
+
+
+def _load(spec: str) -> tuple[str, dict[str, float]]:
+    """``NAME=report.json`` -> the name and the report's model results; one-line errors for a bad argument."""
+    name, eq, path = spec.partition("=")
+    if not eq or not name or not path:
+        raise UsageError(f"a report must be given as NAME=report.json, got {spec!r}")
+    try:
+        r = json.loads(Path(path).read_text(encoding="utf-8"))
+        model = r["results"]["model"]
+        for key, _ in ROWS:
+            float(model[key])
+    except (OSError, UnicodeDecodeError) as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror if isinstance(e, OSError) else e}") from None
+    except ValueError as e:  # json.JSONDecodeError too
+        raise UsageError(f"{path}: not a fruxel-eval report: {e}") from None
+    except (KeyError, TypeError) as e:
+        raise UsageError(f"{path}: not a fruxel-eval report: no results.model.{e} number") from None
+    return name, model
+
+
+def _main(args: argparse.Namespace) -> int:
     names, results = [], []
     for spec in args.reports:
-        name, _, path = spec.partition("=")
-        r = json.loads(Path(path).read_text(encoding="utf-8"))
+        name, model = _load(spec)
         names.append(name)
-        results.append(r["results"]["model"])
+        results.append(model)
     labels = args.labels or names
     if len(labels) != len(names):
-        p.error("give one label per report")
+        raise UsageError("give one label per report")
     head = "| metric | " + " | ".join(f"{n}: {lab}" for n, lab in zip(names, labels, strict=True)) + " |"
     lines = [head, "| --- |" + " ---: |" * len(names)]
     for key, title in ROWS:
@@ -63,9 +86,16 @@ def main(argv: list[str] | None = None) -> int:
             ax.grid(axis="y", alpha=0.3)
         fig.suptitle("SSZ loss ablation: same steps, samples and seed; held-out test rooms")
         fig.tight_layout()
-        fig.savefig(args.png, dpi=110)
+        from fruxel.io import atomic_path
+
+        with atomic_path(args.png) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
         print(f"wrote {args.png}", file=sys.stderr)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(_main, _parser(), argv)
 
 
 if __name__ == "__main__":
