@@ -7,7 +7,10 @@ grid column's centre ray is cast against its labelled meshes (what the camera se
 are then split into clean / aliased / near / far (and the clean ones by the depth of their first solid along the
 ray: under one slice or not), and the model's own-view accuracy is counted in each. Also
 prints the share of errors in near-uniform images (pixel standard deviation below ``--uniform``, in 0-255 units:
-the camera close to a plain surface). Runs on the CPU.
+the camera close to a plain surface). Last, for the pixels whose first solid is thinner than a slice, it compares
+the model with an idealised reader that knows everything but the solid's depth, which it knows to a Gaussian error
+of each ``--sigmas`` (``depth_reader_accuracy``): how well the network would have to read depth to keep more thin
+boards right, and the own view that would give with the model's answers elsewhere. Runs on the CPU.
 """
 
 from __future__ import annotations
@@ -29,6 +32,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--uniform", type=float, default=4.0,
                    help="an image whose pixel standard deviation (0-255, mean over RGB) is below this counts as "
                    "near-uniform (default 4)")
+    p.add_argument("--sigmas", type=float, nargs="*", default=[0.0, 0.01, 0.02, 0.03, 0.05, 0.08, float("inf")],
+                   help="depth errors (metres; inf allowed) of the idealised reader of thin solids "
+                   "(default 0 0.01 0.02 0.03 0.05 0.08 inf)")
+    p.add_argument("--png", default=None, help="also plot the readers' own view against the model's here")
     p.add_argument("--json", default=None, help="also write the summary as JSON here")
     return p
 
@@ -36,6 +43,7 @@ def _parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> None:
     import json
 
+    import numpy as np
     import torch
     from tqdm import tqdm
 
@@ -45,6 +53,9 @@ def _main(args: argparse.Namespace) -> None:
         CATEGORIES,
         JoinedMeshes,
         OwnViewBreakdown,
+        depth_reader_accuracy,
+        label_behind,
+        plot_depth_readers,
         surface_extent,
         visible_surface,
     )
@@ -54,6 +65,8 @@ def _main(args: argparse.Namespace) -> None:
 
     if args.samples < 1 or args.batch < 1 or not args.uniform >= 0:
         raise UsageError("--samples and --batch must be >= 1 and --uniform >= 0")
+    if not all(s >= 0 for s in args.sigmas):
+        raise UsageError(f"--sigmas must be >= 0 (inf allowed), got {args.sigmas}")
     generator, config, _ = load_generator(args.model)
     manifest = data_set_manifest(args.data, config)
     data = EvalData(source="shards", root=args.data, seed=manifest.seed)
@@ -62,6 +75,7 @@ def _main(args: argparse.Namespace) -> None:
     maker = SampleMaker(manifest.config, manifest.seed, backend="warp-cpu", device="cpu")
     total, uniform = OwnViewBreakdown(), OwnViewBreakdown()
     n_uniform = index = 0
+    thin: dict[str, list[np.ndarray]] = {"depth": [], "extent": [], "kept": [], "dropped": [], "ok": []}
     room, meshes = None, None
     try:
         with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
@@ -76,6 +90,11 @@ def _main(args: argparse.Namespace) -> None:
                     seen = visible_surface(meshes, grid, pose)
                     extent = surface_extent(meshes, grid, pose, seen[1])
                     total.add(pred[b], truth[b], *seen, grid, extent)
+                    m = (truth[b] != 0) & (seen[1] >= grid.z_near) & (seen[1] <= grid.z_far) & (extent < grid.dz)
+                    behind = label_behind(meshes, grid, pose, seen[1], np.where(m, extent, np.inf))
+                    for key, v in (("depth", seen[1]), ("extent", extent), ("kept", truth[b] == seen[0]),
+                                   ("dropped", truth[b] == behind), ("ok", pred[b] == truth[b])):
+                        thin[key].append(v[m])
                     if spread[b] < args.uniform:
                         uniform.add(pred[b], truth[b], *seen, grid, extent)
                         n_uniform += 1
@@ -97,9 +116,33 @@ def _main(args: argparse.Namespace) -> None:
     u_lost = (100.0 - u["accuracy"]) * u["pixels"] / s["pixels"] if u["pixels"] else 0.0
     print(f"near-uniform images (pixel std < {args.uniform:g}): {n_uniform} of {count} samples, "
           f"{100.0 * u['pixels'] / s['pixels']:.2f} % of the pixels, {u_lost:.2f} of the {lost:.2f} points lost")
+    t = {k: np.concatenate(v) for k, v in thin.items()}
+    n_thin, model_ok = len(t["ok"]), int(t["ok"].sum())
+    readers = []
+    if n_thin:
+        print(f"solids thinner than a slice: {100.0 * n_thin / s['pixels']:.2f} % of the pixels; the truth shows the "
+              f"solid's label on {100.0 * t['kept'].mean():.1f} % of them and the label behind it on "
+              f"{100.0 * t['dropped'].mean():.1f} %; the model is right on {100.0 * model_ok / n_thin:.2f} %")
+        print("| reader's depth error m | right on thin % | own view with the model elsewhere % |\n"
+              "| ---: | ---: | ---: |")
+        for sigma in args.sigmas:
+            acc = depth_reader_accuracy(t["depth"], t["extent"], t["kept"], t["dropped"], grid, sigma)
+            own = s["accuracy"] + 100.0 * (acc * n_thin - model_ok) / s["pixels"]
+            readers.append({"sigma": sigma, "thin_accuracy": 100.0 * acc, "own_view": own})
+            print(f"| {sigma:g} | {100.0 * acc:.2f} | {own:.2f} |")
+    if args.png and readers:
+        plot_depth_readers(readers, s["accuracy"], args.png,
+                           title=f"{count} samples of {args.data} ({args.split}): who would get thin solids right")
+        print(f"wrote {args.png}")
     if args.json:
         out = {"model": args.model, "data": args.data, "split": args.split, "samples": count, **s,
-               "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost}}
+               "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost},
+               "thin": {"pixels": n_thin, "share": 100.0 * n_thin / s["pixels"],
+                        "kept": 100.0 * float(t["kept"].mean()) if n_thin else None,
+                        "behind": 100.0 * float(t["dropped"].mean()) if n_thin else None,
+                        "model_accuracy": 100.0 * model_ok / n_thin if n_thin else None,
+                        "readers": [{**r, "sigma": str(r["sigma"]) if np.isinf(r["sigma"]) else r["sigma"]}
+                                    for r in readers]}}
         with atomic_write(args.json, "w") as f:
             f.write(json.dumps(out, indent=1, default=float) + "\n")
         print(f"wrote {args.json}")

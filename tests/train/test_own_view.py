@@ -9,7 +9,16 @@ import torch
 from fruxel.grid import FruxelGrid
 from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.eval.metrics import first_surface
-from fruxel.train.eval.own_view import CATEGORIES, JoinedMeshes, OwnViewBreakdown, surface_extent, visible_surface
+from fruxel.train.eval.own_view import (
+    CATEGORIES,
+    JoinedMeshes,
+    OwnViewBreakdown,
+    depth_reader_accuracy,
+    holds_centre,
+    label_behind,
+    surface_extent,
+    visible_surface,
+)
 from fruxel.train.sim.scene import boxes
 
 GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
@@ -45,6 +54,10 @@ def test_visible_surface_and_the_breakdown_of_a_constructed_scene() -> None:
     # The board is seen where it is; the truth does not have it (no centre inside) and shows the wall behind.
     assert (labels[row, left] == BOARD).all() and (truth[row, left] == WALL).all()
     np.testing.assert_allclose(depth[row, left], GRID.z_near + 4.0 * GRID.dz - 0.005, atol=1e-6)
+    extent = surface_extent(joined, GRID, pose, depth)
+    behind = label_behind(joined, GRID, pose, depth, extent)
+    assert (behind[row, left] == WALL).all() and (behind[row, right] == WALL).all()  # the wall behind board and box
+    assert (label_behind(joined, GRID, pose, depth, np.full_like(extent, np.inf)) == 0).all()
     # The thick box is in both.
     assert (labels[row, right] == BOARD).all() and (truth[row, right] == BOARD).all()
     # The near box is seen before z_near; the truth starts behind it.
@@ -127,8 +140,9 @@ def test_own_view_errors_script(tmp_path, capsys: pytest.CaptureFixture[str]) ->
     torch.manual_seed(0)
     save_shipped(model, build_generator(cfg), cfg, {}, half=False)
     out = tmp_path / "o.json"
+    png = tmp_path / "readers.png"
     assert script.main([str(model), "--data", str(data), "--samples", "3", "--batch", "2", "--uniform", "1000",
-                        "--json", str(out)]) == 0
+                        "--sigmas", "0", "0.05", "inf", "--png", str(png), "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     report = json.loads(out.read_text())
     assert report["samples"] == 3 and report["pixels"] > 0 and "| clean |" in printed
@@ -138,5 +152,67 @@ def test_own_view_errors_script(tmp_path, capsys: pytest.CaptureFixture[str]) ->
     # --uniform 1000: every image counts as near-uniform, so that part is the whole.
     assert report["uniform"]["samples"] == 3 and report["uniform"]["pixels"] == report["pixels"]
     assert report["uniform"]["points_lost"] == pytest.approx(100.0 - report["accuracy"])
+    # The thin solids (under a slice deep, here 0.47 m) and the idealised readers of them.
+    thin = report["thin"]
+    assert thin["pixels"] > 0 and 0 <= thin["kept"] <= 100 and "| reader's depth error m |" in printed
+    assert [r["sigma"] for r in thin["readers"]] == [0.0, 0.05, "inf"] and png.stat().st_size > 0
+    exact, _, blind = (r["thin_accuracy"] for r in thin["readers"])
+    assert exact >= blind and exact > 90.0
     assert script.main([str(model), "--data", str(data), "--samples", "0"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert script.main([str(model), "--data", str(data), "--sigmas", "-1"]) == 2
+    assert "--sigmas" in capsys.readouterr().err
+
+
+def _thin_solids(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """n thin solids at uniform depths in range, extents uniform in [0, dz)."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(GRID.z_near, GRID.z_far - GRID.dz, n), rng.uniform(0.0, GRID.dz, n)
+
+
+def test_holds_centre_agrees_with_the_cell_centres_counted_one_by_one() -> None:
+    depth, extent = _thin_solids(2000)
+    extent[:500] *= 3.0  # some thicker than a slice: they always hold one
+    centres = GRID.z_near + (np.arange(GRID.depth) + 0.5) * GRID.dz
+    brute = ((centres[None] >= depth[:, None]) & (centres[None] <= (depth + extent)[:, None])).any(axis=1)
+    got = holds_centre(depth, extent, GRID)
+    assert np.array_equal(got, brute)
+    assert got[extent >= GRID.dz].all() and 0.2 < got.mean() < 0.9
+
+
+def test_depth_reader_accuracy_falls_from_exact_to_blind_as_its_depth_error_grows() -> None:
+    depth, extent = _thin_solids(4000)
+    kept = holds_centre(depth, extent, GRID)
+    blind = float(((extent >= 0.5 * GRID.dz) == kept).mean())
+    assert depth_reader_accuracy(depth, extent, kept, ~kept, GRID, 0.0) == 1.0
+    assert depth_reader_accuracy(depth, extent, kept, ~kept, GRID, float("inf")) == blind
+    assert blind == pytest.approx(0.75, abs=0.03)  # E[max(L/dz, 1 - L/dz)] for L uniform in [0, dz)
+    acc = [depth_reader_accuracy(depth, extent, kept, ~kept, GRID, s, draws=8) for s in (1e-4, 0.01, 0.03, 0.06, 2.0)]
+    assert acc[0] > 0.99  # a tiny error: nearly always right (a wrong sign of the phase would not be)
+    assert all(a > b for a, b in zip(acc, acc[1:-1], strict=False))
+    assert acc[-1] == pytest.approx(blind, abs=0.02)  # a large error: no better than knowing nothing
+    # The truth flipped: a reader that trusts its depth is now nearly always wrong.
+    assert depth_reader_accuracy(depth, extent, ~kept, kept, GRID, 1e-4, draws=2) < 0.01
+    # Where the solid and what lies behind it share a label, either call is right.
+    same = np.arange(len(kept)) % 2 == 0
+    assert depth_reader_accuracy(depth, extent, kept | same, ~kept | same, GRID, float("inf")) == pytest.approx(
+        0.5 + 0.5 * float(((extent >= 0.5 * GRID.dz) == kept)[~same].mean()))
+    assert np.isnan(depth_reader_accuracy(depth[:0], extent[:0], kept[:0], kept[:0], GRID, 0.01))
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(ValueError, match="sigma"):
+            depth_reader_accuracy(depth, extent, kept, ~kept, GRID, bad)
+
+
+def test_plot_depth_readers_writes_a_png(tmp_path) -> None:
+    from PIL import Image
+
+    from fruxel.train.eval.own_view import plot_depth_readers
+
+    path = tmp_path / "readers.png"
+    readers = [{"sigma": s, "own_view": v} for s, v in ((0.0, 99.5), (0.02, 97.4), (0.05, 96.6), (float("inf"), 96.1))]
+    plot_depth_readers(readers, 96.9, str(path), title="t")
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert img.shape[0] > 200 and img.shape[1] > 300
+    green = (abs(img - np.array([0x1B, 0x9E, 0x77])).sum(axis=2) < 40).sum()  # the readers' line is drawn
+    assert green > 100
+    assert [p.name for p in tmp_path.iterdir()] == ["readers.png"]  # no temporary file left

@@ -116,6 +116,36 @@ def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, dep
     return extent.reshape(h, w)
 
 
+def label_behind(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth: np.ndarray,
+                 extent: np.ndarray) -> np.ndarray:
+    """The label of the next surface along each column's centre ray behind the first solid: what the truth shows
+    there when that solid holds no cell centre (when the solid behind it holds one).
+
+    Args:
+        meshes: the scene's :class:`JoinedMeshes`.
+        grid: the grid.
+        pose: ``(4, 4)`` grid-camera-to-world transform, OpenCV axes.
+        depth: ``(H, W)`` float64 first-surface depths of :func:`visible_surface` (``inf``: nothing hit).
+        extent: ``(H, W)`` float64 :func:`surface_extent` of the same view.
+
+    Returns:
+        ``(H, W)`` int64 label of the first surface behind the first solid's back face; 0 where there is none.
+    """
+    h, w = grid.height, grid.width
+    pose = np.asarray(pose, dtype=np.float64)
+    back = (np.asarray(depth, dtype=np.float64) + np.asarray(extent, dtype=np.float64)).reshape(-1)
+    out = np.zeros(h * w, dtype=np.int64)
+    ok = np.isfinite(back)
+    if not ok.any():
+        return out.reshape(h, w)
+    eps = 1e-4  # from just behind the back face: outside the solid, the next crossing is the next solid's front
+    dirs = _centre_rays(grid, pose)[ok]
+    origins = pose[None, :3, 3] + dirs * (back[ok, None] + eps)
+    tri, ray, _ = _first_crossing(meshes, origins, dirs)
+    out[np.flatnonzero(ok)[ray]] = meshes.face_label[tri]
+    return out.reshape(h, w)
+
+
 def _centre_rays(grid: FruxelGrid, pose: np.ndarray) -> np.ndarray:
     """``(H * W, 3)`` float64 world-frame directions of the columns' centre rays, row-major, scaled to z = 1 in
     the camera frame (so that a ray parameter is a depth)."""
@@ -193,3 +223,127 @@ class OwnViewBreakdown:
             out["clean_thin"] = part(self.thin_hits, self.thin_correct)
             out["clean_thick"] = part(n - self.thin_hits, k - self.thin_correct)
         return out
+
+
+def holds_centre(depth: np.ndarray, extent: np.ndarray, grid: FruxelGrid) -> np.ndarray:
+    """Whether a solid that a column's centre ray crosses from ``depth`` to ``depth + extent`` holds one of the
+    column's cell centres (slice centres at ``z_near + (k + 1/2) dz``), i.e. whether the truth keeps it.
+
+    Args:
+        depth: first-surface depths along the camera's z axis, metres (any shape, float).
+        extent: the solid's depth along the ray from there, metres (same shape; :func:`surface_extent`).
+        grid: the grid.
+
+    Returns:
+        bool array of the same shape. Only the slices' spacing is used: a solid partly outside
+        ``[z_near, z_far]`` is judged as if the slices went on.
+    """
+    dz = grid.dz
+    first = grid.z_near + 0.5 * dz
+    centre = first + np.ceil((np.asarray(depth, dtype=np.float64) - first) / dz) * dz  # the first at or behind depth
+    return centre <= np.asarray(depth, dtype=np.float64) + np.asarray(extent, dtype=np.float64)
+
+
+def depth_reader_accuracy(depth: np.ndarray, extent: np.ndarray, right_if_kept: np.ndarray,
+                          right_if_dropped: np.ndarray, grid: FruxelGrid, sigma: float, draws: int = 32,
+                          seed: int = 0) -> float:
+    """How often an idealised reader of the image gets a thin solid's own-view pixel right, when it knows the solid's
+    depth only to a Gaussian error of ``sigma``.
+
+    The reader knows everything else: the solid's label, its extent along the ray, and what lies behind it. Seeing
+    depth ``d + e`` (``e ~ N(0, sigma)``), it takes the solid's true start as ``N(d + e, sigma)`` and calls the solid
+    kept when that makes :func:`holds_centre` at least as likely as not; it then answers the solid's label, else the
+    label behind it. ``sigma = 0`` is a reader that knows the depth exactly; ``sigma = inf`` one that knows nothing
+    of where within a slice the solid lies (it calls a solid kept when its extent is at least half a slice). An upper
+    bound on what a network that reads depth that well can do, as far as :func:`holds_centre` is the truth's rule.
+
+    Args:
+        depth: ``(N,)`` float first-surface depths of the thin solids' pixels, metres.
+        extent: ``(N,)`` float their extents along the ray, metres (under ``grid.dz``: thicker solids always hold a
+            centre).
+        right_if_kept: ``(N,)`` bool: the truth's first label is the solid's.
+        right_if_dropped: ``(N,)`` bool: the truth's first label is the one behind the solid
+            (:func:`label_behind`); both are true where the solid and what lies behind it share a label.
+        grid: the grid.
+        sigma: the reader's depth error (standard deviation), metres, >= 0 or ``inf``.
+        draws: depth errors drawn per pixel.
+        seed: seed of the draws.
+
+    Returns:
+        The share of the N pixels answered right, in [0, 1] (nan for N = 0).
+
+    Raises:
+        ValueError: ``sigma`` negative or NaN, or ``draws`` < 1.
+    """
+    if not sigma >= 0 or draws < 1:
+        raise ValueError(f"sigma must be >= 0 and draws >= 1, got sigma={sigma}, draws={draws}")
+    depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+    extent = np.asarray(extent, dtype=np.float64).reshape(-1)
+    if_kept = np.asarray(right_if_kept, dtype=bool).reshape(-1)
+    if_dropped = np.asarray(right_if_dropped, dtype=bool).reshape(-1)
+    if not len(depth):
+        return float("nan")
+    dz = grid.dz
+
+    def share(kept: np.ndarray) -> float:
+        return float(np.where(kept, if_kept, if_dropped).mean())
+
+    if sigma == 0:
+        return share(holds_centre(depth, extent, grid))
+    if np.isinf(sigma):
+        return share(extent >= 0.5 * dz)
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(seed)
+    first = grid.z_near + 0.5 * dz
+    wraps = np.arange(-int(np.ceil(6.0 * sigma / dz)) - 1, int(np.ceil(6.0 * sigma / dz)) + 2) * dz  # (M,)
+    right = 0.0
+    for _ in range(draws):
+        seen = depth + rng.normal(0.0, sigma, size=depth.shape)
+        # The solid holds a centre when its true start lies within `extent` before one: start - centre in
+        # [-extent, 0]; under the reader's belief, that probability summed over the centres near the seen start.
+        offset = np.mod(seen - first, dz)[:, None] + wraps[None, :]  # (N, M): seen start minus each centre
+        p = (ndtr((offset + extent[:, None]) / sigma) - ndtr(offset / sigma)).sum(axis=1)
+        right += share(p >= 0.5)
+    return right / draws
+
+
+def plot_depth_readers(readers: Sequence[dict[str, float]], model_own: float, path: str, *, target: float = 97.0,
+                       title: str = "") -> None:
+    """Write a PNG of the own view that readers of thin solids with each depth error would give (the model's answers
+    elsewhere), against the model's own view and the target.
+
+    Args:
+        readers: ``{"sigma": metres (inf allowed), "own_view": percent}`` per reader (``scripts/own_view_errors.py``).
+        model_own: the model's own-view accuracy, percent.
+        path: the PNG (written atomically).
+        target: the own view's target, percent, drawn as a line.
+        title: the figure's title.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fruxel.io import atomic_path
+
+    finite = sorted((float(r["sigma"]), float(r["own_view"])) for r in readers if np.isfinite(float(r["sigma"])))
+    blind = [float(r["own_view"]) for r in readers if not np.isfinite(float(r["sigma"]))]
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    if finite:
+        xs, ys = zip(*finite, strict=True)
+        ax.plot([100.0 * x for x in xs], ys, "o-", color="#1b9e77", label="reader of thin solids with this depth error")
+    if blind:
+        ax.axhline(blind[0], color="#1b9e77", ls=":", label="... with no depth within the slice")
+    ax.axhline(model_own, color="#d95f02", ls="--", label=f"the model ({model_own:.2f} %)")
+    ax.axhline(target, color="#7570b3", ls="-.", label=f"target ({target:g} %)")
+    ax.set_xlabel("depth error of the reader (standard deviation, cm)")
+    ax.set_ylabel("own-view first-hit accuracy (%)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper right")
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
