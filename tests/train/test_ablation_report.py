@@ -19,7 +19,7 @@ def _script():  # noqa: ANN202
 
 
 def test_table_and_chart_from_two_reports(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    report = json.loads((ROOT / "docs" / "eval" / "ssz64-test1024.json").read_text())
+    report = json.loads((ROOT / "docs" / "eval" / "ssz64-test8192.json").read_text())
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     a.write_text(json.dumps(report))
     report["results"]["model"]["miou"] = 12.34
@@ -45,7 +45,7 @@ def test_bad_input_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
     if content is not None:
         file.write_text(content)
     if message is None:  # a valid report, but two labels for one run
-        file.write_text((ROOT / "docs" / "eval" / "ssz64-test1024.json").read_text())
+        file.write_text((ROOT / "docs" / "eval" / "ssz64-test8192.json").read_text())
         message = "one label per report"
     argv = [a.format(dir=tmp_path, file=file) for a in args]
     assert _script().main(argv) == 2
