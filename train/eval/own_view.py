@@ -99,21 +99,11 @@ def surface_extent(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, dep
         ``(H, W)`` float64 extent along the camera's z axis in metres; ``inf`` where nothing is hit, or where the
         ray finds no surface behind the first one.
     """
-    h, w = grid.height, grid.width
-    pose = np.asarray(pose, dtype=np.float64)
-    start = np.asarray(depth, dtype=np.float64).reshape(-1)
-    hit = np.isfinite(start)
-    extent = np.full(h * w, np.inf)
-    if not hit.any():
-        return extent.reshape(h, w)
     # From just behind the first surface: the ray is inside the solid, and its first crossing is the way out.
-    eps = 1e-4
-    dirs = _centre_rays(grid, pose)[hit]
-    origins = pose[None, :3, 3] + dirs * (start[hit, None] + eps)
-    _, ray, loc = _first_crossing(meshes, origins, dirs)
-    rows = np.flatnonzero(hit)[ray]
-    extent[rows] = (loc - origins[ray]) @ pose[:3, 2] + eps
-    return extent.reshape(h, w)
+    _, rows, travelled = _cast_on(meshes, grid, pose, depth)
+    extent = np.full(grid.height * grid.width, np.inf)
+    extent[rows] = travelled
+    return extent.reshape(grid.height, grid.width)
 
 
 def label_behind(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth: np.ndarray,
@@ -131,19 +121,29 @@ def label_behind(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth
     Returns:
         ``(H, W)`` int64 label of the first surface behind the first solid's back face; 0 where there is none.
     """
-    h, w = grid.height, grid.width
+    # From just behind the back face: outside the solid, the next crossing is the next solid's front.
+    back = np.asarray(depth, dtype=np.float64) + np.asarray(extent, dtype=np.float64)
+    tri, rows, _ = _cast_on(meshes, grid, pose, back)
+    out = np.zeros(grid.height * grid.width, dtype=np.int64)
+    out[rows] = meshes.face_label[tri]
+    return out.reshape(grid.height, grid.width)
+
+
+def _cast_on(meshes: JoinedMeshes, grid: FruxelGrid, pose: np.ndarray, depth: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each column's centre ray cast again from just behind ``depth`` (``(H, W)`` metres; ``inf``: not cast) to its
+    next crossing with the mesh: ``(face (K,), row-major column (K,), depth travelled from ``depth`` (K,))`` for the
+    K rays that cross it."""
     pose = np.asarray(pose, dtype=np.float64)
-    back = (np.asarray(depth, dtype=np.float64) + np.asarray(extent, dtype=np.float64)).reshape(-1)
-    out = np.zeros(h * w, dtype=np.int64)
-    ok = np.isfinite(back)
-    if not ok.any():
-        return out.reshape(h, w)
-    eps = 1e-4  # from just behind the back face: outside the solid, the next crossing is the next solid's front
-    dirs = _centre_rays(grid, pose)[ok]
-    origins = pose[None, :3, 3] + dirs * (back[ok, None] + eps)
-    tri, ray, _ = _first_crossing(meshes, origins, dirs)
-    out[np.flatnonzero(ok)[ray]] = meshes.face_label[tri]
-    return out.reshape(h, w)
+    start = np.asarray(depth, dtype=np.float64).reshape(-1)
+    cast = np.isfinite(start)
+    if not cast.any():
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    eps = 1e-4  # past the surface at `depth`, so that it is not crossed again
+    dirs = _centre_rays(grid, pose)[cast]
+    origins = pose[None, :3, 3] + dirs * (start[cast, None] + eps)
+    tri, ray, loc = _first_crossing(meshes, origins, dirs)
+    return tri, np.flatnonzero(cast)[ray], (loc - origins[ray]) @ pose[:3, 2] + eps
 
 
 def _centre_rays(grid: FruxelGrid, pose: np.ndarray) -> np.ndarray:
