@@ -31,6 +31,18 @@ def _small_config(**kw: object) -> ModelConfig:
                        decoder=(8, 8, 8), decoder_blocks=(1, 1, 1), **kw)
 
 
+def _wake_zero_started_branch(model: nn.Module, branch: nn.Sequential, image: torch.Tensor) -> None:
+    """Check that a branch whose last BatchNorm starts at zero gets a gradient through it from one training pass on
+    ``image``, then set that BatchNorm's weight to one and put ``model`` back in eval mode."""
+    model.train()
+    model(image).logits.square().mean().backward()
+    last = branch[-1]
+    assert last.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        last.weight.fill_(1.0)
+    model.eval()
+
+
 @pytest.mark.parametrize("bias", [True, False])
 @pytest.mark.parametrize("layout", ["contiguous", "channels_last", "strided"])
 def test_pointwise3d_is_the_1x1x1_convolution(bias: bool, layout: str) -> None:
@@ -144,13 +156,8 @@ def test_image_branch_starts_as_the_model_without_it_and_learns() -> None:
     with torch.no_grad():
         torch.testing.assert_close(branched(image).logits, plain(image).logits)
     # Its last BatchNorm starts at zero but gets a gradient; once it is not zero the branch changes the output.
-    branched.train()
-    branched(image).logits.square().mean().backward()
-    last = branched.image_branch[-1]
-    assert last.weight.grad.abs().sum() > 0
+    _wake_zero_started_branch(branched, branched.image_branch, image)
     with torch.no_grad():
-        last.weight.fill_(1.0)
-        branched.eval()
         assert (branched(image).logits - plain(image).logits).abs().max() > 1e-3
 
 
@@ -180,13 +187,8 @@ def test_detail_branch_reads_a_twice_larger_image_and_starts_as_the_model_on_the
         detailed(pooled)
     # Its last BatchNorm starts at zero but gets a gradient; once it is not zero, the finer image's content that the
     # pooled one does not hold changes the output.
-    detailed.train()
-    detailed(fine).logits.square().mean().backward()
-    last = detailed.detail_branch[-1]
-    assert last.weight.grad.abs().sum() > 0
+    _wake_zero_started_branch(detailed, detailed.detail_branch, fine)
     with torch.no_grad():
-        last.weight.fill_(1.0)
-        detailed.eval()
         # Two images with the same 2 x 2 averages: only the branch can tell them apart.
         checker = torch.tensor([[0.1, -0.1], [-0.1, 0.1]]).repeat(fine.shape[2] // 2, fine.shape[3] // 2)
         other = (fine + checker).clamp(0, 1)
