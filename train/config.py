@@ -114,6 +114,13 @@ class ModelConfig:
     (test-time augmentation; twice the network's work). The grid's own camera is centred (SPEC section 1), so the
     mirror image is the mirrored room seen through the mirrored grid. Training is unchanged; off here for the same
     reason as ``surface_fusion``."""
+    fine_depth: int = 0
+    """R: bins per slice of a second column depth head (0 = none; needs ``lift = "depth"``), which places each
+    column's first *surface* within a slice, supervised with the simulator's rendered depth
+    (``loss.fine_depth``). A board thinner than a slice holds a cell centre, and so stays in the truth, or not
+    depending on where within the slice it lies; the per-cell probabilities of its R bins reach the finest
+    decoder level. The decoder's term for them starts at zero, so a model fine-tuned (``run.init``) from weights
+    without the head starts as that model."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -137,6 +144,9 @@ class ModelConfig:
         _positive_int(f"{path}.group_width", self.group_width)
         _positive_int(f"{path}.image_branch", self.image_branch, allow_zero=True)
         _positive_int(f"{path}.detail_branch", self.detail_branch, allow_zero=True)
+        _positive_int(f"{path}.fine_depth", self.fine_depth, allow_zero=True)
+        if self.fine_depth and self.lift != "depth":
+            raise ConfigError(f"{path}.fine_depth needs {path}.lift = 'depth', got {self.lift!r}")
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
             raise ConfigError(f"{path}.image_scale must be an integer in [0, 4], got {self.image_scale!r}")
         if self.detail_branch and self.image_scale > 3:
@@ -204,6 +214,10 @@ class LossConfig:
     classes (:func:`fruxel.train.models.generator.first_hit_log_probs`, the cells taken as independent) against
     the truth's first label, mean over the columns. The own-view term of the shell-aware losses computed on the
     columns directly, without their kernels or novel views; what the ``first_hit_label`` rule decodes."""
+    fine_depth: float = 0.5
+    """Weight of the cross-entropy of the fine depth head (``model.fine_depth``) against the sub-slice bin of the
+    surface that the simulator's renderer sees on each column's centre ray (streamed data only; columns whose ray
+    grazes an edge, or whose surface is nearer than ``z_near``, are left out)."""
     shell: bool = False
     """Add the shell-aware losses (:class:`fruxel.train.losses.ShellLoss`: own view and random novel views)."""
     shell_weight: float = 0.5
@@ -229,7 +243,7 @@ class LossConfig:
 
     def check(self, path: str = "loss") -> None:
         """Raise :class:`ConfigError` for impossible settings."""
-        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "first_hit", "shell_weight",
+        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "first_hit", "fine_depth", "shell_weight",
                      "shell_own_view", "adversarial_weight", "discriminator_lr"):
             _finite_nonneg(f"{path}.{name}", getattr(self, name))
         for name in ("shell_views", "adversarial_start", "adversarial_ramp"):
@@ -387,6 +401,10 @@ class TrainConfig:
         self.data.check()
         self.optim.check()
         self.run.check()
+        if self.model.fine_depth and self.loss.fine_depth and self.data.source != "stream":
+            # Only the simulator has the rendered depth the term is trained on; shards keep images and labels alone.
+            raise ConfigError("loss.fine_depth needs data.source = 'stream' (shards hold no rendered depth); set "
+                              "loss.fine_depth to 0 to train the fine depth head only through the volume")
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -56,7 +56,7 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         full_res_spatial=config.full_res_spatial, surface_fusion=config.surface_fusion,
                         fill_columns=config.fill_columns, empty_offset=config.empty_offset,
                         fill_threshold=config.fill_threshold, first_hit_label=config.first_hit_label,
-                        flip_average=config.flip_average,
+                        flip_average=config.flip_average, fine_depth=config.fine_depth,
                         checkpointing=checkpointing)
 
 

@@ -78,6 +78,32 @@ def surface_targets(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return depth_bin, label
 
 
+def fine_depth_targets(surface_depth: torch.Tensor, z_near: float, dz: float, depth: int, bins: int
+                       ) -> torch.Tensor:
+    """Each column's sub-slice depth bin, the fine depth head's target.
+
+    Args:
+        surface_depth: ``(B, H, W)`` float camera-frame z of the first surface on each column's centre ray, metres
+            (:func:`fruxel.train.sim.images.column_surface_depth`): ``inf`` where the ray hits nothing, NaN where
+            unknown (the ray grazes an edge).
+        z_near, dz: the grid's first slice plane and slice thickness, metres.
+        depth: D, slices.
+        bins: R, bins per slice.
+
+    Returns:
+        ``(B, H, W)`` int64: ``k * R + r`` for a surface in sub-bin r of slice k, ``D * R`` (no surface) for one at
+        or beyond ``z_far`` or none, and -100 (ignored by the cross-entropy) where unknown or nearer than
+        ``z_near`` (the truth's first cell lies behind what the camera sees there).
+    """
+    n = depth * bins
+    z = surface_depth.float()
+    pos = (z - z_near) / dz * bins
+    ignored = torch.full_like(pos, -100.0)
+    # NaN fails every comparison: unknown columns stay ignored; +inf (nothing hit) is beyond z_far.
+    target = torch.where((pos >= 0) & (pos < n), pos.floor(), ignored)
+    return torch.where(pos >= n, torch.full_like(pos, float(n)), target).long()
+
+
 def soft_iou_loss(probs: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """``1 - mean_c IoU_c`` with soft counts, over the classes 1..C-1 present in ``labels`` (none: 0).
 
@@ -109,24 +135,29 @@ class SSZObjective:
         config: weights and switches.
         weights: ``(C,)`` class weights of the cross-entropy (:func:`class_weights`), on the training device.
         shell_loss: a :class:`fruxel.train.losses.ShellLoss`, or None when ``config.shell`` is off.
+        grid: the model's :class:`~fruxel.grid.FruxelGrid` (needed for the fine depth term).
     """
 
-    def __init__(self, config: LossConfig, weights: torch.Tensor, shell_loss=None) -> None:  # noqa: ANN001
+    def __init__(self, config: LossConfig, weights: torch.Tensor, shell_loss=None, grid=None) -> None:  # noqa: ANN001
         self.config = config
         self.weights = weights
         self.shell_loss = shell_loss
+        self.grid = grid
 
-    def __call__(self, out, labels: torch.Tensor) -> dict[str, torch.Tensor]:  # noqa: ANN001
+    def __call__(self, out, labels: torch.Tensor, surface_depth: torch.Tensor | None = None  # noqa: ANN001
+                 ) -> dict[str, torch.Tensor]:
         """The weighted terms and their total.
 
         Args:
             out: the generator's :class:`~fruxel.train.models.generator.SSZOutput`.
             labels: ``(B, D, H, W)`` integer ground-truth labels (uint8 is fine), on the logits' device.
+            surface_depth: ``(B, H, W)`` float first-surface depth of each column's centre ray
+                (:func:`fine_depth_targets`), or None; the fine depth term needs it and a model with a fine head.
 
         Returns:
-            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "first_hit": ..., "shell": ...}``
-            scalar tensors
-            (unweighted terms; ``total`` is the weighted sum); absent terms are left out.
+            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "first_hit": ..., "fine_depth":
+            ..., "shell": ...}`` scalar tensors (unweighted terms; ``total`` is the weighted sum); absent terms are
+            left out.
         """
         c = self.config
         logits = out.logits.float()
@@ -150,6 +181,14 @@ class SSZObjective:
             if c.first_hit:
                 terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), surface)
                 total = total + c.first_hit * terms["first_hit"]
+        if c.fine_depth and out.fine_logits is not None and surface_depth is not None:
+            g = self.grid
+            bins = (out.fine_logits.shape[1] - 1) // g.depth
+            target = fine_depth_targets(surface_depth, g.z_near, g.dz, g.depth, bins)
+            known = (target != -100).sum()
+            # A mean over the known columns; a batch without one (every ray grazing an edge) adds zero, not NaN.
+            terms["fine_depth"] = F.cross_entropy(out.fine_logits, target, reduction="sum") / known.clamp_min(1)
+            total = total + c.fine_depth * terms["fine_depth"]
         if self.shell_loss is not None:
             terms["shell"] = self.shell_loss(logits, labels).total
             total = total + c.shell_weight * terms["shell"]

@@ -146,12 +146,17 @@ class BlockStream(IterableDataset):
                 if q == self.first_block:
                     idx = idx[self.skip:]
                 samples = [read(i) for i in idx]
-                yield {
+                block = {
                     "image": np.stack([s.image for s in samples]),
                     "labels": np.stack([np.asarray(s.labels, dtype=np.uint8) for s in samples]),
                     "index": np.asarray([s.index for s in samples], dtype=np.int64),
                     "block": np.int64(q),
                 }
+                # Simulated samples carry each column's rendered surface depth (the fine depth head's target);
+                # samples read from shards do not.
+                if samples and all(s.surface_depth is not None for s in samples):
+                    block["surface_depth"] = np.stack([s.surface_depth for s in samples])
+                yield block
                 q += workers
         finally:
             close()
@@ -179,6 +184,10 @@ def _exit_now() -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
+
+
+BATCH_KEYS = ("image", "labels", "index", "surface_depth")
+"""What a batch of :class:`Batches` holds (``surface_depth`` only when the stream has it)."""
 
 
 class Batches:
@@ -235,7 +244,7 @@ class Batches:
             n = len(self._buf["index"])
             take = min(n - self._offset, need)
             sl = slice(self._offset, self._offset + take)
-            parts.append({k: torch.as_tensor(self._buf[k][sl]) for k in ("image", "labels", "index")})
+            parts.append({k: torch.as_tensor(self._buf[k][sl]) for k in BATCH_KEYS if k in self._buf})
             self._offset += take
             need -= take
             if self._offset == n:
@@ -314,24 +323,37 @@ class ReplayBuffer:
         self.capacity = capacity
         self.images = torch.empty((capacity, *image_shape), dtype=torch.uint8, device=device)
         self.labels = torch.empty((capacity, *grid_shape), dtype=torch.uint8, device=device)
+        self.surface_depth: torch.Tensor | None = None
+        """``(capacity, H, W)`` float32 rendered surface depths, made on the first batch that has them."""
         self.filled = 0
         self.head = 0
         self.generator = torch.Generator().manual_seed(seed)
 
     def add(self, batch: dict[str, torch.Tensor]) -> None:
-        """Insert a batch of host samples (``image``, ``labels`` uint8)."""
+        """Insert a batch of host samples (``image``, ``labels`` uint8; ``surface_depth`` float32 if the stream
+        has it, then in every batch)."""
         n = len(batch["image"])
         slots = (torch.arange(n) + self.head) % self.capacity
         dev = self.images.device
         self.images[slots.to(dev)] = batch["image"].to(dev, non_blocking=True)
         self.labels[slots.to(dev)] = batch["labels"].to(dev, non_blocking=True)
+        depth = batch.get("surface_depth")
+        if depth is not None and self.surface_depth is None and not self.filled:
+            self.surface_depth = torch.empty((self.capacity, *depth.shape[1:]), dtype=torch.float32, device=dev)
+        if (depth is None) != (self.surface_depth is None):
+            raise ValueError("a replay buffer's batches must all have surface_depth or all lack it")
+        if depth is not None:
+            self.surface_depth[slots.to(dev)] = depth.to(dev, torch.float32, non_blocking=True)
         self.head = (self.head + n) % self.capacity
         self.filled = min(self.capacity, self.filled + n)
 
     def draw(self, batch: int) -> dict[str, torch.Tensor]:
         """A batch drawn uniformly (with replacement) from the samples held, on the buffer's device."""
         idx = torch.randint(0, self.filled, (batch,), generator=self.generator).to(self.images.device)
-        return {"image": self.images[idx], "labels": self.labels[idx]}
+        out = {"image": self.images[idx], "labels": self.labels[idx]}
+        if self.surface_depth is not None:
+            out["surface_depth"] = self.surface_depth[idx]
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         """The draw generator's state (the samples themselves are not saved: a resumed run refills the ring)."""

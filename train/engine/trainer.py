@@ -453,7 +453,7 @@ class Trainer:
             weights = torch.from_numpy(class_weights(counts.numpy(), c.loss.class_weight_power)).to(d.device)
         if self.ckpt is not None:
             self._restore(self.ckpt.state)
-        objective = SSZObjective(c.loss, weights, self.shell)
+        objective = SSZObjective(c.loss, weights, self.shell, grid=c.model.grid)
         log = Logbook(self.run_dir, resume_step=step if self.ckpt is not None else None,
                       tensorboard=c.run.tensorboard) if d.main else None
         bar = tqdm(total=c.run.steps, initial=step, disable=not self.progress, unit="step", dynamic_ncols=True)
@@ -481,11 +481,15 @@ class Trainer:
                         self.replay.add(host if host is not None else next(batches))
                     dev_batch = self.replay.draw(per_rank)
                     image, labels = to_device(dev_batch, d.device, self.channels_last)
+                    surface_depth = dev_batch.get("surface_depth")
                 else:
-                    image, labels = to_device(host if host is not None else next(batches), d.device,
-                                              self.channels_last)
+                    host = host if host is not None else next(batches)
+                    image, labels = to_device(host, d.device, self.channels_last)
+                    surface_depth = host.get("surface_depth")
+                    if surface_depth is not None:
+                        surface_depth = surface_depth.to(d.device, non_blocking=True)
                 self._tick(step, "data")
-                terms = self._step(step, image, labels, objective)
+                terms = self._step(step, image, labels, objective, surface_depth)
                 for k, v in terms.items():
                     sums[k] = sums[k] + v if k in sums else v
                 step += 1
@@ -567,15 +571,15 @@ class Trainer:
         distributed.barrier(self.dist)
         return summary
 
-    def _step(self, step: int, image: torch.Tensor, labels: torch.Tensor, objective: SSZObjective
-              ) -> dict[str, torch.Tensor]:
+    def _step(self, step: int, image: torch.Tensor, labels: torch.Tensor, objective: SSZObjective,
+              surface_depth: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         c = self.config
         adv_w = _adversarial_weight(c, step)
         self.opt.zero_grad(set_to_none=True)
         with torch.autocast(self.dist.device.type, dtype=torch.bfloat16, enabled=self.autocast):
             out = self.model(image)
             self._tick(step, "forward")
-            terms = objective(out, labels)
+            terms = objective(out, labels, surface_depth)
             self._tick(step, "loss")
             if adv_w > 0:
                 d_plain = self.discriminator

@@ -249,19 +249,23 @@ class Lift(nn.Module):
         c2d: channels of the image features.
         cout: output channels.
         depth_channels: 0 (plain Z-GAN copy) or 2.
+        fine_channels: R, the sub-slice bins of the fine depth features (0 = none). Their term starts at zero.
     """
 
-    def __init__(self, c3d: int, c2d: int, cout: int, depth_channels: int) -> None:
+    def __init__(self, c3d: int, c2d: int, cout: int, depth_channels: int, fine_channels: int = 0) -> None:
         super().__init__()
         self.depth_channels = depth_channels
         self.from_2d = nn.Conv2d(c2d, cout, 1, bias=False)
         self.from_3d = Pointwise3d(c3d, cout, bias=False) if c3d else None
         self.from_coords = Pointwise3d(3, cout, bias=True)
         self.from_depth = Pointwise3d(depth_channels, cout, bias=False) if depth_channels else None
+        self.from_fine = Pointwise3d(fine_channels, cout, bias=False) if fine_channels else None
+        if self.from_fine is not None:
+            nn.init.zeros_(self.from_fine.weight)
         self.post = act3d()
 
     def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor | None,
-                shape: tuple[int, int, int]) -> torch.Tensor:
+                shape: tuple[int, int, int], fine: torch.Tensor | None = None) -> torch.Tensor:
         """Merge one level.
 
         Args:
@@ -269,6 +273,8 @@ class Lift(nn.Module):
             f2d: ``(B, c2d, H, W)`` image features of this resolution.
             depth: ``(B, depth_channels, D, H, W)`` depth features, or None when ``depth_channels`` is 0.
             shape: ``(D, H, W)`` of this level.
+            fine: ``(B, fine_channels, D, H, W)`` sub-slice depth features
+                (:meth:`~.generator.SSZGenerator.fine_features`), or None.
 
         Returns:
             ``(B, cout, D, H, W)``, in ``x3d``'s memory format.
@@ -283,6 +289,8 @@ class Lift(nn.Module):
             y = y.expand(f2d.shape[0], -1, -1, -1, -1)
         if self.from_depth is not None and depth is not None:
             y = y + self.from_depth(depth.to(y.dtype))
+        if self.from_fine is not None and fine is not None:
+            y = y + self.from_fine(fine.to(y.dtype))
         return self.post(y)
 
 

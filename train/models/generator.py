@@ -71,6 +71,10 @@ class SSZOutput:
     ``lift="copy"``."""
     surface_logits: torch.Tensor
     """``(B, C, H, W)`` float32 logits of each column's first-surface class (0 = no surface)."""
+    fine_logits: torch.Tensor | None = None
+    """``(B, D * R + 1, H, W)`` float32 logits of each column's first-surface depth in sub-slice bins (``R`` =
+    ``fine_depth`` bins per slice, bin ``k * R + r`` is the r-th of slice k; the last = no surface), or None
+    without ``fine_depth``."""
 
 
 class SSZGenerator(nn.Module):
@@ -105,6 +109,7 @@ class SSZGenerator(nn.Module):
         first_hit_label: in eval mode, then :func:`first_hit_label`.
         flip_average: in eval mode, average the network's outputs on the image and on its mirror image (mirrored
             back) before the rules.
+        fine_depth: R, sub-slice bins of the fine depth head (0 = none; needs ``lift="depth"``).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -117,7 +122,7 @@ class SSZGenerator(nn.Module):
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
                  fill_threshold: float = FILL_SURFACE_PROBABILITY, first_hit_label: bool = False,
-                 flip_average: bool = False, checkpointing: bool = False) -> None:
+                 flip_average: bool = False, fine_depth: int = 0, checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -125,7 +130,8 @@ class SSZGenerator(nn.Module):
                 raise ValueError(f"{name} needs one entry per level ({levels}), got {len(seq)}")
         if lift not in ("depth", "copy"):
             raise ValueError(f"lift must be 'depth' or 'copy', got {lift!r}")
-        for name, on in (("surface_fusion", surface_fusion), ("fill_columns", fill_columns)):
+        for name, on in (("surface_fusion", surface_fusion), ("fill_columns", fill_columns),
+                         ("fine_depth", fine_depth)):
             if on and lift != "depth":
                 raise ValueError(f"{name} needs lift='depth' (the column depth head)")
         if not 0.0 < fill_threshold <= 1.0:
@@ -199,12 +205,21 @@ class SSZGenerator(nn.Module):
             for s in range(levels))
         self.depth_head = nn.Conv2d(topdown[0], d + 1, 1) if lift == "depth" else None
         self.surface_head = nn.Conv2d(topdown[0], classes, 1)
+        # The fine depth head places each column's first surface within a slice (R bins per slice): a board
+        # thinner than a slice holds a cell centre or not depending on that, which the slice distribution above
+        # cannot say. Its R per-cell probabilities reach the full-resolution level's Lift, whose term for them starts
+        # at zero so that weights trained without it (``run.init``) start as the model they were.
+        self.fine_depth = int(fine_depth)
+        if self.fine_depth < 0:
+            raise ValueError(f"fine_depth must be >= 0, got {fine_depth}")
+        self.fine_head = nn.Conv2d(topdown[0], d * self.fine_depth + 1, 1) if self.fine_depth else None
 
         depth_channels = 2 if lift == "depth" else 0
         db = d // f
         self.bottom_lift = nn.Conv2d(topdown[-1], decoder[-1] * db, 1)
         self.lifts = nn.ModuleList(
-            Lift(decoder[s], topdown[s], decoder[s], depth_channels) for s in range(levels))
+            Lift(decoder[s], topdown[s], decoder[s], depth_channels, fine_channels=self.fine_depth if s == 0 else 0)
+            for s in range(levels))
         self.ups = nn.ModuleList(Up3d(decoder[s + 1], decoder[s], upsample, group_width) for s in range(levels - 1))
         self.blocks = nn.ModuleList(
             nn.Sequential(*[InvertedResidual3d(decoder[s], expand, group_width, spatial=s > 0 or full_res_spatial)
@@ -259,6 +274,20 @@ class SSZGenerator(nn.Module):
             out.append(torch.cat([ps, torch.cumsum(ps, dim=2).clamp_(max=1.0)], dim=1))
         return out
 
+    @staticmethod
+    def fine_features(fine_logits: torch.Tensor, bins: int) -> torch.Tensor:
+        """``(B, R, D, H, W)`` float32: the probability that the column's first surface lies in sub-slice bin r of
+        each cell (R = ``bins``; summed over r, the slice's share of the column's surface).
+
+        Args:
+            fine_logits: ``(B, D * R + 1, H, W)``; the last bin (no surface) is dropped after the softmax.
+            bins: R, bins per slice.
+        """
+        p = torch.softmax(fine_logits.float(), dim=1)[:, :-1]
+        b, n, h, w = p.shape
+        # Contiguous: the Lift's pointwise product then runs as one batched matrix product (Pointwise3d).
+        return p.reshape(b, n // bins, bins, h, w).transpose(1, 2).contiguous()
+
     def _run(self, module: nn.Module, *args: torch.Tensor) -> torch.Tensor:
         if self.checkpointing and self.training and torch.is_grad_enabled():
             return checkpoint(module, *args, use_reentrant=False)
@@ -279,15 +308,16 @@ class SSZGenerator(nn.Module):
             # averaged (SPEC section 1: cx = W / 2, so pixel column x and grid column W - 1 - x mirror each other
             # exactly).
             a, m = self._mirror_passes(image, batched=image.device.type != "cpu")
-            logits, depth_logits, surface_logits = (
+            logits, depth_logits, surface_logits, fine_logits = (
                 None if x is None else (x + y.flip(-1)) * 0.5 for x, y in zip(a, m, strict=True))
         else:
-            logits, depth_logits, surface_logits = self._predict(image)
+            logits, depth_logits, surface_logits, fine_logits = self._predict(image)
         if not self.training:
             ruled = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
                                     fill_threshold=self.fill_threshold)
             logits = first_hit_label(ruled, logits) if self.first_hit_label else ruled
-        return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
+        return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits,
+                         fine_logits=fine_logits)
 
     def _mirror_passes(self, image: torch.Tensor, *, batched: bool) -> tuple[tuple, tuple]:
         """:meth:`_predict` of the image and of its mirror image (W reversed): as one batch, or (``batched``
@@ -300,29 +330,32 @@ class SSZGenerator(nn.Module):
         both = self._predict(torch.cat([image, image.flip(-1)]))
         return tuple(x if x is None else x[:b] for x in both), tuple(x if x is None else x[b:] for x in both)
 
-    def _predict(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        """The network alone, no inference rule: ``(logits, depth_logits, surface_logits)`` of
+    def _predict(self, image: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor | None]:
+        """The network alone, no inference rule: ``(logits, depth_logits, surface_logits, fine_logits)`` of
         :class:`SSZOutput`."""
         t = self.encode(image)
         d, h, w = self.grid_shape
         depth_logits = self.depth_head(t[0]).float() if self.depth_head is not None else None
         surface_logits = self.surface_head(t[0]).float()
         depth = self.depth_features(depth_logits, self.levels) if depth_logits is not None else [None] * self.levels
+        fine_logits = self.fine_head(t[0]).float() if self.fine_head is not None else None
+        fine = self.fine_features(fine_logits, self.fine_depth) if fine_logits is not None else None
         shapes = [(d >> s, h >> s, w >> s) for s in range(self.levels)]
         b = image.shape[0]
         bottom = self.bottom_lift(t[-1])
         ds, hs, ws = shapes[-1]
         x = bottom.reshape(b, -1, ds, hs, ws)
-        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1])
+        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1], fine if self.levels == 1 else None)
         x = self._run(self.blocks[-1], x)
         for s in range(self.levels - 2, -1, -1):
             x = self.ups[s](x)
-            x = self.lifts[s](x, t[s], depth[s], shapes[s])
+            x = self.lifts[s](x, t[s], depth[s], shapes[s], fine if s == 0 else None)
             x = self._run(self.blocks[s], x)
         logits = self.head(x)
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
-        return logits, depth_logits, surface_logits
+        return logits, depth_logits, surface_logits, fine_logits
 
 
 def first_hit_log_probs(logits: torch.Tensor, empty_offset: float = 0.0) -> torch.Tensor:
