@@ -9,7 +9,8 @@ IMAGE is any PNG, JPEG or other image Pillow reads, of any size. Each is mapped 
 (:func:`fruxel.train.predict.prepare_image`): with ``--hfov`` (the photo's horizontal field of view) it is cropped
 or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the grid's view
 and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then it is
-resized to the model's image size. The model (``--checkpoint``: a shipped
+resized to the model's image size. Grid columns whose centre ray falls on grey padding are left empty: the photo
+says nothing of them. The model (``--checkpoint``: a shipped
 ``.safetensors`` file or a training checkpoint ``.pt``; default the model shipped with fruxel) predicts the images
 in batches of ``--batch``.
 
@@ -133,23 +134,33 @@ def _main(args: argparse.Namespace) -> int:
                          f"give a folder")
     targets = output_names(args.images, args.out, args.logits)
 
-    from fruxel.train.predict import ImageError, load_image, load_predictor, prepare_image
+    from fruxel.train.predict import (
+        ImageError,
+        empty_uncovered,
+        frame_coverage,
+        load_image,
+        load_predictor,
+        prepare_image,
+    )
 
     predictor = load_predictor(args.checkpoint, device=str(torch_device(args.device)), batch=args.batch,
                                compile=args.compile)
     config = predictor.config
     # Every image is read and checked before the model runs; what is kept is its small model-sized version.
-    prepared = []
+    prepared, coverage = [], []
+    grid, classes = config.grid, config.classes
     for path in _progress(args.images, len(args.images), "read", args.quiet):
         try:
-            prepared.append(prepare_image(load_image(path), config, hfov=args.hfov, fit=args.fit))
+            image = load_image(path)
+            prepared.append(prepare_image(image, config, hfov=args.hfov, fit=args.fit))
         except ImageError:
             raise
         except ValueError as e:
             raise ImageError(f"{path}: {e}") from None
-    grid, classes = config.grid, config.classes
+        coverage.append(frame_coverage(image.shape, grid, args.hfov, args.fit))
     predictions = _progress(predictor.predict(prepared), len(prepared), "predict", args.quiet)
-    for logits, files in zip(predictions, targets, strict=True):
+    for logits, covered, files in zip(predictions, coverage, targets, strict=True):
+        logits = empty_uncovered(logits, covered)
         written = write_outputs(_writers(logits.cpu().numpy(), grid, classes, files))
         if not args.quiet:
             for p in written:

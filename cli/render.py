@@ -421,6 +421,8 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
     from fruxel.render.frames import RenderInput
     from fruxel.train.predict import (
         default_model,
+        empty_uncovered,
+        frame_coverage,
         frame_image,
         load_image,
         load_predictor,
@@ -457,6 +459,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
 
         torch.cuda.synchronize(predictor.device)  # the time is the prediction's, not its launch's
     ms = 1000.0 * (time.perf_counter() - t0)
+    logits = empty_uncovered(logits, frame_coverage(image.shape, grid, args.hfov, fit))
     height = round(PHOTO_DISPLAY * grid.height / grid.width)
     framed = frame_image(image, grid, (height, PHOTO_DISPLAY), args.hfov, fit)
     hfov = args.hfov if args.hfov is not None else grid.hfov

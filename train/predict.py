@@ -11,6 +11,10 @@ optical centre (the photo's centre):
   (``fit="crop"``, default) or pad (``fit="pad"``) rows or columns, centred;
 * then it is resized to the model's image size (area averaging when shrinking).
 
+Grid columns whose centre ray falls on the padding rather than on the photo (:func:`frame_coverage`) are left
+empty in the prediction (:func:`empty_uncovered`): the model sees grey there, and what it makes of it is not in
+the photo.
+
 Images are ``(h, w, 3)`` uint8 RGB arrays (rows down, columns right) until :func:`to_tensor`.
 """
 
@@ -99,6 +103,24 @@ def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: 
     if hfov is not None and not (math.isfinite(hfov) and 0.0 < hfov < 180.0):
         raise ValueError(f"--hfov must be in (0, 180) degrees, got {hfov!r}")
     h, w = img.shape[:2]
+    rows, cols, sy, sx, dy, dx, ch, cw = _frame(h, w, grid, hfov, fit)
+    out_h, out_w = size
+    part = Image.fromarray(np.ascontiguousarray(img[sy:sy + ch, sx:sx + cw]))
+    resample = Image.BOX if rows >= out_h else Image.BILINEAR
+    if (ch, cw) == (rows, cols):
+        return np.asarray(part.resize((out_w, out_h), resample), dtype=np.uint8)
+    out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
+    # Where the part lands, at least one pixel (a photo narrower than one output pixel still shows), centred.
+    (y0, y1), (x0, x1) = (_span(d, c, n, m) for d, c, n, m in ((dy, ch, rows, out_h), (dx, cw, cols, out_w)))
+    out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
+    return out
+
+
+def _frame(h: int, w: int, grid: FruxelGrid, hfov: float | None, fit: str
+           ) -> tuple[int, int, int, int, int, int, int, int]:
+    """Where an ``h x w`` photo lies in the grid's view (:func:`frame_image`): the frame's ``rows, cols`` in photo
+    pixels; the first photo row and column inside it ``sy, sx``; where they land in the frame ``dy, dx``; and the
+    size of the photo's part inside it ``ch, cw``."""
     # Pixels per unit of x/z of the photo; the grid's view spans u in [-tu, tu].
     f = w / (2.0 * math.tan(math.radians(hfov if hfov is not None else grid.hfov) / 2.0))
     cols = max(1, round(2.0 * grid.tu * f))
@@ -111,17 +133,52 @@ def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: 
     # The frame (rows x cols photo pixels) centred on the photo: the photo's part inside it, and where it lands.
     sy, sx = max(0, (h - rows) // 2), max(0, (w - cols) // 2)
     dy, dx = max(0, (rows - h) // 2), max(0, (cols - w) // 2)
-    ch, cw = min(h, rows), min(w, cols)
-    out_h, out_w = size
-    part = Image.fromarray(np.ascontiguousarray(img[sy:sy + ch, sx:sx + cw]))
-    resample = Image.BOX if rows >= out_h else Image.BILINEAR
-    if (ch, cw) == (rows, cols):
-        return np.asarray(part.resize((out_w, out_h), resample), dtype=np.uint8)
-    out = np.full((out_h, out_w, 3), PAD_VALUE, dtype=np.uint8)
-    # Where the part lands, at least one pixel (a photo narrower than one output pixel still shows), centred.
-    (y0, y1), (x0, x1) = (_span(d, c, n, m) for d, c, n, m in ((dy, ch, rows, out_h), (dx, cw, cols, out_w)))
-    out[y0:y1, x0:x1] = np.asarray(part.resize((x1 - x0, y1 - y0), resample), dtype=np.uint8)
-    return out
+    return rows, cols, sy, sx, dy, dx, min(h, rows), min(w, cols)
+
+
+def frame_coverage(shape: tuple[int, ...], grid: FruxelGrid, hfov: float | None = None, fit: str = "crop"
+                   ) -> np.ndarray:
+    """Which grid columns the photo covers once framed (:func:`frame_image`): those whose centre ray passes
+    through the photo rather than through the grey padding around it.
+
+    Args:
+        shape: the photo's ``(h, w, ...)``.
+        grid: the grid.
+        hfov, fit: as :func:`frame_image` takes them.
+
+    Returns:
+        ``(H, W)`` bool, grid frame (row j down, column i right); all True when nothing is padded.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    rows, cols, _, _, dy, dx, ch, cw = _frame(h, w, grid, hfov, fit)
+    y = (np.arange(grid.height) + 0.5) * rows / grid.height  # each column's centre ray, frame pixels
+    x = (np.arange(grid.width) + 0.5) * cols / grid.width
+    return ((y >= dy) & (y < dy + ch))[:, None] & ((x >= dx) & (x < dx + cw))[None, :]
+
+
+UNCOVERED_LOGIT = -1.0e4
+"""The occupied classes' logit in a column the photo does not cover (:func:`empty_uncovered`): far below any the
+network gives, within float16's range (stored logits are float16)."""
+
+
+def empty_uncovered(logits: torch.Tensor, coverage: np.ndarray) -> torch.Tensor:
+    """Leave the columns the photo does not cover empty (in place): their occupied classes' logits become
+    :data:`UNCOVERED_LOGIT` and the empty class's 0. The model sees grey there, and what it makes of grey (a
+    floor going on, a cabinet) is not in the photo.
+
+    Args:
+        logits: ``(..., C, D, H, W)`` float logits, channel 0 = empty, grid frame.
+        coverage: ``(H, W)`` bool of :func:`frame_coverage`.
+
+    Returns:
+        ``logits``.
+    """
+    if coverage.all():
+        return logits
+    gone = torch.from_numpy(~np.asarray(coverage, dtype=bool)).to(logits.device)
+    logits[..., 1:, :, gone] = UNCOVERED_LOGIT
+    logits[..., 0, :, gone] = 0.0
+    return logits
 
 
 def _span(offset: int, length: int, frame: int, size: int) -> tuple[int, int]:

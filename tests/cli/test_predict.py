@@ -101,7 +101,13 @@ def test_both_model_file_forms_predict_the_same(shipped_model: Path, checkpoint_
     a, b = (fruxel.load_logits(tmp_path / n / "odd.logits.npz") for n in "ab")
     np.testing.assert_array_equal(a.logits, b.logits)
     want = expected_logits(checkpoint_model, jpg, fit="pad", hfov=40.0)
-    np.testing.assert_allclose(a.logits.astype(np.float32), want, rtol=2e-3, atol=2e-2)
+    # A 40-degree photo in the 60-degree grid: the columns around it see grey and are left empty.
+    from fruxel.train.predict import frame_coverage
+
+    covered = frame_coverage((61, 97), a.grid, 40.0, "pad")
+    assert covered.any() and not covered.all()
+    np.testing.assert_allclose(a.logits.astype(np.float32)[..., covered], want[..., covered], rtol=2e-3, atol=2e-2)
+    assert (a.labels()[:, ~covered] == 0).all()
 
 
 def test_batches_give_the_predictions_of_single_images(shipped_model: Path, tmp_path: Path) -> None:
@@ -271,3 +277,22 @@ def test_cuda_device_on_a_machine_without_one(shipped_model: Path, tmp_path: Pat
     assert predict_cli.main([str(img), "--checkpoint", str(shipped_model), "--device", "cuda:0",
                              "--out", str(tmp_path / "o")]) == 2
     assert "--device cuda:0: no CUDA device here" in error_line(capsys)
+
+
+def test_columns_of_the_padding_are_left_empty(shipped_model: Path, tmp_path: Path) -> None:
+    """A wide photo padded to the grid's aspect (grey above and below): the rows of columns whose centre rays fall
+    on the grey hold nothing; the rest are the model's own answer."""
+    from fruxel.train.predict import frame_coverage
+
+    image = photo(tmp_path / "wide.png", 200, 80)
+    out = tmp_path / "out"
+    assert predict_cli.main([str(image), "--checkpoint", str(shipped_model), "--out", str(out), "--fit", "pad",
+                             "-q"]) == 0
+    model = fruxel.load(out / "wide.npz")
+    covered = frame_coverage((80, 200), model.grid, None, "pad")
+    assert covered.any() and not covered.all() and not covered[0].any() and covered[model.grid.height // 2].all()
+    assert not model.labels[:, ~covered].any()
+    want = expected_logits(shipped_model, image, fit="pad").argmax(0)
+    # The stored labels are the argmax of float16 logits: a near tie may fall the other way.
+    assert ((model.labels[:, covered] != 0) != (want[:, covered] != 0)).mean() < 0.005
+    assert want[:, ~covered].any(), "the model fills the padding when left to itself: the test would pass vacuously"

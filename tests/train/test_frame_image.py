@@ -89,3 +89,44 @@ def test_given_field_of_view_keeps_the_geometry_whatever_the_fit(fit: str) -> No
     assert rows.min() == 8 and rows.max() == 55
     assert np.all(outs[1][:8] == PAD_VALUE) and np.all(outs[1][56:] == PAD_VALUE)
     assert np.abs(outs[0] - outs[1]).mean() < 2.0 and np.abs(outs[1] - outs[2]).mean() < 2.0
+
+
+@pytest.mark.parametrize(("h", "w", "hfov", "fit"), [
+    (300, 300, None, "crop"), (120, 240, None, "pad"), (240, 120, None, "pad"), (120, 240, None, "crop"),
+    (200, 200, 40.0, "crop"), (90, 300, 45.0, "crop"), (300, 300, 90.0, "crop")])
+def test_coverage_is_where_the_framed_photo_is_not_padding(h: int, w: int, hfov: float | None, fit: str) -> None:
+    """Each grid column is covered exactly when the framed image at its centre ray shows the photo, not the grey:
+    the framed image is made at 4 x 4 pixels a column, so the column's centre is a pixel corner whose four pixels
+    all lie on one side of a padding edge that falls on a column boundary or between."""
+    from fruxel.train.predict import frame_coverage
+
+    photo = np.full((h, w, 3), 255 - PAD_VALUE if PAD_VALUE < 128 else 0, np.uint8)
+    framed = frame_image(photo, GRID, (GRID.height * 4, GRID.width * 4), hfov, fit)
+    grey = (framed == PAD_VALUE).all(-1)
+    centre = grey[1::4, 1::4] & grey[2::4, 2::4] & grey[1::4, 2::4] & grey[2::4, 1::4]
+    photo_there = ~grey[1::4, 1::4] & ~grey[2::4, 2::4] & ~grey[1::4, 2::4] & ~grey[2::4, 1::4]
+    covered = frame_coverage(photo.shape, GRID, hfov, fit)
+    assert covered.shape == (GRID.height, GRID.width)
+    assert not (covered & centre).any() and not (~covered & photo_there).any()
+    padded = hfov == 40.0 or (fit == "pad" and h != w) or (hfov == 45.0)
+    assert covered.all() != padded
+
+
+def test_uncovered_columns_are_left_empty() -> None:
+    import torch
+
+    from fruxel.train.predict import empty_uncovered
+
+    torch.manual_seed(0)
+    logits = torch.randn(2, 7, 8, 4, 5).half()
+    before = logits.clone()
+    covered = np.ones((4, 5), bool)
+    covered[0] = covered[:, 4] = False
+    out = empty_uncovered(logits, covered)
+    assert out is logits
+    mask = torch.from_numpy(covered)
+    labels = out.float().argmax(-4)
+    assert (labels[..., ~mask] == 0).all()
+    torch.testing.assert_close(out[..., mask], before[..., mask])
+    assert torch.isfinite(out).all()
+    assert empty_uncovered(before.clone(), np.ones((4, 5), bool)).equal(before)
