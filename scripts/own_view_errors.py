@@ -10,7 +10,9 @@ prints the share of errors in near-uniform images (pixel standard deviation belo
 the camera close to a plain surface). Last, for the pixels whose first solid is thinner than a slice, it compares
 the model with an idealised reader that knows everything but the solid's depth, which it knows to a Gaussian error
 of each ``--sigmas`` (``depth_reader_accuracy``): how well the network would have to read depth to keep more thin
-boards right, and the own view that would give with the model's answers elsewhere. Runs on the CPU.
+boards right, and the own view that would give with the model's answers elsewhere. For a model with the fine depth
+head (``model.fine_depth``), it also prints how far that head's depth is from the cast one, on the thin solids and on
+every column that sees a surface in range. Runs on the CPU.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ def _main(args: argparse.Namespace) -> None:
         JoinedMeshes,
         OwnViewBreakdown,
         depth_reader_accuracy,
+        fine_depth_estimate,
         label_behind,
         plot_depth_readers,
         surface_extent,
@@ -76,11 +79,14 @@ def _main(args: argparse.Namespace) -> None:
     total, uniform = OwnViewBreakdown(), OwnViewBreakdown()
     n_uniform = index = 0
     thin: dict[str, list[np.ndarray]] = {"depth": [], "extent": [], "kept": [], "dropped": [], "ok": []}
+    fine_errors: dict[str, list[np.ndarray]] = {"thin": [], "all": []}
     room, meshes = None, None
     try:
         with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
             for image, labels in batches(data, config, args.split, count, args.batch):
-                pred = first_surface(generator(image.permute(0, 3, 1, 2).float() / 255).logits.argmax(1)).numpy()
+                out = generator(image.permute(0, 3, 1, 2).float() / 255)
+                pred = first_surface(out.logits.argmax(1)).numpy()
+                fine = None if out.fine_logits is None else fine_depth_estimate(out.fine_logits.numpy(), grid)
                 truth = first_surface(labels.long()).numpy()
                 spread = image.float().std(dim=(1, 2)).mean(dim=1).numpy()  # (B,): per channel, then averaged
                 for b in range(len(labels)):
@@ -95,6 +101,12 @@ def _main(args: argparse.Namespace) -> None:
                     for key, v in (("depth", seen[1]), ("extent", extent), ("kept", truth[b] == seen[0]),
                                    ("dropped", truth[b] == behind), ("ok", pred[b] == truth[b])):
                         thin[key].append(v[m])
+                    if fine is not None:
+                        in_range = (seen[1] >= grid.z_near) & (seen[1] <= grid.z_far)
+                        with np.errstate(invalid="ignore"):  # inf - inf where neither sees a surface
+                            error = np.abs(fine[b] - seen[1])
+                        fine_errors["thin"].append(error[m])
+                        fine_errors["all"].append(error[in_range])
                     if spread[b] < args.uniform:
                         uniform.add(pred[b], truth[b], *seen, grid, extent)
                         n_uniform += 1
@@ -130,6 +142,18 @@ def _main(args: argparse.Namespace) -> None:
             own = s["accuracy"] + 100.0 * (acc * n_thin - model_ok) / s["pixels"]
             readers.append({"sigma": sigma, "thin_accuracy": 100.0 * acc, "own_view": own})
             print(f"| {sigma:g} | {100.0 * acc:.2f} | {own:.2f} |")
+    fine_summary = {}
+    if fine_errors["all"]:
+        print("fine depth head against the cast depth:\n| columns | count | median error cm | within 1 cm % | "
+              "within 2 cm % | within 3 cm % |\n| --- | ---: | ---: | ---: | ---: | ---: |")
+        for key, label in (("thin", "first solid thinner than a slice"), ("all", "every surface in range")):
+            e = np.concatenate(fine_errors[key]) if fine_errors[key] else np.zeros(0)
+            row = {"count": int(e.size), "median_cm": 100.0 * float(np.median(e)) if e.size else None,
+                   **{f"within_{c}cm": 100.0 * float((e < c / 100).mean()) if e.size else None for c in (1, 2, 3)}}
+            fine_summary[key] = row
+            if e.size:
+                print(f"| {label} | {e.size} | {row['median_cm']:.2f} | {row['within_1cm']:.1f} | "
+                      f"{row['within_2cm']:.1f} | {row['within_3cm']:.1f} |")
     if args.png and readers:
         plot_depth_readers(readers, s["accuracy"], args.png,
                            title=f"{count} samples of {args.data} ({args.split}): who would get thin solids right")
@@ -137,6 +161,7 @@ def _main(args: argparse.Namespace) -> None:
     if args.json:
         out = {"model": args.model, "data": args.data, "split": args.split, "samples": count, **s,
                "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost},
+               "fine_depth": fine_summary,
                "thin": {"pixels": n_thin, "share": 100.0 * n_thin / s["pixels"],
                         "kept": 100.0 * float(t["kept"].mean()) if n_thin else None,
                         "behind": 100.0 * float(t["dropped"].mean()) if n_thin else None,

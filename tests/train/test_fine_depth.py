@@ -209,3 +209,22 @@ def test_training_with_the_streamed_simulator_learns_the_fine_head(tmp_path: Pat
     assert len(values) == 30 and all(math.isfinite(v) for v in values)
     # From about log(16 * 4 + 1) = 4.2 down: the head learns from the rendered depth.
     assert values[0] > 3.0 and np.mean(values[-5:]) < values[0] - 0.25
+
+
+def test_fine_depth_estimate_reads_the_heads_most_likely_place() -> None:
+    from fruxel.train.eval.own_view import fine_depth_estimate
+
+    r = 4
+    logits = np.full((2, GRID.depth * r + 1, 3, 3), -30.0)
+    logits[0, 9] = 10.0  # slice 2, sub-bin 1: one bin only
+    logits[1, 9] = logits[1, 10] = 10.0  # two neighbours equally likely: between their centres
+    logits[1, -1, 0, 0] = 20.0  # column (0, 0) of sample 1: no surface
+    logits[1, 40, 1, 1] = 10.5  # a far bin slightly likelier than the pair: read there, the pair is too far off
+    z = fine_depth_estimate(logits, GRID)
+    bin_centre = GRID.z_near + (np.arange(GRID.depth * r) + 0.5) * GRID.dz / r
+    np.testing.assert_allclose(z[0], bin_centre[9])
+    np.testing.assert_allclose(z[1, 2, 2], (bin_centre[9] + bin_centre[10]) / 2)
+    assert math.isinf(z[1, 0, 0])
+    np.testing.assert_allclose(z[1, 1, 1], bin_centre[40], rtol=1e-6)
+    with pytest.raises(ValueError, match="fine_logits need"):
+        fine_depth_estimate(logits[:, :-2], GRID)

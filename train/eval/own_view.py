@@ -308,6 +308,32 @@ def depth_reader_accuracy(depth: np.ndarray, extent: np.ndarray, right_if_kept: 
     return right / draws
 
 
+def fine_depth_estimate(fine_logits: np.ndarray, grid: FruxelGrid) -> np.ndarray:
+    """Each column's first-surface depth as the fine depth head reads it (``model.fine_depth``): the mean of the
+    bins' centres within one slice of its most likely bin, weighted by their probabilities.
+
+    Args:
+        fine_logits: ``(..., D * R + 1, H, W)`` float logits of the head (last bin: no surface).
+        grid: the model's grid (D, z_near, slice thickness).
+
+    Returns:
+        ``(..., H, W)`` float64 camera-frame depths, metres; ``inf`` where "no surface" is the most likely bin.
+    """
+    logits = np.asarray(fine_logits, dtype=np.float64)
+    n = logits.shape[-3] - 1
+    bins = n // grid.depth
+    if bins < 1 or n != bins * grid.depth:
+        raise ValueError(f"fine_logits need D * R + 1 channels for D = {grid.depth}, got {n + 1}")
+    p = np.exp(logits - logits.max(axis=-3, keepdims=True))
+    p /= p.sum(axis=-3, keepdims=True)
+    best = p.argmax(axis=-3)
+    idx = np.arange(n).reshape(n, 1, 1)
+    near = np.where(np.abs(idx - np.expand_dims(best, -3)) <= bins, p[..., :n, :, :], 0.0)
+    centres = (grid.z_near + (np.arange(n) + 0.5) * grid.dz / bins).reshape(n, 1, 1)
+    z = (near * centres).sum(axis=-3) / np.maximum(near.sum(axis=-3), 1e-12)
+    return np.where(best == n, np.inf, z)
+
+
 def plot_depth_readers(readers: Sequence[dict[str, float]], model_own: float, path: str, *, target: float = 97.0,
                        title: str = "") -> None:
     """Write a PNG of the own view that readers of thin solids with each depth error would give (the model's answers
