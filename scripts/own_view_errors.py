@@ -96,13 +96,13 @@ def _main(args: argparse.Namespace) -> None:
                     seen = visible_surface(meshes, grid, pose)
                     extent = surface_extent(meshes, grid, pose, seen[1])
                     total.add(pred[b], truth[b], *seen, grid, extent)
-                    m = (truth[b] != 0) & (seen[1] >= grid.z_near) & (seen[1] <= grid.z_far) & (extent < grid.dz)
+                    in_range = (seen[1] >= grid.z_near) & (seen[1] <= grid.z_far)
+                    m = (truth[b] != 0) & in_range & (extent < grid.dz)
                     behind = label_behind(meshes, grid, pose, seen[1], np.where(m, extent, np.inf))
                     for key, v in (("depth", seen[1]), ("extent", extent), ("kept", truth[b] == seen[0]),
                                    ("dropped", truth[b] == behind), ("ok", pred[b] == truth[b])):
                         thin[key].append(v[m])
                     if fine is not None:
-                        in_range = (seen[1] >= grid.z_near) & (seen[1] <= grid.z_far)
                         with np.errstate(invalid="ignore"):  # inf - inf where neither sees a surface
                             error = np.abs(fine[b] - seen[1])
                         fine_errors["thin"].append(error[m])
