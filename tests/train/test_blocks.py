@@ -405,6 +405,10 @@ def test_flip_average_averages_the_image_and_its_mirror_before_the_rules() -> No
         torch.testing.assert_close(out.surface_logits, (a.surface_logits + m.surface_logits.flip(-1)) / 2)
         want = first_hit_label(inference_rules(raw, depth, empty_offset=0.5, fill=True, fill_threshold=0.9), raw)
         torch.testing.assert_close(out.logits, want)
+        # rules=False stops before the rules (the averaged network logits) and apply_rules adds them back.
+        unruled = flipped(image, rules=False)
+        torch.testing.assert_close(unruled.logits, raw)
+        torch.testing.assert_close(flipped.apply_rules(unruled.logits, unruled.depth_logits), out.logits)
         assert not torch.allclose(out.logits, ruled(image).logits, atol=1e-3)  # the mirror does change the answer
         # The average is mirror-symmetric: the mirror image's prediction is the prediction mirrored.
         torch.testing.assert_close(flipped(image.flip(-1)).logits, out.logits.flip(-1))

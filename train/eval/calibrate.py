@@ -58,12 +58,11 @@ def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tens
 
     ts = [float(t) for t in thresholds] if fill else [generator.fill_threshold]
     accs = {(float(o), t): Accumulator(classes) for o in offsets for t in ts}
-    rules = (generator.training, generator.empty_offset, generator.fill_columns, generator.first_hit_label)
+    training = generator.training
     generator.eval()
-    generator.empty_offset, generator.fill_columns, generator.first_hit_label = 0.0, False, False
     try:
         for image, labels in batches:
-            out = generator(image.to(device))
+            out = generator(image.to(device), rules=False)
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
             best = first_hit_classes(logits) if first_hit else None
@@ -77,8 +76,7 @@ def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tens
                 if cams:
                     count_views(acc, pred, target, grid, cams, backend, truth_hits)
     finally:
-        generator.train(rules[0])
-        generator.empty_offset, generator.fill_columns, generator.first_hit_label = rules[1:]
+        generator.train(training)
     return accs
 
 

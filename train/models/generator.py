@@ -294,11 +294,13 @@ class SSZGenerator(nn.Module):
         return module(*args)
 
     # ------------------------------------------------------------------ forward
-    def forward(self, image: torch.Tensor) -> SSZOutput:
+    def forward(self, image: torch.Tensor, *, rules: bool = True) -> SSZOutput:
         """Predict a batch.
 
         Args:
             image: ``(B, 3, H * 2^k, W * 2^k)`` float RGB in [0, 1] (the grid's own camera, scaled).
+            rules: in eval mode, apply the inference rules (:meth:`apply_rules`); False gives the network's logits
+                (mirror averaged with ``flip_average``) for a caller that applies them itself.
 
         Returns:
             :class:`SSZOutput`.
@@ -312,12 +314,25 @@ class SSZGenerator(nn.Module):
                 None if x is None else (x + y.flip(-1)) * 0.5 for x, y in zip(a, m, strict=True))
         else:
             logits, depth_logits, surface_logits, fine_logits = self._predict(image)
-        if not self.training:
-            ruled = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
-                                    fill_threshold=self.fill_threshold)
-            logits = first_hit_label(ruled, logits) if self.first_hit_label else ruled
+        if not self.training and rules:
+            logits = self.apply_rules(logits, depth_logits)
         return SSZOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits,
                          fine_logits=fine_logits)
+
+    def apply_rules(self, logits: torch.Tensor, depth_logits: torch.Tensor | None) -> torch.Tensor:
+        """This model's eval-mode inference rules on the network's logits: :func:`inference_rules` with its
+        ``empty_offset``, ``fill_columns`` and ``fill_threshold``, then :func:`first_hit_label` if it is on.
+
+        Args:
+            logits: ``(B, C, D, H, W)`` class logits before the rules (``forward(image, rules=False)``).
+            depth_logits: ``(B, D + 1, H, W)`` column depth logits (needed with ``fill_columns``).
+
+        Returns:
+            ``(B, C, D, H, W)`` logits, ``logits``' dtype.
+        """
+        ruled = inference_rules(logits, depth_logits, empty_offset=self.empty_offset, fill=self.fill_columns,
+                                fill_threshold=self.fill_threshold)
+        return first_hit_label(ruled, logits) if self.first_hit_label else ruled
 
     def _mirror_passes(self, image: torch.Tensor, *, batched: bool) -> tuple[tuple, tuple]:
         """:meth:`_predict` of the image and of its mirror image (W reversed): as one batch, or (``batched``
