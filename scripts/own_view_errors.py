@@ -12,7 +12,9 @@ the model with an idealised reader that knows everything but the solid's depth, 
 of each ``--sigmas`` (``depth_reader_accuracy``): how well the network would have to read depth to keep more thin
 boards right, and the own view that would give with the model's answers elsewhere. For a model with the fine depth
 head (``model.fine_depth``), it also prints how far that head's depth is from the cast one, on the thin solids and on
-every column that sees a surface in range. Runs on the CPU.
+every column that sees a surface in range. And it splits the errors into columns the prediction leaves empty and
+columns whose first occupied cell has the wrong class, with the own view that other sources of that class would give
+(``first_label_sources``: the raw volume's most likely first hit, the surface head, both). Runs on the CPU.
 """
 
 from __future__ import annotations
@@ -53,10 +55,12 @@ def _main(args: argparse.Namespace) -> None:
     from fruxel.train.eval.metrics import first_surface
     from fruxel.train.eval.own_view import (
         CATEGORIES,
+        LABEL_SOURCES,
         JoinedMeshes,
         OwnViewBreakdown,
         depth_reader_accuracy,
         fine_depth_estimate,
+        first_label_sources,
         label_behind,
         plot_depth_readers,
         surface_extent,
@@ -81,13 +85,20 @@ def _main(args: argparse.Namespace) -> None:
     thin: dict[str, list[np.ndarray]] = {"depth": [], "extent": [], "kept": [], "dropped": [], "ok": []}
     fine_errors: dict[str, list[np.ndarray]] = {"thin": [], "all": []}
     room, meshes = None, None
+    label_right = dict.fromkeys(("empty", *LABEL_SOURCES), 0)  # truth-hit columns: left empty; right per source
     try:
         with tqdm(total=count, desc="own view", unit="sample", disable=None) as bar, torch.no_grad():
             for image, labels in batches(data, config, args.split, count, args.batch):
-                out = generator(image.permute(0, 3, 1, 2).float() / 255)
-                pred = first_surface(out.logits.argmax(1)).numpy()
+                out = generator(image.permute(0, 3, 1, 2).float() / 255, rules=False)
+                ruled = generator.apply_rules(out.logits, out.depth_logits)
+                pred = first_surface(ruled.argmax(1)).numpy()
+                sources = first_label_sources(out.logits, out.surface_logits, ruled)
                 fine = None if out.fine_logits is None else fine_depth_estimate(out.fine_logits.numpy(), grid)
                 truth = first_surface(labels.long()).numpy()
+                hit = truth != 0
+                label_right["empty"] += int((hit & (pred == 0)).sum())
+                for name, got in sources.items():
+                    label_right[name] += int((hit & (got == truth)).sum())
                 spread = image.float().std(dim=(1, 2)).mean(dim=1).numpy()  # (B,): per channel, then averaged
                 for b in range(len(labels)):
                     scene, pose = maker.scene_of(args.split, index)
@@ -142,6 +153,13 @@ def _main(args: argparse.Namespace) -> None:
             own = s["accuracy"] + 100.0 * (acc * n_thin - model_ok) / s["pixels"]
             readers.append({"sigma": sigma, "thin_accuracy": 100.0 * acc, "own_view": own})
             print(f"| {sigma:g} | {100.0 * acc:.2f} | {own:.2f} |")
+    labels = {"empty": 100.0 * label_right["empty"] / s["pixels"],
+              **{k: 100.0 * label_right[k] / s["pixels"] for k in LABEL_SOURCES}}
+    print(f"columns where the truth hits and the prediction is empty: {labels['empty']:.3f} %; own view with the "
+          "first occupied cell's class from:\n| source | own view % |\n| --- | ---: |")
+    for key, label in (("model", "the model (its rules)"), ("volume", "the raw volume's most likely first hit"),
+                       ("head", "the surface head"), ("both", "the volume's first hit and the head together")):
+        print(f"| {label} | {labels[key]:.3f} |")
     fine_summary = {}
     if fine_errors["all"]:
         print("fine depth head against the cast depth:\n| columns | count | median error cm | within 1 cm % | "
@@ -161,7 +179,7 @@ def _main(args: argparse.Namespace) -> None:
     if args.json:
         out = {"model": args.model, "data": args.data, "split": args.split, "samples": count, **s,
                "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost},
-               "fine_depth": fine_summary,
+               "fine_depth": fine_summary, "label_sources": labels,
                "thin": {"pixels": n_thin, "share": 100.0 * n_thin / s["pixels"],
                         "kept": 100.0 * float(t["kept"].mean()) if n_thin else None,
                         "behind": 100.0 * float(t["dropped"].mean()) if n_thin else None,

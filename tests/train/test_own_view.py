@@ -11,9 +11,11 @@ from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.eval.metrics import first_surface
 from fruxel.train.eval.own_view import (
     CATEGORIES,
+    LABEL_SOURCES,
     JoinedMeshes,
     OwnViewBreakdown,
     depth_reader_accuracy,
+    first_label_sources,
     holds_centre,
     label_behind,
     surface_extent,
@@ -158,6 +160,11 @@ def test_own_view_errors_script(tmp_path, capsys: pytest.CaptureFixture[str]) ->
     assert [r["sigma"] for r in thin["readers"]] == [0.0, 0.05, "inf"] and png.stat().st_size > 0
     exact, _, blind = (r["thin_accuracy"] for r in thin["readers"])
     assert exact >= blind and exact > 90.0
+    # The first occupied cell's class from other sources: the model's own is the own view itself, and no source
+    # can be right on a column the prediction leaves empty.
+    sources = report["label_sources"]
+    assert sources["model"] == pytest.approx(report["accuracy"]) and "| the surface head |" in printed
+    assert all(0.0 <= sources[k] <= 100.0 - sources["empty"] + 1e-9 for k in LABEL_SOURCES)
     assert script.main([str(model), "--data", str(data), "--samples", "0"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert script.main([str(model), "--data", str(data), "--sigmas", "-1"]) == 2
@@ -216,3 +223,28 @@ def test_plot_depth_readers_writes_a_png(tmp_path) -> None:
     green = (abs(img - np.array([0x1B, 0x9E, 0x77])).sum(axis=2) < 40).sum()  # the readers' line is drawn
     assert green > 100
     assert [p.name for p in tmp_path.iterdir()] == ["readers.png"]  # no temporary file left
+
+
+def test_first_label_sources_read_the_first_cells_class_from_each_source() -> None:
+    # One batch of three columns along W (C = 3: empty, wall, board; D = 3). Column 0: the ruled volume's first cell
+    # is a wall in slice 1; the raw volume makes a board the likelier first hit; the head says wall. Column 1: the
+    # ruled volume's first cell is a board in slice 0; the head says wall, weakly. Column 2: empty.
+    big = 10.0
+    ruled = torch.full((1, 3, 3, 1, 3), -big)
+    ruled[0, 0] = big  # every cell empty ...
+    ruled[0, 0, 1, 0, 0], ruled[0, 1, 1, 0, 0] = -big, big  # ... but a wall in column 0's slice 1
+    ruled[0, 0, 0, 0, 1], ruled[0, 2, 0, 0, 1] = -big, big  # and a board in column 1's slice 0
+    raw = torch.zeros(1, 3, 3, 1, 3)
+    raw[0, 2, 0, 0, 0] = 3.0  # column 0: a board is likely in slice 0, so the first hit is most likely a board
+    raw[0, 2, :, 0, 1] = 3.0  # column 1: board everywhere
+    head = torch.zeros(1, 3, 1, 3)
+    head[0, 1, 0, 0] = 5.0  # column 0: wall, surely
+    head[0, 1, 0, 1] = 0.5  # column 1: wall, a little likelier than a board
+    got = first_label_sources(raw, head, ruled)
+    assert set(got) == set(LABEL_SOURCES)
+    assert got["model"].tolist() == [[[1, 2, 0]]]  # wall, board, empty
+    assert got["volume"].tolist() == [[[2, 2, 0]]]
+    assert got["head"].tolist() == [[[1, 1, 0]]]
+    # Together: the head's sure wall outweighs the volume's board in column 0; the volume's sure board outweighs
+    # the head's slight wall in column 1. The empty column stays empty under every source.
+    assert got["both"].tolist() == [[[1, 2, 0]]]

@@ -334,6 +334,48 @@ def fine_depth_estimate(fine_logits: np.ndarray, grid: FruxelGrid) -> np.ndarray
     return np.where(best == n, np.inf, z)
 
 
+LABEL_SOURCES = ("model", "volume", "head", "both")
+"""The names :func:`first_label_sources` returns, in order."""
+
+
+def first_label_sources(raw: Any, surface_logits: Any, ruled: Any) -> dict[str, np.ndarray]:
+    """Each column's own-view label with the class of its first occupied cell taken from other sources.
+
+    The volume after the model's inference rules (``ruled``) decides which columns have a first occupied cell; its
+    class is then read
+
+    * ``model``: from the ruled volume itself (what the model predicts),
+    * ``volume``: as the column's most likely first hit from the raw volume (:func:`~fruxel.train.models.generator.
+      first_hit_classes`, what the ``first_hit_label`` rule gives),
+    * ``head``: from the surface head alone (its most likely class other than "no surface"),
+    * ``both``: from the two together, the sum of their log-probabilities (as if independent evidence).
+
+    A label error that no source fixes is not in the class read; a column the volume leaves empty is wrong under
+    every source.
+
+    Args:
+        raw: ``(B, C, D, H, W)`` float tensor, the network's logits before the inference rules, grid frame.
+        surface_logits: ``(B, C, H, W)`` float tensor, the surface head's logits (channel 0 = no surface).
+        ruled: ``(B, C, D, H, W)`` float tensor, the logits after the model's rules (its eval-mode output).
+
+    Returns:
+        Source name -> ``(B, H, W)`` int64 labels (numpy), 0 where the ruled volume leaves the column empty.
+    """
+    import torch
+
+    from ..models.generator import first_hit_log_probs
+    from .metrics import first_surface
+
+    model = first_surface(ruled.argmax(dim=1))
+    has = model != 0
+    volume = first_hit_log_probs(raw)[:, 1:]
+    head = torch.log_softmax(surface_logits.float(), dim=1)[:, 1:]
+    out = {LABEL_SOURCES[0]: model}
+    for name, score in zip(LABEL_SOURCES[1:], (volume, head, volume + head), strict=True):
+        out[name] = torch.where(has, score.argmax(dim=1) + 1, torch.zeros_like(model))
+    return {k: v.cpu().numpy().astype(np.int64) for k, v in out.items()}
+
+
 def plot_depth_readers(readers: Sequence[dict[str, float]], model_own: float, path: str, *, target: float = 97.0,
                        title: str = "") -> None:
     """Write a PNG of the own view that readers of thin solids with each depth error would give (the model's answers
