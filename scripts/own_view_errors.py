@@ -153,13 +153,13 @@ def _main(args: argparse.Namespace) -> None:
             own = s["accuracy"] + 100.0 * (acc * n_thin - model_ok) / s["pixels"]
             readers.append({"sigma": sigma, "thin_accuracy": 100.0 * acc, "own_view": own})
             print(f"| {sigma:g} | {100.0 * acc:.2f} | {own:.2f} |")
-    labels = {"empty": 100.0 * label_right["empty"] / s["pixels"],
-              **{k: 100.0 * label_right[k] / s["pixels"] for k in LABEL_SOURCES}}
-    print(f"columns where the truth hits and the prediction is empty: {labels['empty']:.3f} %; own view with the "
+    label_share = {"empty": 100.0 * label_right["empty"] / s["pixels"],
+                   **{k: 100.0 * label_right[k] / s["pixels"] for k in LABEL_SOURCES}}
+    print(f"columns where the truth hits and the prediction is empty: {label_share['empty']:.3f} %; own view with the "
           "first occupied cell's class from:\n| source | own view % |\n| --- | ---: |")
     for key, label in (("model", "the model (its rules)"), ("volume", "the raw volume's most likely first hit"),
                        ("head", "the surface head"), ("both", "the volume's first hit and the head together")):
-        print(f"| {label} | {labels[key]:.3f} |")
+        print(f"| {label} | {label_share[key]:.3f} |")
     fine_summary = {}
     if fine_errors["all"]:
         print("fine depth head against the cast depth:\n| columns | count | median error cm | within 1 cm % | "
@@ -179,7 +179,7 @@ def _main(args: argparse.Namespace) -> None:
     if args.json:
         out = {"model": args.model, "data": args.data, "split": args.split, "samples": count, **s,
                "uniform": {"threshold": args.uniform, "samples": n_uniform, **u, "points_lost": u_lost},
-               "fine_depth": fine_summary, "label_sources": labels,
+               "fine_depth": fine_summary, "label_sources": label_share,
                "thin": {"pixels": n_thin, "share": 100.0 * n_thin / s["pixels"],
                         "kept": 100.0 * float(t["kept"].mean()) if n_thin else None,
                         "behind": 100.0 * float(t["dropped"].mean()) if n_thin else None,

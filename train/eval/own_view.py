@@ -350,8 +350,8 @@ def first_label_sources(raw: Any, surface_logits: Any, ruled: Any) -> dict[str, 
     * ``head``: from the surface head alone (its most likely class other than "no surface"),
     * ``both``: from the two together, the sum of their log-probabilities (as if independent evidence).
 
-    A label error that no source fixes is not in the class read; a column the volume leaves empty is wrong under
-    every source.
+    Only the class changes: a column that the ruled volume leaves empty is 0 under every source, so it stays wrong
+    wherever the truth has a surface.
 
     Args:
         raw: ``(B, C, D, H, W)`` float tensor, the network's logits before the inference rules, grid frame.
