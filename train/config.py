@@ -121,6 +121,15 @@ class ModelConfig:
     depending on where within the slice it lies; the per-cell probabilities of its R bins reach the finest
     decoder level. The decoder's term for them starts at zero, so a model fine-tuned (``run.init``) from weights
     without the head starts as that model."""
+    refine: int = 0
+    """Channels of a refinement level that doubles the output grid in every axis (0 = none;
+    :class:`fruxel.train.models.generator.RefineLevel`). Everything else is then built for ``grid`` halved and
+    reads the image averaged over 2 x 2 pixels, so a model trained at that grid (``run.init``) is the network below
+    the level, which starts as a zero correction: a fresh level repeats the coarse model's answer on the fine cells.
+    The level reads the full image (``image_size``) through a branch of its own."""
+    refine_frozen: bool = False
+    """With ``refine``: train only the refinement level; the network below keeps its weights and BatchNorm
+    statistics (no gradient flows into it, so training is the level's cost alone)."""
     discriminator: tuple[int, ...] = (32, 64, 128)
     """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
 
@@ -145,6 +154,13 @@ class ModelConfig:
         _positive_int(f"{path}.image_branch", self.image_branch, allow_zero=True)
         _positive_int(f"{path}.detail_branch", self.detail_branch, allow_zero=True)
         _positive_int(f"{path}.fine_depth", self.fine_depth, allow_zero=True)
+        _positive_int(f"{path}.refine", self.refine, allow_zero=True)
+        if self.refine and self.lift != "depth":
+            raise ConfigError(f"{path}.refine needs {path}.lift = 'depth', got {self.lift!r}")
+        if self.refine and self.fine_depth:
+            raise ConfigError(f"{path}.refine and {path}.fine_depth cannot be combined")
+        if self.refine_frozen and not self.refine:
+            raise ConfigError(f"{path}.refine_frozen needs {path}.refine > 0")
         if self.fine_depth and self.lift != "depth":
             raise ConfigError(f"{path}.fine_depth needs {path}.lift = 'depth', got {self.lift!r}")
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
@@ -162,10 +178,11 @@ class ModelConfig:
                 _positive_int(f"{path}.{name}", v, allow_zero=name.endswith("blocks"))
         for v in self.discriminator:
             _positive_int(f"{path}.discriminator", v)
-        f = 2 ** (self.levels - 1)
+        f = 2 ** (self.levels - 1 + (1 if self.refine else 0))
         g = self.grid
         if g.width % f or g.height % f or g.depth % f:
-            raise ConfigError(f"{path}.grid {g.width}x{g.height}x{g.depth} must be divisible by 2^(levels-1) = {f} "
+            why = "2^levels (levels, then refine)" if self.refine else "2^(levels-1)"
+            raise ConfigError(f"{path}.grid {g.width}x{g.height}x{g.depth} must be divisible by {why} = {f} "
                               "in every axis")
         if self.lift not in ("depth", "copy"):
             raise ConfigError(f"{path}.lift must be 'depth' or 'copy', got {self.lift!r}")

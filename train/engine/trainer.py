@@ -145,7 +145,8 @@ def _schedule(config: TrainConfig) -> Callable[[int], float]:
 
 def _param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:
     decay, plain = [], []
-    for p in model.parameters():
+    # Frozen parameters (ModelConfig.refine_frozen) are left out: they never get a gradient.
+    for p in (p for p in model.parameters() if p.requires_grad):
         (decay if p.ndim > 1 else plain).append(p)
     return [{"params": decay, "weight_decay": weight_decay}, {"params": plain, "weight_decay": 0.0}]
 

@@ -42,6 +42,8 @@ Shapes: ``D, H, W`` must be divisible by ``2^(L-1)``; the image must be ``(H * 2
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -110,6 +112,11 @@ class SSZGenerator(nn.Module):
         flip_average: in eval mode, average the network's outputs on the image and on its mirror image (mirrored
             back) before the rules.
         fine_depth: R, sub-slice bins of the fine depth head (0 = none; needs ``lift="depth"``).
+        refine: channels of a refinement level that doubles the output grid (0 = none; see
+            :class:`RefineLevel`): everything above is then built for ``grid_shape`` halved and reads the image
+            averaged over 2 x 2 pixels.
+        refine_frozen: with ``refine``, train only the refinement level: the rest is frozen (no gradient, its
+            BatchNorm statistics kept in eval mode).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, about a third more decoder time).
     """
@@ -122,7 +129,8 @@ class SSZGenerator(nn.Module):
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
                  fill_threshold: float = FILL_SURFACE_PROBABILITY, first_hit_label: bool = False,
-                 flip_average: bool = False, fine_depth: int = 0, checkpointing: bool = False) -> None:
+                 flip_average: bool = False, fine_depth: int = 0, refine: int = 0, refine_frozen: bool = False,
+                 checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -136,12 +144,22 @@ class SSZGenerator(nn.Module):
                 raise ValueError(f"{name} needs lift='depth' (the column depth head)")
         if not 0.0 < fill_threshold <= 1.0:
             raise ValueError(f"fill_threshold must be in (0, 1], got {fill_threshold}")
+        if refine < 0:
+            raise ValueError(f"refine must be >= 0, got {refine}")
+        if refine and fine_depth:
+            raise ValueError("refine and fine_depth cannot be combined (the fine head speaks for the coarse grid)")
         d, h, w = grid_shape
-        f = 2 ** (levels - 1)
+        f = 2 ** (levels - 1 + (1 if refine else 0))
         if d % f or h % f or w % f:
-            raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by 2^(levels-1) = {f} in every axis")
-        self.classes = classes
+            raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by {f} in every axis (2^(levels-1)"
+                             + (", times 2 for refine)" if refine else ")"))
         self.grid_shape = (d, h, w)
+        if refine:
+            d, h, w = d // 2, h // 2, w // 2
+        f = 2 ** (levels - 1)
+        self.base_shape = (d, h, w)
+        """``(D, H, W)`` of the network below the refinement level (``grid_shape`` without ``refine``)."""
+        self.classes = classes
         self.image_scale = image_scale
         self.levels = levels
         self.lift = lift
@@ -227,11 +245,38 @@ class SSZGenerator(nn.Module):
             for s in range(levels))
         self.head = Pointwise3d(decoder[0], classes)
         self.fusion = SurfaceFusion(classes) if surface_fusion else None
+        self.refine: RefineLevel | None = None
+        self.refine_frozen = bool(refine and refine_frozen)
+        if refine:
+            if lift != "depth":
+                raise ValueError("refine needs lift='depth' (the column depth head)")
+            k = image_scale + (1 if detail_branch else 0)
+            self.refine = RefineLevel(classes=classes, slices=self.grid_shape[0], channels=refine, decoder=decoder[0],
+                                      topdown=topdown[0], halvings=k, expand=expand, encoder_expand=encoder_expand,
+                                      upsample=upsample, group_width=group_width)
+        if self.refine_frozen:
+            for name, p in self.named_parameters():
+                if not name.startswith("refine."):
+                    p.requires_grad_(False)
+            # Modules are built in training mode and the trainer never calls train(): the frozen network's modes
+            # (eval) are set here, or its BatchNorms would train on the fine-tuning batches.
+            self.train(self.training)
+
+    def train(self, mode: bool = True) -> SSZGenerator:
+        """As :meth:`nn.Module.train`; with ``refine_frozen`` everything but the refinement level stays in eval
+        mode, so that the frozen network's BatchNorm statistics are the ones it was trained with."""
+        super().train(mode)
+        if self.refine_frozen:
+            for name, child in self.named_children():
+                if name != "refine":
+                    child.eval()
+        return self
 
     # ------------------------------------------------------------------ parts
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
-        """Top-down image features ``t_s``, ``(B, T_s, H / 2^s, W / 2^s)`` for s = 0 .. L-1."""
-        d, h, w = self.grid_shape
+        """Top-down image features ``t_s``, ``(B, T_s, H / 2^s, W / 2^s)`` for s = 0 .. L-1 (``H, W`` of
+        ``base_shape``; with ``refine`` the image is the 2 x 2-pooled one)."""
+        d, h, w = self.base_shape
         k = self.image_scale + (1 if self.detail_branch is not None else 0)
         if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
             raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
@@ -349,8 +394,26 @@ class SSZGenerator(nn.Module):
                  ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor | None]:
         """The network alone, no inference rule: ``(logits, depth_logits, surface_logits, fine_logits)`` of
         :class:`SSZOutput`."""
-        t = self.encode(image)
+        if self.refine is None:
+            return self._predict_base(image)[:4]
         d, h, w = self.grid_shape
+        k = self.image_scale + (1 if self.detail_branch is not None else 0)
+        if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
+            raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.refine_frozen):
+            # The network below reads the image as it was trained to: averaged over 2 x 2 pixels.
+            logits, depth_logits, surface_logits, _, x0, t0 = self._predict_base(F.avg_pool2d(image, 2))
+        normalised = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
+        logits, depth_logits, surface_logits = self.refine(normalised, logits, depth_logits, surface_logits, x0, t0,
+                                                           run=self._run)
+        return logits, depth_logits, surface_logits, None
+
+    def _predict_base(self, image: torch.Tensor) -> tuple:
+        """The network at ``base_shape``: :meth:`_predict`'s four outputs, then the finest decoder volume
+        ``(B, V_0, D, H, W)`` and the finest top-down image features ``(B, T_0, H, W)`` (read by the refinement
+        level)."""
+        t = self.encode(image)
+        d, h, w = self.base_shape
         depth_logits = self.depth_head(t[0]).float() if self.depth_head is not None else None
         surface_logits = self.surface_head(t[0]).float()
         depth = self.depth_features(depth_logits, self.levels) if depth_logits is not None else [None] * self.levels
@@ -370,7 +433,109 @@ class SSZGenerator(nn.Module):
         logits = self.head(x)
         if self.fusion is not None:
             logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
-        return logits, depth_logits, surface_logits, fine_logits
+        return logits, depth_logits, surface_logits, fine_logits, x, t[0]
+
+
+def split_depth_logits(depth_logits: torch.Tensor) -> torch.Tensor:
+    """A column depth distribution on the grid refined twofold in every axis: each slice's probability shared
+    equally by its two halves, "no surface" kept, each column repeated over its 2 x 2 sub-columns.
+
+    Args:
+        depth_logits: ``(B, D + 1, H, W)`` float logits (bin D = no surface).
+
+    Returns:
+        ``(B, 2 D + 1, 2 H, 2 W)`` float32 log-probabilities.
+    """
+    log_p = torch.log_softmax(depth_logits.float(), dim=1)
+    b, n, h, w = log_p.shape
+    halves = (log_p[:, :-1] - math.log(2.0)).repeat_interleave(2, dim=1)
+    out = torch.cat([halves, log_p[:, -1:]], dim=1)
+    return F.interpolate(out, scale_factor=2.0, mode="nearest")
+
+
+class RefineLevel(nn.Module):
+    """A decoder level that doubles a trained network's output grid in every axis (``ModelConfig.refine``).
+
+    The network below predicts the grid halved from the image averaged over 2 x 2 pixels; this level reads the
+    full image through a branch of its own (stride-2 convolutions down to the fine grid's columns), joins it with
+    the network's finest top-down features repeated 2 x 2, and predicts from that:
+
+    * the column depth distribution on the fine grid (2 D + 1 bins): the coarse one with each slice split in two
+      (:func:`split_depth_logits`) plus a correction;
+    * the columns' surface class: the coarse one repeated 2 x 2 plus a correction;
+    * the logits: the coarse ones repeated 2 x 2 x 2 plus a correction from a volume that is the coarse decoder's
+      finest volume, up-convolved (:class:`~.blocks.Up3d`), merged with the image features and the fine depth
+      distribution (:class:`~.blocks.Lift`) and passed through a per-cell inverted residual block.
+
+    Every correction starts at zero, so a fresh level repeats the coarse model's answer on the fine cells: a model
+    trained at the coarse grid (``run.init``) starts as itself.
+
+    Args:
+        classes: C.
+        slices: D, the fine grid's depth (the depth head gives D + 1 bins).
+        channels: the level's width (image branch, volume).
+        decoder: V_0, channels of the coarse decoder's finest volume.
+        topdown: T_0, channels of the coarse network's finest image features.
+        halvings: how many times the full image is halved to the fine grid's width (k of ``image_scale``, plus
+            one with the detail branch).
+        expand: expansion of the inverted residual blocks (3D).
+        encoder_expand: expansion of the inverted residual blocks (2D).
+        upsample: :class:`~.blocks.Up3d` mode.
+        group_width: channels per group of the up-convolution's 3x3x3 convolution.
+    """
+
+    def __init__(self, *, classes: int, slices: int, channels: int, decoder: int, topdown: int, halvings: int,
+                 expand: int, encoder_expand: int, upsample: str, group_width: int) -> None:
+        super().__init__()
+        if halvings < 0:
+            raise ValueError(f"halvings must be >= 0, got {halvings}")
+        r = channels
+        self.branch = nn.Sequential(
+            nn.Conv2d(3, r, 3, stride=2 if halvings else 1, padding=1, bias=False), nn.BatchNorm2d(r), act2d(),
+            InvertedResidual2d(r, encoder_expand), *[Down2d(r, r) for _ in range(max(halvings - 1, 0))])
+        self.from_coarse = nn.Conv2d(topdown, r, 1, bias=False)
+        self.mix = nn.Sequential(nn.BatchNorm2d(r), act2d(), InvertedResidual2d(r, encoder_expand))
+        self.depth_head = nn.Conv2d(r, slices + 1, 1)
+        self.surface_head = nn.Conv2d(r, classes, 1)
+        self.up = Up3d(decoder, r, upsample, group_width)
+        self.lift = Lift(r, r, r, depth_channels=2)
+        self.block = InvertedResidual3d(r, expand, group_width, spatial=False)
+        self.head = Pointwise3d(r, classes)
+        for m in (self.depth_head, self.surface_head, self.head):
+            nn.init.zeros_(m.weight)
+            nn.init.zeros_(m.bias)
+
+    def forward(self, image: torch.Tensor, logits: torch.Tensor, depth_logits: torch.Tensor,
+                surface_logits: torch.Tensor, x0: torch.Tensor, t0: torch.Tensor, *,
+                run: Callable[..., torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Refine one batch (fine grid ``(D, H, W)``, coarse grid ``(D/2, H/2, W/2)``).
+
+        Args:
+            image: ``(B, 3, h, w)`` the full image, normalised as the model normalises it.
+            logits: ``(B, C, D/2, H/2, W/2)`` the coarse logits.
+            depth_logits: ``(B, D/2 + 1, H/2, W/2)`` the coarse column depth logits.
+            surface_logits: ``(B, C, H/2, W/2)`` the coarse surface class logits.
+            x0: ``(B, V_0, D/2, H/2, W/2)`` the coarse decoder's finest volume.
+            t0: ``(B, T_0, H/2, W/2)`` the coarse network's finest top-down features.
+            run: how to call the 3D block (the generator's activation checkpointing).
+
+        Returns:
+            ``(logits (B, C, D, H, W), depth_logits (B, D + 1, H, W) float32, surface_logits (B, C, H, W)
+            float32)``.
+        """
+        f = self.branch(image) + F.interpolate(self.from_coarse(t0), scale_factor=2.0, mode="nearest")
+        f = self.mix(f)
+        depth_logits = split_depth_logits(depth_logits) + self.depth_head(f).float()
+        surface_logits = (F.interpolate(surface_logits.float(), scale_factor=2.0, mode="nearest")
+                          + self.surface_head(f).float())
+        p = torch.softmax(depth_logits, dim=1)[:, :-1].unsqueeze(1)
+        depth = torch.cat([p, torch.cumsum(p, dim=2).clamp_(max=1.0)], dim=1)
+        x = self.up(x0)
+        x = self.lift(x, f, depth, tuple(x.shape[2:]))
+        x = run(self.block, x) if run is not None else self.block(x)
+        coarse = logits.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3).repeat_interleave(2, dim=4)
+        out = coarse + self.head(x).to(coarse.dtype)
+        return out, depth_logits, surface_logits
 
 
 def first_hit_log_probs(logits: torch.Tensor, empty_offset: float = 0.0) -> torch.Tensor:
