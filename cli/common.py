@@ -457,8 +457,8 @@ def add_model_options(parser: Any) -> None:
     fruxel. ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
     """
     parser.add_argument("--checkpoint", default=None, metavar="FILE",
-                        help="the model: a shipped .safetensors file or a training checkpoint .pt (default: the model "
-                        "shipped with fruxel)")
+                        help="the model: a shipped .safetensors file, a training checkpoint .pt, or a model shipped "
+                        "with fruxel by name: ssz64 (64^3 cells, the default) or ssz128 (128^3 cells from 512x512)")
     parser.add_argument("--device", type=device_name, default=None, metavar="cpu|cuda[:N]",
                         help="where the model runs (default: cuda when present, else cpu)")
 

@@ -6,7 +6,8 @@ simulator's *test* split (rooms from seeds the training split never uses) with t
 rule of :mod:`fruxel.train.sim.config` (its augmentation included): the room and the robot pose the shipped
 model was evaluated on, its camera image rendered at 512 x 512 instead of the 128 x 128 the model takes (the
 model's input is the photo reduced by area averaging, as for any photo). The truth is the sample's 64^3 labels
-as a fruxel model file.
+as a fruxel model file; ``photo_truth128.npz`` holds its 128^3 labels, the truth of the 128^3 model
+(``train/data/ssz128.safetensors``), which reads the photo at its own size.
 
 Sample 43 was chosen because its camera sees every class (wall, floor, window, furniture, door and a sculpture),
 after looking at the own-view class counts of 58 test samples, with the first shipped model, whose own-view
@@ -38,31 +39,34 @@ IMAGE_SIZE = 512
 """Width and height of the bundled photo, pixels."""
 
 
-def photo_config() -> Any:
-    """The simulator settings of the photo: the shipped model's grid and classes, a 512-pixel image."""
+def photo_config(model_file: str | Path | None = None) -> Any:
+    """The simulator settings of the photo: a shipped model's grid and classes (the default model's unless
+    ``model_file`` is given), a 512-pixel image."""
     from fruxel.train.export import read_shipped
     from fruxel.train.predict import default_model
     from fruxel.train.sim.config import ImageConfig, SimConfig
 
-    _, model, _ = read_shipped(default_model())
+    _, model, _ = read_shipped(model_file or default_model())
     return SimConfig(grid=model.grid, image=ImageConfig(size=IMAGE_SIZE), classes=model.classes,
                      samples_per_scene=SAMPLES_PER_SCENE, splits=(("train", 10_000_000), (SPLIT, TEST_SAMPLES)))
 
 
-def photo_sample(index: int = INDEX) -> Any:
-    """The :class:`fruxel.train.sim.sample.Sample` of the bundled photo (or of another test sample)."""
+def photo_sample(index: int = INDEX, model_file: str | Path | None = None) -> Any:
+    """The :class:`fruxel.train.sim.sample.Sample` of the bundled photo (or of another test sample), with the
+    labels on ``model_file``'s grid (default: the default model's)."""
     from fruxel.train.sim.sample import SampleMaker
 
-    with SampleMaker(photo_config(), SEED) as maker:
+    with SampleMaker(photo_config(model_file), SEED) as maker:
         return maker.make(SPLIT, index)
 
 
 def main(argv: list[str] | None = None) -> int:
     from PIL import Image
 
-    from fruxel.data import PHOTO, PHOTO_TRUTH
+    from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128
     from fruxel.io import atomic_path, save
     from fruxel.model import FruxelModel
+    from fruxel.train.predict import model_128
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=PHOTO.parent, help="folder of photo.png and photo_truth.npz")
@@ -81,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
           f"{sample.frame}, room seed {sample.scene_seed})")
     for name, n in zip(model.classes.names, model.counts().tolist(), strict=False):
         print(f"  {name:10s} {n}")
+    # The same room and pose on the 128^3 model's grid: the truth of fruxel-render --checkpoint ssz128.safetensors.
+    fine = photo_sample(args.index, model_128())
+    npz128 = args.out_dir / PHOTO_TRUTH_128.name
+    save(npz128, FruxelModel(fine.labels, photo_config(model_128()).grid, cfg.classes))
+    print(f"{npz128}: {npz128.stat().st_size} bytes, the same sample on a {fine.labels.shape[0]}^3 grid")
     return 0
 
 

@@ -28,6 +28,10 @@ FORMAT = "fruxel-ssz"
 """``format`` in a shipped model's metadata."""
 VERSION = 1
 """Version of the shipped model's metadata layout."""
+SHIPPED_MODELS = {"ssz64": "ssz64.safetensors", "ssz128": "ssz128.safetensors"}
+"""The models shipped with fruxel (in ``fruxel/train/data/``), by the name that ``--checkpoint`` and ``run.init``
+accept in place of a path: ``ssz64`` (64^3 cells from a 256 x 256 image, the default) and ``ssz128`` (128^3 cells
+from 512 x 512, the paper's scale; docs/model.md)."""
 MAX_TENSORS = 10_000
 """Most tensors a shipped model may hold (a sanity bound against hostile files)."""
 
@@ -132,16 +136,30 @@ def read_shipped(path: str) -> tuple[dict[str, torch.Tensor], ModelConfig, dict[
     return state, _model_config(path, model), training
 
 
+def shipped_model(name: str) -> str:
+    """Path of the shipped model ``name`` (a key of :data:`SHIPPED_MODELS`)."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", SHIPPED_MODELS[name])
+
+
+def model_path(path: str | os.PathLike[str]) -> str:
+    """``path`` itself, or the shipped model it names (:data:`SHIPPED_MODELS`) when no such file exists here."""
+    path = os.fsdecode(path)
+    return shipped_model(path) if path in SHIPPED_MODELS and not os.path.exists(path) else path
+
+
 def read_weights(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], ModelConfig, dict[str, Any]]:
     """The generator weights, architecture and training summary of a shipped ``.safetensors`` file or a training
     checkpoint (told apart by their first bytes), read without pickle.
+
+    Args:
+        path: the file, or the name of a shipped model (:func:`model_path`).
 
     Raises:
         ModelFileError: a missing, unreadable or foreign file.
         fruxel.train.engine.checkpoint.CheckpointError: a checkpoint that cannot be read (or holds pickled
             objects).
     """
-    path = os.fsdecode(path)
+    path = model_path(path)
     if not os.path.isfile(path):
         raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
     with open(path, "rb") as f:
@@ -167,7 +185,7 @@ def load_generator(path: str | os.PathLike[str], device: str | torch.device = "c
     Raises:
         ModelFileError: a missing, unreadable or foreign file, or weights that do not fit the config.
     """
-    path = os.fsdecode(path)
+    path = model_path(path)
     state, config, training = read_weights(path)
     gen = build_generator(config)
     try:

@@ -362,8 +362,18 @@ def share_cpu(threads: int | None = None) -> int:
 
 
 def default_model() -> str:
-    """Path of the SSZ model shipped with fruxel (64^3 from 128^2), loaded when no checkpoint is given."""
-    return str(os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "ssz64.safetensors"))
+    """Path of the SSZ model shipped with fruxel as the default (``ssz64``: 64^3 cells from a 256 x 256 image),
+    loaded when no checkpoint is given."""
+    from .export import shipped_model
+
+    return shipped_model("ssz64")
+
+
+def model_128() -> str:
+    """Path of the 128^3 model shipped with fruxel (``ssz128``: from a 512 x 512 image, the paper's scale)."""
+    from .export import shipped_model
+
+    return shipped_model("ssz128")
 
 
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,

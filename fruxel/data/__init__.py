@@ -19,3 +19,6 @@ of the simulator's test split, which the shipped SSZ model never saw in training
 PHOTO_TRUTH = DATA_DIR / "photo_truth.npz"
 """Path of the photo's ground truth, a fruxel model (64^3 cells, 0.5 to 8 m, 60 degrees) aligned with the photo's
 camera (load it with :func:`fruxel.load`)."""
+
+PHOTO_TRUTH_128 = DATA_DIR / "photo_truth128.npz"
+"""The same truth on the 128^3 grid of ``train/data/ssz128.safetensors`` (the same frustum)."""

@@ -13,8 +13,8 @@ from PIL import Image
 
 import fruxel
 from fruxel import kernels
-from fruxel.cli.render import build_parser, is_photo, load_photo, main
-from fruxel.data import PHOTO, PHOTO_TRUTH, SAMPLE_ROOM
+from fruxel.cli.render import InputError, build_parser, is_photo, load_photo, main
+from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128, SAMPLE_ROOM
 from fruxel.render.compare import GAP, fit_height
 from fruxel.train.predict import frame_image, load_image
 
@@ -91,6 +91,19 @@ def test_title_states_the_own_view_accuracy() -> None:
     assert inp.volume.shape == (1, 7, 64, 64, 64) and inp.grid == TRUTH.grid
     assert "ssz64.safetensors" in photo.title and "98.4 %" in photo.title, photo.title
     assert photo.truth is not None and np.array_equal(photo.truth.volume, TRUTH.labels)
+
+
+def test_the_128_model_by_name_with_its_truth(tmp_path: Path) -> None:
+    """``--checkpoint ssz128``: the shipped 128^3 model predicts the photo at its own 512 x 512 size; its title gives
+    the own view against the 128^3 truth, and the 64^3 truth is refused with a line naming both grids."""
+    args = build_parser().parse_args([str(PHOTO), "--checkpoint", "ssz128", "--truth", str(PHOTO_TRUTH_128),
+                                      "--device", "cpu"])
+    inp, photo = load_photo(args)
+    assert inp.volume.shape == (1, 7, 128, 128, 128)
+    assert "ssz128" in photo.title and "128x128x128" in photo.title and "98.5 %" in photo.title, photo.title
+    args = build_parser().parse_args([str(PHOTO), "--checkpoint", "ssz128", "--truth", str(PHOTO_TRUTH)])
+    with pytest.raises(InputError, match="64x64x64.*128x128x128"):
+        load_photo(args)
 
 
 def test_make_demo_command_line_runs(tmp_path: Path) -> None:
