@@ -32,7 +32,7 @@ import common  # noqa: E402
 
 SECTION = "## Live robot demo"
 TARGET_FPS = {"cuda": 60.0}
-"""The issue's targets: at least 60 FPS end to end at 64^3 on the H100; none on the CPU."""
+"""The issue's targets: at least 60 FPS end to end at 64^3 on the H100; none on the CPU, none at 128^3."""
 
 
 def measure(args: argparse.Namespace) -> dict[str, Any]:
@@ -44,7 +44,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 
     config = RobotDemoConfig(frames=args.frames, scene=args.scene, size=args.size, backend=args.backend,
                              device=args.device, threads=args.threads, shell=args.shell, compile=args.compile,
-                             flip_average=not args.no_flip_average)
+                             flip_average=not args.no_flip_average, checkpoint=args.checkpoint)
     machine = common.machine_info(["torch", "warp-lang", "pyopencl", "pyrender"])
     demo = RobotDemo(config)
     frames, pictures = [], []
@@ -101,7 +101,7 @@ def markdown(results: list[dict[str, Any]]) -> str:
     for r in results:
         s, m, g = r["summary"], r["machine"], r["grid"]
         dev = r["device"].split(":")[0]
-        target = TARGET_FPS.get(dev)
+        target = TARGET_FPS.get(dev) if (g["width"], g["height"], g["depth"]) == (64, 64, 64) else None
         verdict = "" if target is None else f">= {target:g} FPS: {'met' if s['fps_mean'] >= target else 'missed'}"
         st = s["stages_ms"]
         compiled = " (compiled)" if r.get("compiled") else ""
@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-flip-average", action="store_true",
                    help="SSZ once a frame even where the model averages each image with its mirror image "
                    "(fruxel-robot --no-flip-average)")
+    p.add_argument("--checkpoint", default=None,
+                   help="the SSZ model: a file or a shipped model's name, ssz64 (default) or ssz128")
     p.add_argument("--tag", default="cpu", help="name of the result (results/robot-TAG.json)")
     p.add_argument("--out", type=Path, default=None, help="results JSON (default benchmarks/results/robot-TAG.json)")
     p.add_argument("--video", type=Path, default=None, help="also write the frames to this .mp4 or .gif")
