@@ -34,6 +34,16 @@ def _make_photo_module():
     return module
 
 
+def _refuse_unpickling(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make every way of unpickling (pickle's and torch.load) fail the test for the rest of it."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("the shipped model was unpickled")
+
+    for name in ("load", "loads", "Unpickler"):
+        monkeypatch.setattr(pickle, name, refuse)
+    monkeypatch.setattr(torch, "load", refuse)
+
+
 def test_shipped_weights_are_safetensors() -> None:
     """A safetensors file: an 8-byte header length, a JSON header of tensors and metadata, raw data; nothing that
     unpickling could run."""
@@ -51,12 +61,7 @@ def predictor():
 
 
 def test_shipped_weights_load_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:
-    def refuse(*args, **kwargs):
-        raise AssertionError("the shipped model was unpickled")
-
-    for name in ("load", "loads", "Unpickler"):
-        monkeypatch.setattr(pickle, name, refuse)
-    monkeypatch.setattr(torch, "load", refuse)
+    _refuse_unpickling(monkeypatch)
     p = load_predictor(device="cpu")
     assert p.config.grid.shape == (64, 64, 64) and p.config.image_size == (256, 256)  # the detail branch reads it whole
 
@@ -126,12 +131,7 @@ def test_shipped_models_by_name(name: str, tmp_path: Path, monkeypatch: pytest.M
 
 
 def test_shipped_128_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:
-    def refuse(*args, **kwargs):
-        raise AssertionError("the shipped model was unpickled")
-
-    for name in ("load", "loads", "Unpickler"):
-        monkeypatch.setattr(pickle, name, refuse)
-    monkeypatch.setattr(torch, "load", refuse)
+    _refuse_unpickling(monkeypatch)
     p = load_predictor("ssz128", device="cpu")
     assert p.config.grid.shape == (128, 128, 128) and p.config.image_size == (512, 512)
     assert p.config.refine and not p.config.refine_frozen
