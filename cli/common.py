@@ -452,9 +452,9 @@ def write_outputs(outputs: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
 def add_model_options(parser: Any) -> None:
     """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.
 
-    ``--checkpoint`` is a shipped ``.safetensors`` file or a training checkpoint ``.pt``
-    (:func:`fruxel.train.export.load_generator` reads either); None (not given) means the model shipped with
-    fruxel. ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
+    ``--checkpoint`` is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name
+    (:func:`fruxel.train.export.load_generator` reads each); None (not given) means the model shipped with fruxel
+    as the default (``ssz64``). ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
     """
     parser.add_argument("--checkpoint", default=None, metavar="FILE",
                         help="the model: a shipped .safetensors file, a training checkpoint .pt, or a model shipped "

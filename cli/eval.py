@@ -6,11 +6,11 @@ Usage::
                 [--prior-samples N] [--out DIR] [--batch B] [--workers K] [--device cpu|cuda[:N]]
                 [--backend NAME] [--examples N] [-q]
 
-The model (``--checkpoint``) is a shipped ``.safetensors`` file or a training checkpoint ``.pt``; by default the
-model shipped with fruxel. Samples are the first N of a data set's split (``--data DIR --split test``, shards
-from ``fruxel-sim generate``, whose grid, image size and classes must be the model's; N defaults to the whole
-split) or N samples of the simulator's test split streamed for the model's grid and image size (default 256,
-``--seed``). The same samples are predicted by
+The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's
+name (``ssz64``, ``ssz128``); by default the model shipped with fruxel (``ssz64``). Samples are the first N of a
+data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid, image size and
+classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split streamed for
+the model's grid and image size (default 256, ``--seed``). The same samples are predicted by
 
 * the model (argmax of its logits),
 * the **per-cell prior**: each cell's most frequent label over ``--prior-samples`` samples of the training split

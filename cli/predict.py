@@ -10,9 +10,9 @@ IMAGE is any PNG, JPEG or other image Pillow reads, of any size. Each is mapped 
 or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the grid's view
 and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then it is
 resized to the model's image size. Grid columns whose centre ray falls on grey padding are left empty: the photo
-says nothing of them. The model (``--checkpoint``: a shipped
-``.safetensors`` file or a training checkpoint ``.pt``; default the model shipped with fruxel) predicts the images
-in batches of ``--batch``.
+says nothing of them. The model (``--checkpoint``: a shipped ``.safetensors`` file, a training checkpoint ``.pt``
+or a shipped model's name, ``ssz64`` or ``ssz128``; default the model shipped with fruxel, ``ssz64``) predicts the
+images in batches of ``--batch``.
 
 For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)
 

@@ -69,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     from fruxel.train.predict import model_128
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out-dir", type=Path, default=PHOTO.parent, help="folder of photo.png and photo_truth.npz")
+    parser.add_argument("--out-dir", type=Path, default=PHOTO.parent,
+                        help="folder of photo.png, photo_truth.npz and photo_truth128.npz")
     parser.add_argument("--index", type=int, default=INDEX, help=f"sample of the test split (default {INDEX})")
     args = parser.parse_args(argv)
     sample = photo_sample(args.index)
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{sample.frame}, room seed {sample.scene_seed})")
     for name, n in zip(model.classes.names, model.counts().tolist(), strict=False):
         print(f"  {name:10s} {n}")
-    # The same room and pose on the 128^3 model's grid: the truth of fruxel-render --checkpoint ssz128.safetensors.
+    # The same room and pose on the 128^3 model's grid: the truth of fruxel-render --checkpoint ssz128.
     fine = photo_sample(args.index, model_128())
     npz128 = args.out_dir / PHOTO_TRUTH_128.name
     save(npz128, FruxelModel(fine.labels, photo_config(model_128()).grid, cfg.classes))

@@ -375,11 +375,11 @@ class RunConfig:
     tensorboard: bool = True
     """Also write TensorBoard event files (when TensorBoard is installed)."""
     init: str = ""
-    """A model file (shipped ``.safetensors`` or training checkpoint) whose generator weights start the run
-    instead of a fresh initialisation ("" = none): fine-tuning. Parameters the file lacks (a layer the
-    architecture gained since) keep their fresh initialisation and are named at the start; a parameter of
-    another shape, or one the architecture does not have, stops the run. The optimiser, schedule and
-    discriminator start afresh."""
+    """A model file (shipped ``.safetensors`` or training checkpoint), or a shipped model's name (``ssz64``,
+    ``ssz128``), whose generator weights start the run instead of a fresh initialisation ("" = none): fine-tuning.
+    Parameters the file lacks (a layer the architecture gained since) keep their fresh initialisation and are named
+    at the start; a parameter of another shape, or one the architecture does not have, stops the run. The
+    optimiser, schedule and discriminator start afresh."""
 
     def check(self, path: str = "run") -> None:
         """Raise :class:`ConfigError` for impossible settings."""

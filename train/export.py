@@ -161,7 +161,12 @@ def read_weights(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor],
     """
     path = model_path(path)
     if not os.path.isfile(path):
-        raise ModelFileError(path, "no such file" if not os.path.exists(path) else "not a regular file")
+        if os.path.exists(path):
+            raise ModelFileError(path, "not a regular file")
+        # A bare word (no folder, no suffix) was most likely meant as a shipped model's name.
+        bare = not os.path.dirname(path) and not os.path.splitext(path)[1]
+        raise ModelFileError(path, "no such file" + (f", nor a shipped model ({', '.join(SHIPPED_MODELS)})"
+                                                     if bare else ""))
     with open(path, "rb") as f:
         head = f.read(9)
     # safetensors: an 8-byte little-endian header length, then the JSON header. Its first byte can be 0x80 (a

@@ -378,8 +378,9 @@ def model_128() -> str:
 
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
                    compile: bool = False, precision: str = "bfloat16") -> Predictor:
-    """A :class:`Predictor` of a shipped model or training checkpoint (the shipped default when ``path`` is
-    None), on ``device`` (CUDA when present); ``graphs``, ``compile`` and ``precision`` as :class:`Predictor`'s."""
+    """A :class:`Predictor` of a shipped model or training checkpoint, a file or a shipped model's name
+    (:func:`fruxel.train.export.model_path`; the shipped default when ``path`` is None), on ``device`` (CUDA when
+    present); ``graphs``, ``compile`` and ``precision`` as :class:`Predictor`'s."""
     from .export import load_generator
 
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))

@@ -123,11 +123,14 @@ def test_shipped_models_by_name(name: str, tmp_path: Path, monkeypatch: pytest.M
     assert json.loads(raw[8:8 + n])["__metadata__"]["format"] == "fruxel-ssz"
     assert len(raw) <= 16 * 2**20
     assert Path(model_path(name)).parent == Path(default_model()).parent
+    assert model_path(Path(name)) == model_path(name)  # fruxel-render's --checkpoint is a Path
     monkeypatch.chdir(tmp_path)
     (tmp_path / name).write_bytes(b"not a model")
     assert model_path(name) == name
-    with pytest.raises(ModelFileError, match="ssz32"):
+    with pytest.raises(ModelFileError, match=r"^ssz32: no such file, nor a shipped model \(ssz64, ssz128\)$"):
         read_weights("ssz32")
+    with pytest.raises(ModelFileError, match=r"^missing.safetensors: no such file$"):  # a file name: no hint
+        read_weights("missing.safetensors")
 
 
 def test_shipped_128_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:

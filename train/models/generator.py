@@ -447,7 +447,6 @@ def split_depth_logits(depth_logits: torch.Tensor) -> torch.Tensor:
         ``(B, 2 D + 1, 2 H, 2 W)`` float32 log-probabilities.
     """
     log_p = torch.log_softmax(depth_logits.float(), dim=1)
-    b, n, h, w = log_p.shape
     halves = (log_p[:, :-1] - math.log(2.0)).repeat_interleave(2, dim=1)
     out = torch.cat([halves, log_p[:, -1:]], dim=1)
     return F.interpolate(out, scale_factor=2.0, mode="nearest")
