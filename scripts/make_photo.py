@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128
     from fruxel.io import atomic_path, save
     from fruxel.model import FruxelModel
-    from fruxel.train.predict import model_128
+    from fruxel.train.export import shipped_model
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=PHOTO.parent,
@@ -87,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, n in zip(model.classes.names, model.counts().tolist(), strict=False):
         print(f"  {name:10s} {n}")
     # The same room and pose on the 128^3 model's grid: the truth of fruxel-render --checkpoint ssz128.
-    fine = photo_sample(args.index, model_128())
+    fine = photo_sample(args.index, shipped_model("ssz128"))
     npz128 = args.out_dir / PHOTO_TRUTH_128.name
-    save(npz128, FruxelModel(fine.labels, photo_config(model_128()).grid, cfg.classes))
+    save(npz128, FruxelModel(fine.labels, photo_config(shipped_model("ssz128")).grid, cfg.classes))
     print(f"{npz128}: {npz128.stat().st_size} bytes, the same sample on a {fine.labels.shape[0]}^3 grid")
     return 0
 

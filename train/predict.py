@@ -369,12 +369,6 @@ def default_model() -> str:
     return shipped_model("ssz64")
 
 
-def model_128() -> str:
-    """Path of the 128^3 model shipped with fruxel (``ssz128``: from a 512 x 512 image, the paper's scale)."""
-    from .export import shipped_model
-
-    return shipped_model("ssz128")
-
 
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
                    compile: bool = False, precision: str = "bfloat16") -> Predictor:

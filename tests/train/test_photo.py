@@ -16,8 +16,8 @@ import torch
 import fruxel
 from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128
 from fruxel.train.eval.metrics import first_surface
-from fruxel.train.export import ModelFileError, model_path, read_weights
-from fruxel.train.predict import default_model, load_image, load_predictor, model_128, prepare_image, to_tensor
+from fruxel.train.export import ModelFileError, model_path, read_weights, shipped_model
+from fruxel.train.predict import default_model, load_image, load_predictor, prepare_image, to_tensor
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -124,7 +124,7 @@ truth. Measured: 98.5 % (CPU, float32); three points of margin, as for the 64^3 
 
 @pytest.fixture(scope="module")
 def predictor128():
-    return load_predictor(model_128(), device="cpu", batch=1)
+    return load_predictor(shipped_model("ssz128"), device="cpu", batch=1)
 
 
 @pytest.mark.parametrize("name", ["ssz64", "ssz128"])
@@ -176,6 +176,6 @@ def test_bundled_photo_predicts_its_128_truth(predictor128, predictor) -> None:
 
 def test_bundled_128_truth_is_the_test_split_sample() -> None:
     """photo_truth128.npz is sample 43 of the test split on the 128^3 model's grid (scripts/make_photo.py)."""
-    sample = _make_photo_module().photo_sample(model_file=model_128())
+    sample = _make_photo_module().photo_sample(model_file=shipped_model("ssz128"))
     assert sample.labels.shape == (128, 128, 128)
     assert np.array_equal(fruxel.load(PHOTO_TRUTH_128).labels, sample.labels), "photo_truth128.npz is stale"

@@ -139,7 +139,7 @@ class SSZGenerator(nn.Module):
         if lift not in ("depth", "copy"):
             raise ValueError(f"lift must be 'depth' or 'copy', got {lift!r}")
         for name, on in (("surface_fusion", surface_fusion), ("fill_columns", fill_columns),
-                         ("fine_depth", fine_depth)):
+                         ("fine_depth", fine_depth), ("refine", refine)):
             if on and lift != "depth":
                 raise ValueError(f"{name} needs lift='depth' (the column depth head)")
         if not 0.0 < fill_threshold <= 1.0:
@@ -149,14 +149,14 @@ class SSZGenerator(nn.Module):
         if refine and fine_depth:
             raise ValueError("refine and fine_depth cannot be combined (the fine head speaks for the coarse grid)")
         d, h, w = grid_shape
-        f = 2 ** (levels - 1 + (1 if refine else 0))
-        if d % f or h % f or w % f:
-            raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by {f} in every axis (2^(levels-1)"
+        f = 2 ** (levels - 1)
+        g = f * 2 if refine else f
+        if d % g or h % g or w % g:
+            raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by {g} in every axis (2^(levels-1)"
                              + (", times 2 for refine)" if refine else ")"))
         self.grid_shape = (d, h, w)
         if refine:
             d, h, w = d // 2, h // 2, w // 2
-        f = 2 ** (levels - 1)
         self.base_shape = (d, h, w)
         """``(D, H, W)`` of the network below the refinement level (``grid_shape`` without ``refine``)."""
         self.classes = classes
@@ -248,8 +248,6 @@ class SSZGenerator(nn.Module):
         self.refine: RefineLevel | None = None
         self.refine_frozen = bool(refine and refine_frozen)
         if refine:
-            if lift != "depth":
-                raise ValueError("refine needs lift='depth' (the column depth head)")
             k = image_scale + (1 if detail_branch else 0)
             self.refine = RefineLevel(classes=classes, slices=self.grid_shape[0], channels=refine, decoder=decoder[0],
                                       topdown=topdown[0], halvings=k, expand=expand, encoder_expand=encoder_expand,
@@ -276,10 +274,7 @@ class SSZGenerator(nn.Module):
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
         """Top-down image features ``t_s``, ``(B, T_s, H / 2^s, W / 2^s)`` for s = 0 .. L-1 (``H, W`` of
         ``base_shape``; with ``refine`` the image is the 2 x 2-pooled one)."""
-        d, h, w = self.base_shape
-        k = self.image_scale + (1 if self.detail_branch is not None else 0)
-        if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
-            raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
+        self._check_image(image, self.base_shape)
         x = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
         fine = None
         if self.detail_branch is not None:
@@ -302,6 +297,14 @@ class SSZGenerator(nn.Module):
             up = F.interpolate(self.topdown_up[s](out[0]), scale_factor=2.0, mode="nearest")
             out.insert(0, self.topdown[s](up + self.lateral[s](feats[s])))
         return out
+
+    def _check_image(self, image: torch.Tensor, shape: tuple[int, int, int]) -> None:
+        """Raise ValueError unless ``image`` is ``(B, 3, H * 2^k, W * 2^k)`` for the grid ``shape`` ``(D, H, W)``
+        (``k`` = ``image_scale``, plus one with the detail branch)."""
+        _, h, w = shape
+        k = self.image_scale + (1 if self.detail_branch is not None else 0)
+        if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
+            raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
 
     @staticmethod
     def depth_features(depth_logits: torch.Tensor, levels: int) -> list[torch.Tensor]:
@@ -396,10 +399,7 @@ class SSZGenerator(nn.Module):
         :class:`SSZOutput`."""
         if self.refine is None:
             return self._predict_base(image)[:4]
-        d, h, w = self.grid_shape
-        k = self.image_scale + (1 if self.detail_branch is not None else 0)
-        if image.ndim != 4 or image.shape[1] != 3 or image.shape[2] != h << k or image.shape[3] != w << k:
-            raise ValueError(f"image must be (B, 3, {h << k}, {w << k}), got {tuple(image.shape)}")
+        self._check_image(image, self.grid_shape)
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.refine_frozen):
             # The network below reads the image as it was trained to: averaged over 2 x 2 pixels.
             logits, depth_logits, surface_logits, _, x0, t0 = self._predict_base(F.avg_pool2d(image, 2))
@@ -408,7 +408,7 @@ class SSZGenerator(nn.Module):
                                                            run=self._run)
         return logits, depth_logits, surface_logits, None
 
-    def _predict_base(self, image: torch.Tensor) -> tuple:
+    def _predict_base(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The network at ``base_shape``: :meth:`_predict`'s four outputs, then the finest decoder volume
         ``(B, V_0, D, H, W)`` and the finest top-down image features ``(B, T_0, H, W)`` (read by the refinement
         level)."""
@@ -527,12 +527,11 @@ class RefineLevel(nn.Module):
         depth_logits = split_depth_logits(depth_logits) + self.depth_head(f).float()
         surface_logits = (F.interpolate(surface_logits.float(), scale_factor=2.0, mode="nearest")
                           + self.surface_head(f).float())
-        p = torch.softmax(depth_logits, dim=1)[:, :-1].unsqueeze(1)
-        depth = torch.cat([p, torch.cumsum(p, dim=2).clamp_(max=1.0)], dim=1)
+        (depth,) = SSZGenerator.depth_features(depth_logits, 1)
         x = self.up(x0)
         x = self.lift(x, f, depth, tuple(x.shape[2:]))
         x = run(self.block, x) if run is not None else self.block(x)
-        coarse = logits.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3).repeat_interleave(2, dim=4)
+        coarse = F.interpolate(logits, scale_factor=2.0, mode="nearest")  # each cell repeated 2 x 2 x 2
         out = coarse + self.head(x).to(coarse.dtype)
         return out, depth_logits, surface_logits
 
