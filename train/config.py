@@ -122,11 +122,18 @@ class ModelConfig:
     decoder level. The decoder's term for them starts at zero, so a model fine-tuned (``run.init``) from weights
     without the head starts as that model."""
     refine: int = 0
-    """Channels of a refinement level that doubles the output grid in every axis (0 = none;
-    :class:`fruxel.train.models.generator.RefineLevel`). Everything else is then built for ``grid`` halved and
-    reads the image averaged over 2 x 2 pixels, so a model trained at that grid (``run.init``) is the network below
-    the level, which starts as a zero correction: a fresh level repeats the coarse model's answer on the fine cells.
-    The level reads the full image (``image_size``) through a branch of its own."""
+    """Channels of a refinement level that doubles the output grid in every axis (``refine_scale`` 2) or reads an
+    image twice as large for the same grid (``refine_scale`` 1) (0 = none;
+    :class:`fruxel.train.models.generator.RefineLevel`). Everything else is then built for ``grid`` (halved at
+    scale 2) and reads the image averaged over 2 x 2 pixels, so a model trained at that grid (``run.init``) is the
+    network below the level, which starts as a zero correction: a fresh level repeats the coarse model's answer on
+    the fine cells. The level reads the full image (``image_size``) through a branch of its own."""
+    refine_scale: int = 2
+    """With ``refine``: 2, the level doubles the output grid in every axis (the network below works at ``grid``
+    halved and reads the image averaged over 2 x 2 pixels); 1, the level keeps ``grid`` and only reads an image
+    twice as large as the network below does (that network reads it averaged over 2 x 2 pixels): a sharper look at
+    the same cells, whose correction starts at zero too, so a model trained at ``grid`` (``run.init``) starts as
+    itself. ``image_size`` counts it."""
     refine_frozen: bool = False
     """With ``refine``: train only the refinement level; the network below keeps its weights and BatchNorm
     statistics (no gradient flows into it, so training is the level's cost alone)."""
@@ -136,7 +143,7 @@ class ModelConfig:
     @property
     def image_size(self) -> tuple[int, int]:
         """``(height, width)`` of the input image in pixels."""
-        k = self.image_scale + (1 if self.detail_branch else 0)
+        k = self.image_scale + (1 if self.detail_branch else 0) + (1 if self.refine and self.refine_scale == 1 else 0)
         return self.grid.height << k, self.grid.width << k
 
     @property
@@ -161,6 +168,10 @@ class ModelConfig:
             raise ConfigError(f"{path}.refine and {path}.fine_depth cannot be combined")
         if self.refine_frozen and not self.refine:
             raise ConfigError(f"{path}.refine_frozen needs {path}.refine > 0")
+        if self.refine_scale not in (1, 2) or isinstance(self.refine_scale, bool):
+            raise ConfigError(f"{path}.refine_scale must be 1 or 2, got {self.refine_scale!r}")
+        if self.refine_scale != 2 and not self.refine:
+            raise ConfigError(f"{path}.refine_scale needs {path}.refine > 0")
         if self.fine_depth and self.lift != "depth":
             raise ConfigError(f"{path}.fine_depth needs {path}.lift = 'depth', got {self.lift!r}")
         if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
@@ -178,10 +189,11 @@ class ModelConfig:
                 _positive_int(f"{path}.{name}", v, allow_zero=name.endswith("blocks"))
         for v in self.discriminator:
             _positive_int(f"{path}.discriminator", v)
-        f = 2 ** (self.levels - 1 + (1 if self.refine else 0))
+        doubled = bool(self.refine and self.refine_scale == 2)
+        f = 2 ** (self.levels - 1 + (1 if doubled else 0))
         g = self.grid
         if g.width % f or g.height % f or g.depth % f:
-            why = "2^levels (levels, then refine)" if self.refine else "2^(levels-1)"
+            why = "2^levels (levels, then refine)" if doubled else "2^(levels-1)"
             raise ConfigError(f"{path}.grid {g.width}x{g.height}x{g.depth} must be divisible by {why} = {f} "
                               "in every axis")
         if self.lift not in ("depth", "copy"):

@@ -61,7 +61,8 @@ def build_generator(config: ModelConfig, *, checkpointing: bool = False) -> SSZG
                         fill_columns=config.fill_columns, empty_offset=config.empty_offset,
                         fill_threshold=config.fill_threshold, first_hit_label=config.first_hit_label,
                         flip_average=config.flip_average, fine_depth=config.fine_depth,
-                        refine=config.refine, refine_frozen=config.refine_frozen, checkpointing=checkpointing)
+                        refine=config.refine, refine_scale=config.refine_scale,
+                        refine_frozen=config.refine_frozen, checkpointing=checkpointing)
 
 
 def build_discriminator(config: ModelConfig) -> PatchDiscriminator3d:

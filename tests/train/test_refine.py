@@ -77,25 +77,28 @@ def _repeat(x: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------------------- starting point
-@pytest.mark.parametrize(("detail_branch", "frozen"), [(0, False), (0, True), (4, False)])
+@pytest.mark.parametrize(("detail_branch", "frozen", "scale"),
+                         [(0, False, 2), (0, True, 2), (4, False, 2), (0, True, 1), (4, False, 1)])
 def test_a_fresh_level_on_a_coarse_model_repeats_its_answer(tmp_path: Path, detail_branch: int,
-                                                            frozen: bool) -> None:
+                                                            frozen: bool, scale: int) -> None:
     """``run.init`` with a model of the grid halved: every weight but the level's is taken, and the refined model
     is the coarse one on the image averaged over 2 x 2 pixels, each cell repeated 2 x 2 x 2, each column's slice
-    split in two halves, each column's surface class repeated 2 x 2. Once the level's zero-started heads are not
-    zero, each of them changes its output."""
+    split in two halves, each column's surface class repeated 2 x 2. With ``refine_scale`` 1 the model below has
+    the same grid and the refined model is exactly its answer on the averaged image. Once the level's
+    zero-started heads are not zero, each of them changes its output."""
     extra = {"detail_branch": detail_branch} if detail_branch else {}
-    coarse_cfg = _coarse(extra)
+    coarse_cfg = _coarse(extra) if scale == 2 else tiny({"model": extra})
     torch.manual_seed(3)
     coarse = _woken(build_generator(coarse_cfg.model))
     path = tmp_path / "coarse.safetensors"
     save_shipped(path, coarse, coarse_cfg.model, half=False)
-    config = _refined({"refine_frozen": frozen} | extra, run={"init": str(path)})
+    config = _refined({"refine_frozen": frozen, "refine_scale": scale} | extra, run={"init": str(path)})
     assert config.model.image_size == tuple(2 * n for n in coarse_cfg.model.image_size)
     trainer = Trainer(config, tmp_path / "run", device="cpu", progress=False)
     trainer._build()
     fine = trainer.generator
-    assert fine.grid_shape == (16, 16, 16) and fine.base_shape == (8, 8, 8)
+    n = 16 // scale
+    assert fine.grid_shape == (16, 16, 16) and fine.base_shape == (n, n, n)
     got, want = fine.state_dict(), coarse.state_dict()
     fresh = sorted(k for k in got if k not in want)
     assert fresh and all(k.startswith("refine.") for k in fresh) and not [k for k in want if k not in got]
@@ -108,9 +111,13 @@ def test_a_fresh_level_on_a_coarse_model_repeats_its_answer(tmp_path: Path, deta
         b = fine(image, rules=False)
     assert b.logits.shape == (2, 7, 16, 16, 16) and b.depth_logits.shape == (2, 17, 16, 16)
     assert b.surface_logits.shape == (2, 7, 16, 16) and b.fine_logits is None
-    torch.testing.assert_close(b.logits, _repeat(a.logits))
-    torch.testing.assert_close(b.depth_logits, split_depth_logits(a.depth_logits))
-    torch.testing.assert_close(b.surface_logits, F.interpolate(a.surface_logits, scale_factor=2.0, mode="nearest"))
+    if scale == 2:
+        torch.testing.assert_close(b.logits, _repeat(a.logits))
+        torch.testing.assert_close(b.depth_logits, split_depth_logits(a.depth_logits))
+        torch.testing.assert_close(b.surface_logits, F.interpolate(a.surface_logits, scale_factor=2.0, mode="nearest"))
+    else:
+        for field in ("logits", "depth_logits", "surface_logits"):
+            assert torch.equal(getattr(b, field), getattr(a, field)), field
     # The woken BatchNorms matter: the coarse model in training mode (batch statistics) answers otherwise.
     with torch.no_grad():
         assert (copy.deepcopy(coarse).train()(F.avg_pool2d(image, 2)).logits - a.logits).abs().max() > 1e-2
@@ -219,6 +226,16 @@ def test_refine_config_is_checked() -> None:
         dataclasses.replace(base, fine_depth=4).check()
     with pytest.raises(ConfigError, match="model.refine_frozen needs model.refine"):
         dataclasses.replace(base, refine=0, refine_frozen=True).check()
+    for bad in (0, 3, True):
+        with pytest.raises(ConfigError, match=f"model.refine_scale must be 1 or 2, got {bad!r}"):
+            dataclasses.replace(base, refine_scale=bad).check()
+    with pytest.raises(ConfigError, match="model.refine_scale needs model.refine"):
+        dataclasses.replace(base, refine=0, refine_scale=1).check()
+    same = dataclasses.replace(base, refine_scale=1)
+    same.check()  # 16^3 with three levels: the level adds no halving at scale 1
+    assert same.image_size == (64, 64) and base.image_size == (32, 32)
+    with pytest.raises(ValueError, match="refine_scale must be 1 or 2, got 3"):
+        build_generator(dataclasses.replace(base, refine_scale=3))
     # 12^3 holds three levels (2^2) but not three levels and the refinement level below them (2^3).
     grid12 = dataclasses.replace(base, grid=dataclasses.replace(base.grid, width=12, height=12, depth=12))
     dataclasses.replace(grid12, refine=0).check()
@@ -235,11 +252,13 @@ def test_refine_config_is_checked() -> None:
         build_generator(dataclasses.replace(base, lift="copy", surface_fusion=False))
 
 
-def test_the_refined_model_wants_the_full_image() -> None:
-    model = build_generator(_refined().model).eval()
+@pytest.mark.parametrize("scale", [2, 1])
+def test_the_refined_model_wants_the_full_image(scale: int) -> None:
+    model = build_generator(_refined({"refine_scale": scale}).model).eval()
+    n = 64 // scale
     with torch.no_grad():
-        assert model(torch.rand(1, 3, 32, 32)).logits.shape == (1, 7, 16, 16, 16)
-        with pytest.raises(ValueError, match=r"image must be \(B, 3, 32, 32\), got \(1, 3, 16, 16\)"):
+        assert model(torch.rand(1, 3, n, n)).logits.shape == (1, 7, 16, 16, 16)
+        with pytest.raises(ValueError, match=rf"image must be \(B, 3, {n}, {n}\), got \(1, 3, 16, 16\)"):
             model(torch.rand(1, 3, 16, 16))
 
 
@@ -270,17 +289,20 @@ def test_shipped_refined_model_round_trip(tmp_path: Path, frozen: bool) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- training
-def test_training_the_frozen_level_on_a_coarse_model(tmp_path: Path) -> None:
+@pytest.mark.parametrize("scale", [2, 1])
+def test_training_the_frozen_level_on_a_coarse_model(tmp_path: Path, scale: int) -> None:
     """A real CPU run (the streamed simulator, 16^3 grid): ``run.init`` gives the coarse model, only the level
     learns. The loss falls, the level's weights move, and the coarse model's weights and BatchNorm statistics come
-    out bit for bit as they went in, a mid-run evaluation (eval mode, then back to training) included."""
-    coarse_cfg = _coarse()
+    out bit for bit as they went in, a mid-run evaluation (eval mode, then back to training) included. With
+    ``refine_scale`` 1 the model below has the level's grid and the level reads an image twice as large."""
+    coarse_cfg = _coarse() if scale == 2 else tiny()
     torch.manual_seed(2)
     coarse = _woken(build_generator(coarse_cfg.model))
     path = tmp_path / "coarse.safetensors"
     save_shipped(path, coarse, coarse_cfg.model, half=False)
     steps = 24
-    config = _refined({"refine_frozen": True}, run={"init": str(path), "steps": steps, "eval_every": 12},
+    config = _refined({"refine_frozen": True, "refine_scale": scale},
+                      run={"init": str(path), "steps": steps, "eval_every": 12},
                       optim={"lr": 1e-2})
     result = Trainer(config, tmp_path / "run", device="cpu", progress=False).fit()
     assert result.step == steps
@@ -301,3 +323,4 @@ def test_training_the_frozen_level_on_a_coarse_model(tmp_path: Path) -> None:
     assert len(moved) == len(fresh), sorted(set(fresh) - set(moved))
     loaded, got_config, _ = load_generator(tmp_path / "run" / SHIPPED)
     assert got_config.refine == 8 and got_config.refine_frozen and loaded.grid_shape == (16, 16, 16)
+    assert got_config.refine_scale == scale and loaded.base_shape == (16 // scale,) * 3

@@ -115,6 +115,9 @@ class SSZGenerator(nn.Module):
         refine: channels of a refinement level that doubles the output grid (0 = none; see
             :class:`RefineLevel`): everything above is then built for ``grid_shape`` halved and reads the image
             averaged over 2 x 2 pixels.
+        refine_scale: with ``refine``, 2 (the level doubles the grid, as above) or 1 (the level keeps
+            ``grid_shape`` and reads an image twice as large as the network above it, which reads it averaged over
+            2 x 2 pixels).
         refine_frozen: with ``refine``, train only the refinement level: the rest is frozen (no gradient, its
             BatchNorm statistics kept in eval mode).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
@@ -129,8 +132,8 @@ class SSZGenerator(nn.Module):
                  upsample: str = "parity", group_width: int = 1, full_res_spatial: bool = False,
                  surface_fusion: bool = False, fill_columns: bool = False, empty_offset: float = 0.0,
                  fill_threshold: float = FILL_SURFACE_PROBABILITY, first_hit_label: bool = False,
-                 flip_average: bool = False, fine_depth: int = 0, refine: int = 0, refine_frozen: bool = False,
-                 checkpointing: bool = False) -> None:
+                 flip_average: bool = False, fine_depth: int = 0, refine: int = 0, refine_scale: int = 2,
+                 refine_frozen: bool = False, checkpointing: bool = False) -> None:
         super().__init__()
         for name, seq in (("encoder", encoder), ("encoder_blocks", encoder_blocks), ("topdown", topdown),
                           ("decoder", decoder), ("decoder_blocks", decoder_blocks)):
@@ -146,17 +149,19 @@ class SSZGenerator(nn.Module):
             raise ValueError(f"fill_threshold must be in (0, 1], got {fill_threshold}")
         if refine < 0:
             raise ValueError(f"refine must be >= 0, got {refine}")
+        if refine_scale not in (1, 2):
+            raise ValueError(f"refine_scale must be 1 or 2, got {refine_scale}")
         if refine and fine_depth:
             raise ValueError("refine and fine_depth cannot be combined (the fine head speaks for the coarse grid)")
         d, h, w = grid_shape
         f = 2 ** (levels - 1)
-        g = f * 2 if refine else f
+        scale = refine_scale if refine else 1
+        g = f * scale
         if d % g or h % g or w % g:
             raise ValueError(f"grid {w}x{h}x{d} (WxHxD) must be divisible by {g} in every axis (2^(levels-1)"
-                             + (", times 2 for refine)" if refine else ")"))
+                             + (", times 2 for refine)" if scale == 2 else ")"))
         self.grid_shape = (d, h, w)
-        if refine:
-            d, h, w = d // 2, h // 2, w // 2
+        d, h, w = d // scale, h // scale, w // scale
         self.base_shape = (d, h, w)
         """``(D, H, W)`` of the network below the refinement level (``grid_shape`` without ``refine``)."""
         self.classes = classes
@@ -250,7 +255,8 @@ class SSZGenerator(nn.Module):
         if refine:
             k = image_scale + (1 if detail_branch else 0)
             self.refine = RefineLevel(classes=classes, slices=self.grid_shape[0], channels=refine, decoder=decoder[0],
-                                      topdown=topdown[0], halvings=k, expand=expand, encoder_expand=encoder_expand,
+                                      topdown=topdown[0], scale=scale, halvings=k + (1 if scale == 1 else 0),
+                                      expand=expand, encoder_expand=encoder_expand,
                                       upsample=upsample, group_width=group_width)
         if self.refine_frozen:
             for name, p in self.named_parameters():
@@ -399,7 +405,8 @@ class SSZGenerator(nn.Module):
         :class:`SSZOutput`."""
         if self.refine is None:
             return self._predict_base(image)[:4]
-        self._check_image(image, self.grid_shape)
+        # The level reads the image twice as large as the network below (for either scale).
+        self._check_image(image, tuple(2 * n for n in self.base_shape))
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.refine_frozen):
             # The network below reads the image as it was trained to: averaged over 2 x 2 pixels.
             logits, depth_logits, surface_logits, _, x0, t0 = self._predict_base(F.avg_pool2d(image, 2))
@@ -453,7 +460,8 @@ def split_depth_logits(depth_logits: torch.Tensor) -> torch.Tensor:
 
 
 class RefineLevel(nn.Module):
-    """A decoder level that doubles a trained network's output grid in every axis (``ModelConfig.refine``).
+    """A decoder level that doubles a trained network's output grid in every axis (``ModelConfig.refine``), or
+    (``scale`` 1) keeps it and reads the image at twice the resolution the network below reads.
 
     The network below predicts the grid halved from the image averaged over 2 x 2 pixels; this level reads the
     full image through a branch of its own (stride-2 convolutions down to the fine grid's columns), joins it with
@@ -469,9 +477,14 @@ class RefineLevel(nn.Module):
     Every correction starts at zero, so a fresh level repeats the coarse model's answer on the fine cells: a model
     trained at the coarse grid (``run.init``) starts as itself.
 
+    With ``scale`` 1 the fine grid is the coarse one: nothing is repeated or split, the decoder's finest volume
+    enters the merge as it is, and the per-cell block gets a 3x3x3 convolution (the neighbourhood that the
+    up-convolution gives at scale 2).
+
     Args:
         classes: C.
         slices: D, the fine grid's depth (the depth head gives D + 1 bins).
+        scale: 2 (the grid doubled) or 1 (the grid kept).
         channels: the level's width (image branch, volume).
         decoder: V_0, channels of the coarse decoder's finest volume.
         topdown: T_0, channels of the coarse network's finest image features.
@@ -484,10 +497,13 @@ class RefineLevel(nn.Module):
     """
 
     def __init__(self, *, classes: int, slices: int, channels: int, decoder: int, topdown: int, halvings: int,
-                 expand: int, encoder_expand: int, upsample: str, group_width: int) -> None:
+                 expand: int, encoder_expand: int, upsample: str, group_width: int, scale: int = 2) -> None:
         super().__init__()
         if halvings < 0:
             raise ValueError(f"halvings must be >= 0, got {halvings}")
+        if scale not in (1, 2):
+            raise ValueError(f"scale must be 1 or 2, got {scale}")
+        self.scale = scale
         r = channels
         self.branch = nn.Sequential(
             nn.Conv2d(3, r, 3, stride=2 if halvings else 1, padding=1, bias=False), nn.BatchNorm2d(r), act2d(),
@@ -496,9 +512,9 @@ class RefineLevel(nn.Module):
         self.mix = nn.Sequential(nn.BatchNorm2d(r), act2d(), InvertedResidual2d(r, encoder_expand))
         self.depth_head = nn.Conv2d(r, slices + 1, 1)
         self.surface_head = nn.Conv2d(r, classes, 1)
-        self.up = Up3d(decoder, r, upsample, group_width)
-        self.lift = Lift(r, r, r, depth_channels=2)
-        self.block = InvertedResidual3d(r, expand, group_width, spatial=False)
+        self.up = Up3d(decoder, r, upsample, group_width) if scale == 2 else None
+        self.lift = Lift(r if scale == 2 else decoder, r, r, depth_channels=2)
+        self.block = InvertedResidual3d(r, expand, group_width, spatial=scale == 1)
         self.head = Pointwise3d(r, classes)
         for m in (self.depth_head, self.surface_head, self.head):
             nn.init.zeros_(m.weight)
@@ -507,7 +523,8 @@ class RefineLevel(nn.Module):
     def forward(self, image: torch.Tensor, logits: torch.Tensor, depth_logits: torch.Tensor,
                 surface_logits: torch.Tensor, x0: torch.Tensor, t0: torch.Tensor, *,
                 run: Callable[..., torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Refine one batch (fine grid ``(D, H, W)``, coarse grid ``(D/2, H/2, W/2)``).
+        """Refine one batch (fine grid ``(D, H, W)``, coarse grid ``(D/2, H/2, W/2)``; with ``scale`` 1 both are
+        ``(D, H, W)``, read the shapes below with it).
 
         Args:
             image: ``(B, 3, h, w)`` the full image, normalised as the model normalises it.
@@ -522,16 +539,19 @@ class RefineLevel(nn.Module):
             ``(logits (B, C, D, H, W), depth_logits (B, D + 1, H, W) float32, surface_logits (B, C, H, W)
             float32)``.
         """
-        f = self.branch(image) + F.interpolate(self.from_coarse(t0), scale_factor=2.0, mode="nearest")
-        f = self.mix(f)
-        depth_logits = split_depth_logits(depth_logits) + self.depth_head(f).float()
-        surface_logits = (F.interpolate(surface_logits.float(), scale_factor=2.0, mode="nearest")
-                          + self.surface_head(f).float())
+        def fine(x: torch.Tensor) -> torch.Tensor:
+            """Each coarse cell or column repeated on the fine grid (2 per axis; the identity at scale 1)."""
+            return F.interpolate(x, scale_factor=2.0, mode="nearest") if self.scale == 2 else x
+
+        f = self.mix(self.branch(image) + fine(self.from_coarse(t0)))
+        depth_logits = (split_depth_logits(depth_logits) if self.scale == 2 else depth_logits.float()) \
+            + self.depth_head(f).float()
+        surface_logits = fine(surface_logits.float()) + self.surface_head(f).float()
         (depth,) = SSZGenerator.depth_features(depth_logits, 1)
-        x = self.up(x0)
+        x = self.up(x0) if self.up is not None else x0
         x = self.lift(x, f, depth, tuple(x.shape[2:]))
         x = run(self.block, x) if run is not None else self.block(x)
-        coarse = F.interpolate(logits, scale_factor=2.0, mode="nearest")  # each cell repeated 2 x 2 x 2
+        coarse = fine(logits)
         out = coarse + self.head(x).to(coarse.dtype)
         return out, depth_logits, surface_logits
 
