@@ -163,7 +163,8 @@ class SSZGenerator(nn.Module):
         self.grid_shape = (d, h, w)
         d, h, w = d // scale, h // scale, w // scale
         self.base_shape = (d, h, w)
-        """``(D, H, W)`` of the network below the refinement level (``grid_shape`` without ``refine``)."""
+        """``(D, H, W)`` of the network below the refinement level (``grid_shape``, halved with ``refine`` at
+        ``refine_scale`` 2)."""
         self.classes = classes
         self.image_scale = image_scale
         self.levels = levels
@@ -489,7 +490,7 @@ class RefineLevel(nn.Module):
         decoder: V_0, channels of the coarse decoder's finest volume.
         topdown: T_0, channels of the coarse network's finest image features.
         halvings: how many times the full image is halved to the fine grid's width (k of ``image_scale``, plus
-            one with the detail branch).
+            one with the detail branch, plus one at ``scale`` 1).
         expand: expansion of the inverted residual blocks (3D).
         encoder_expand: expansion of the inverted residual blocks (2D).
         upsample: :class:`~.blocks.Up3d` mode.
