@@ -51,12 +51,12 @@ def photo_config(model_file: str | Path | None = None) -> Any:
                      samples_per_scene=SAMPLES_PER_SCENE, splits=(("train", 10_000_000), (SPLIT, TEST_SAMPLES)))
 
 
-def photo_sample(index: int = INDEX, model_file: str | Path | None = None) -> Any:
+def photo_sample(index: int = INDEX, config: Any = None) -> Any:
     """The :class:`fruxel.train.sim.sample.Sample` of the bundled photo (or of another test sample), with the
-    labels on ``model_file``'s grid (default: the default model's)."""
+    labels on the grid of ``config`` (a :func:`photo_config`; default: the default model's)."""
     from fruxel.train.sim.sample import SampleMaker
 
-    with SampleMaker(photo_config(model_file), SEED) as maker:
+    with SampleMaker(config if config is not None else photo_config(), SEED) as maker:
         return maker.make(SPLIT, index)
 
 
@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder of photo.png, photo_truth.npz and photo_truth128.npz")
     parser.add_argument("--index", type=int, default=INDEX, help=f"sample of the test split (default {INDEX})")
     args = parser.parse_args(argv)
-    sample = photo_sample(args.index)
     cfg = photo_config()
+    sample = photo_sample(args.index, cfg)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     png, npz = args.out_dir / PHOTO.name, args.out_dir / PHOTO_TRUTH.name
     with atomic_path(png) as tmp:
@@ -87,9 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, n in zip(model.classes.names, model.counts().tolist(), strict=False):
         print(f"  {name:10s} {n}")
     # The same room and pose on the 128^3 model's grid: the truth of fruxel-render --checkpoint ssz128.
-    fine = photo_sample(args.index, shipped_model("ssz128"))
+    cfg128 = photo_config(shipped_model("ssz128"))
+    fine = photo_sample(args.index, cfg128)
     npz128 = args.out_dir / PHOTO_TRUTH_128.name
-    save(npz128, FruxelModel(fine.labels, photo_config(shipped_model("ssz128")).grid, cfg.classes))
+    save(npz128, FruxelModel(fine.labels, cfg128.grid, cfg.classes))
     print(f"{npz128}: {npz128.stat().st_size} bytes, the same sample on a {fine.labels.shape[0]}^3 grid")
     return 0
 

@@ -369,7 +369,6 @@ def default_model() -> str:
     return shipped_model("ssz64")
 
 
-
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
                    compile: bool = False, precision: str = "bfloat16") -> Predictor:
     """A :class:`Predictor` of a shipped model or training checkpoint, a file or a shipped model's name

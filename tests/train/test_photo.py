@@ -176,6 +176,7 @@ def test_bundled_photo_predicts_its_128_truth(predictor128, predictor) -> None:
 
 def test_bundled_128_truth_is_the_test_split_sample() -> None:
     """photo_truth128.npz is sample 43 of the test split on the 128^3 model's grid (scripts/make_photo.py)."""
-    sample = _make_photo_module().photo_sample(model_file=shipped_model("ssz128"))
+    make_photo = _make_photo_module()
+    sample = make_photo.photo_sample(config=make_photo.photo_config(shipped_model("ssz128")))
     assert sample.labels.shape == (128, 128, 128)
     assert np.array_equal(fruxel.load(PHOTO_TRUTH_128).labels, sample.labels), "photo_truth128.npz is stale"
