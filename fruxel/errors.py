@@ -13,3 +13,9 @@ class FruxelError(Exception):
     command-line programs turn a ``FruxelError`` into one ``PROG: error: MESSAGE`` line and exit status 2
     (:func:`fruxel.cli.common.run`); any other exception is a bug and keeps its traceback.
     """
+
+
+class ConfigError(FruxelError, ValueError):
+    """An impossible or malformed setting of any fruxel config (experiment, simulator, inference rules): the message
+    names the key (``model.levels``, ``room.size``...) and what is wrong with it. The one config error of the
+    project: every config dataclass raises it from its own validation."""

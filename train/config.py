@@ -22,15 +22,11 @@ from typing import Any
 import numpy as np
 
 from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
 CONFIG_VERSION = 1
 """Version of the config's JSON layout."""
-
-
-class ConfigError(FruxelError, ValueError):
-    """An impossible or malformed experiment setting; the message names the key."""
 
 
 # ---------------------------------------------------------------------------------------------------- model

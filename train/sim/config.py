@@ -38,7 +38,7 @@ import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
 from .robot import CameraMount, RobotParams
@@ -52,11 +52,6 @@ PAPER_SPLITS: tuple[tuple[str, int], ...] = (("train", 15000), ("test", 1000))
 
 MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
-
-
-class ConfigError(FruxelError, ValueError):
-    """Raised for impossible generator settings, or a config dictionary that does not describe a
-    :class:`SimConfig`."""
 
 
 def _check_range(name: str, lo_hi: Any, low: float = -math.inf, high: float = math.inf) -> None:
