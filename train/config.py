@@ -1,13 +1,17 @@
-"""Typed settings of an SSZ experiment: the model, its losses, the data, the optimiser and the run, with named
+"""Typed settings of a training run: the model, its losses, the data, the optimiser and the run, with named
 presets and a JSON form.
 
 A config file (``fruxel-train --config FILE``) is a JSON object that starts from a preset and overrides any
 fields, nested as the dataclasses are::
 
-    {"preset": "ssz64", "optim": {"lr": 0.002}, "run": {"steps": 20000}, "loss": {"shell": false}}
+    {"preset": "ssz64", "optim": {"lr": 0.002}, "run": {"steps": 20000}, "loss": {"shell": true}}
 
-Unknown keys, wrong types and impossible values are refused with one :class:`ConfigError` naming the key. The
-full config (:meth:`TrainConfig.to_dict`) is saved beside every checkpoint, so a run can always be reproduced.
+Every config dataclass checks itself once, when it is made (``__post_init__``): unknown keys, wrong types and
+impossible values are refused with one :class:`~fruxel.errors.ConfigError` naming the key. The full config
+(:meth:`TrainConfig.to_dict`) is saved beside every checkpoint, so a run can always be reproduced.
+
+The model section is an architecture's config (:mod:`fruxel.train.models.registry`): ``"architecture"`` names it
+(default ``"ssz"``, :class:`~fruxel.train.models.ssz.SSZConfig`) and the other keys are its fields.
 """
 
 from __future__ import annotations
@@ -21,200 +25,99 @@ from typing import Any
 
 import numpy as np
 
-from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
+from fruxel.classes import ClassTable, ClassTableError
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
-CONFIG_VERSION = 1
-"""Version of the config's JSON layout."""
+from .models.registry import ModelConfig, model_config_from_dict
+from .models.ssz import SSZConfig
+
+CONFIG_VERSION = 2
+"""Version of the config's JSON layout (1: before the model's inference rules left it; read by
+:func:`fruxel.train.legacy.upgrade_config`)."""
 
 
-# ---------------------------------------------------------------------------------------------------- model
-@dataclass(frozen=True)
-class ModelConfig:
-    """Architecture of the SSZ generator and discriminator (SPEC section 8; see
-    :mod:`fruxel.train.models.generator`). Per-level tuples run from the grid's resolution (level 0) down."""
-
-    grid: FruxelGrid = FruxelGrid(width=64, height=64, depth=64, z_near=0.5, z_far=8.0, hfov=60.0)
-    """The output grid: shape ``(D, H, W)`` and the frustum it spans (the image's camera is the grid's own)."""
-    classes: ClassTable = DEFAULT_CLASSES
-    """Class table of the output; C = ``len(classes.names)``, class 0 = empty."""
-    image_scale: int = 1
-    """k: the input image is ``2^k`` times the grid's width and height (k = 1: 128^2 images for a 64^3 grid)."""
-    levels: int = 5
-    """L: resolution levels; every grid axis must be divisible by ``2^(L-1)``."""
-    stem: int = 24
-    """Channels of the 2D stem (at half the image resolution)."""
-    image_branch: int = 0
-    """Channels of a branch that works at the image's full resolution before the stem's stride-2 convolution and
-    adds its result to the stem's output (0 = none; needs ``image_scale >= 1``). It starts as a zero term, so a
-    model fine-tuned (``run.init``) from weights without it starts as that model."""
-    detail_branch: int = 0
-    """Channels of a branch that reads the image at twice the resolution ``image_scale`` gives (0 = none): the
-    input image is then ``2^(k+1)`` times the grid, the stem sees it averaged over 2 x 2 pixels, and the branch
-    (two stride-2 convolutions around an inverted residual block) adds what only the finer image holds to the
-    stem's output: where a board thinner than a cell lies against the column's centre ray. It starts as a zero
-    term, so a model fine-tuned (``run.init``) from weights without it starts as that model on the pooled image."""
-    encoder: tuple[int, ...] = (32, 48, 96, 160, 224)
-    """Channels of the 2D encoder per level."""
-    encoder_blocks: tuple[int, ...] = (2, 2, 3, 3, 2)
-    """2D inverted residual blocks per level."""
-    encoder_expand: int = 4
-    """Expansion factor of the 2D inverted residual blocks (2D work is cheap next to the 3D decoder's)."""
-    topdown: tuple[int, ...] = (48, 64, 96, 128, 160)
-    """Channels of the 2D top-down path per level (the image features copied into the 3D levels)."""
-    decoder: tuple[int, ...] = (16, 24, 32, 48, 64)
-    """Channels of the 3D decoder per level."""
-    decoder_blocks: tuple[int, ...] = (1, 1, 1, 2, 2)
-    """Volumetric inverted residual blocks per level."""
-    expand: int = 2
-    """Expansion factor of the 3D decoder's inverted residual blocks."""
-    lift: str = "depth"
-    """2D-to-3D skips: ``"depth"`` (image features copied along depth with each column's predicted surface depth
-    distribution) or ``"copy"`` (the plain Z-GAN copy)."""
-    upsample: str = "parity"
-    """3D up-convolution (:class:`fruxel.train.models.blocks.Up3d`): ``"parity"`` (3x3x3 at the coarse level, then
-    a depthwise kernel-2 transposed convolution), ``"resize"`` (nearest x2, then 3x3x3) or ``"transpose"``
-    (transposed 4x4x4, stride 2); measured in benchmarks/bench_ssz.py."""
-    full_res_spatial: bool = False
-    """Give the finest level's blocks a 3x3x3 convolution (by default they work per cell)."""
-    group_width: int = 1
-    """Channels per group of the decoder's 3x3x3 convolutions: 1 is depthwise (SPEC section 8); wider groups run
-    on faster GPU kernels (measured in benchmarks/bench_ssz.py)."""
-    surface_fusion: bool = False
-    """Add the image-side heads' own-view answer to the logits of every cell
-    (:class:`fruxel.train.models.blocks.SurfaceFusion`; needs ``lift = "depth"``). On in every preset; off here
-    so that a config or model file written before the field existed reads as the model it describes."""
-    fill_columns: bool = False
-    """At inference (eval mode), give a column that the volume leaves empty one surface cell when the column depth
-    head says it has a surface (:func:`fruxel.train.models.generator.fill_columns`; needs ``lift = "depth"``).
-    Training is unchanged; off here for the same reason as ``surface_fusion``."""
-    empty_offset: float = 0.0
-    """At inference (eval mode), added to every cell's empty logit (channel 0) before ``fill_columns``: a
-    decision threshold between empty and occupied chosen after training on training-split samples
-    (``scripts/calibrate.py``), since the class-weighted cross-entropy that trains the model down-weights the
-    empty class. Training is unchanged."""
-    fill_threshold: float = 0.5
-    """``fill_columns`` fills a column whose depth head gives "no surface" a probability below this, in (0, 1]
-    (1 fills every column the volume leaves empty); chosen with ``empty_offset`` by ``scripts/calibrate.py``."""
-    first_hit_label: bool = False
-    """At inference (eval mode), after ``empty_offset`` and ``fill_columns``: give each column's first occupied
-    cell the class most likely to be the column's first hit
-    (:func:`fruxel.train.models.generator.first_hit_label`), which is what the grid's own camera shows of it. Where
-    a thin board is spread over several cells, none of them alone more likely occupied than empty, the cells
-    together can still make it the likeliest first hit. Training is unchanged; off here for the same reason as
-    ``surface_fusion``."""
-    flip_average: bool = False
-    """At inference (eval mode), before the other rules: predict the image and its mirror image (left and right
-    swapped; one batch on a GPU, two passes on the CPU) and average the logits, the mirror's mirrored back
-    (test-time augmentation; twice the network's work). The grid's own camera is centred (SPEC section 1), so the
-    mirror image is the mirrored room seen through the mirrored grid. Training is unchanged; off here for the same
-    reason as ``surface_fusion``."""
-    fine_depth: int = 0
-    """R: bins per slice of a second column depth head (0 = none; needs ``lift = "depth"``), which places each
-    column's first *surface* within a slice, supervised with the simulator's rendered depth
-    (``loss.fine_depth``). A board thinner than a slice holds a cell centre, and so stays in the truth, or not
-    depending on where within the slice it lies; the per-cell probabilities of its R bins reach the finest
-    decoder level. The decoder's term for them starts at zero, so a model fine-tuned (``run.init``) from weights
-    without the head starts as that model."""
-    refine: int = 0
-    """Channels of a refinement level that doubles the output grid in every axis (``refine_scale`` 2) or reads an
-    image twice as large for the same grid (``refine_scale`` 1) (0 = none;
-    :class:`fruxel.train.models.generator.RefineLevel`). Everything else is then built for ``grid`` (halved at
-    scale 2) and reads the image averaged over 2 x 2 pixels, so a model trained at that grid (``run.init``) is the
-    network below the level, which starts as a zero correction: a fresh level repeats the coarse model's answer on
-    the fine cells. The level reads the full image (``image_size``) through a branch of its own."""
-    refine_scale: int = 2
-    """With ``refine``: 2, the level doubles the output grid in every axis (the network below works at ``grid``
-    halved and reads the image averaged over 2 x 2 pixels); 1, the level keeps ``grid`` and only reads an image
-    twice as large as the network below does (that network reads it averaged over 2 x 2 pixels): a sharper look at
-    the same cells, whose correction starts at zero too, so a model trained at ``grid`` (``run.init``) starts as
-    itself. ``image_size`` counts it."""
-    refine_frozen: bool = False
-    """With ``refine``: train only the refinement level; the network below keeps its weights and BatchNorm
-    statistics (no gradient flows into it, so training is the level's cost alone)."""
-    discriminator: tuple[int, ...] = (32, 64, 128)
-    """Channels of the 3D PatchGAN's stride-2 layers (used only when ``loss.adversarial`` is on)."""
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        """``(height, width)`` of the input image in pixels."""
-        k = self.image_scale + (1 if self.detail_branch else 0) + (1 if self.refine and self.refine_scale == 1 else 0)
-        return self.grid.height << k, self.grid.width << k
-
-    @property
-    def num_classes(self) -> int:
-        """C."""
-        return len(self.classes.names)
-
-    def check(self, path: str = "model") -> None:
-        """Raise :class:`ConfigError` for an impossible architecture."""
-        _positive_int(f"{path}.levels", self.levels)
-        _positive_int(f"{path}.stem", self.stem)
-        _positive_int(f"{path}.expand", self.expand)
-        _positive_int(f"{path}.encoder_expand", self.encoder_expand)
-        _positive_int(f"{path}.group_width", self.group_width)
-        _positive_int(f"{path}.image_branch", self.image_branch, allow_zero=True)
-        _positive_int(f"{path}.detail_branch", self.detail_branch, allow_zero=True)
-        _positive_int(f"{path}.fine_depth", self.fine_depth, allow_zero=True)
-        _positive_int(f"{path}.refine", self.refine, allow_zero=True)
-        if self.refine and self.lift != "depth":
-            raise ConfigError(f"{path}.refine needs {path}.lift = 'depth', got {self.lift!r}")
-        if self.refine and self.fine_depth:
-            raise ConfigError(f"{path}.refine and {path}.fine_depth cannot be combined")
-        if self.refine_frozen and not self.refine:
-            raise ConfigError(f"{path}.refine_frozen needs {path}.refine > 0")
-        if self.refine_scale not in (1, 2) or isinstance(self.refine_scale, bool):
-            raise ConfigError(f"{path}.refine_scale must be 1 or 2, got {self.refine_scale!r}")
-        if self.refine_scale != 2 and not self.refine:
-            raise ConfigError(f"{path}.refine_scale needs {path}.refine > 0")
-        if self.fine_depth and self.lift != "depth":
-            raise ConfigError(f"{path}.fine_depth needs {path}.lift = 'depth', got {self.lift!r}")
-        if not 0 <= self.image_scale <= 4 or isinstance(self.image_scale, bool):
-            raise ConfigError(f"{path}.image_scale must be an integer in [0, 4], got {self.image_scale!r}")
-        if self.detail_branch and self.image_scale > 3:
-            raise ConfigError(f"{path}.detail_branch doubles the image: it needs {path}.image_scale <= 3, got "
-                              f"{self.image_scale}")
-        if self.image_branch and not self.image_scale:
-            raise ConfigError(f"{path}.image_branch needs {path}.image_scale >= 1 (an image larger than the grid)")
-        for name in ("encoder", "encoder_blocks", "topdown", "decoder", "decoder_blocks"):
-            seq = getattr(self, name)
-            if len(seq) != self.levels:
-                raise ConfigError(f"{path}.{name} needs one entry per level ({self.levels}), got {len(seq)}")
-            for v in seq:
-                _positive_int(f"{path}.{name}", v, allow_zero=name.endswith("blocks"))
-        for v in self.discriminator:
-            _positive_int(f"{path}.discriminator", v)
-        doubled = bool(self.refine and self.refine_scale == 2)
-        f = 2 ** (self.levels - 1 + (1 if doubled else 0))
-        g = self.grid
-        if g.width % f or g.height % f or g.depth % f:
-            why = "2^levels (levels, then refine)" if doubled else "2^(levels-1)"
-            raise ConfigError(f"{path}.grid {g.width}x{g.height}x{g.depth} must be divisible by {why} = {f} "
-                              "in every axis")
-        if self.lift not in ("depth", "copy"):
-            raise ConfigError(f"{path}.lift must be 'depth' or 'copy', got {self.lift!r}")
-        if self.surface_fusion and self.lift != "depth":
-            raise ConfigError(f"{path}.surface_fusion needs {path}.lift = 'depth' (the column depth head)")
-        if not math.isfinite(self.empty_offset):
-            raise ConfigError(f"{path}.empty_offset must be a finite number, got {self.empty_offset}")
-        if not (math.isfinite(self.fill_threshold) and 0.0 < self.fill_threshold <= 1.0):
-            raise ConfigError(f"{path}.fill_threshold must be in (0, 1], got {self.fill_threshold}")
-        if self.fill_columns and self.lift != "depth":
-            raise ConfigError(f"{path}.fill_columns needs {path}.lift = 'depth' (the column depth head)")
-        if self.upsample not in ("parity", "resize", "transpose"):
-            raise ConfigError(f"{path}.upsample must be 'parity', 'resize' or 'transpose', got {self.upsample!r}")
-        w = self.grid.width << self.image_scale
-        if not 16 <= w <= 1024:
-            raise ConfigError(f"{path}: image width {w} (grid width x 2^image_scale) must be in [16, 1024]")
+# ---------------------------------------------------------------------------------------------------- checks
+def count(name: str, v: Any, allow_zero: bool = False) -> None:
+    """Raise :class:`~fruxel.errors.ConfigError` naming ``name`` unless ``v`` is an integer >= 1 (>= 0 with
+    ``allow_zero``)."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if allow_zero else 1):
+        raise ConfigError(f"{name} must be an integer >= {0 if allow_zero else 1}, got {v!r}")
 
 
-INFERENCE_RULES = ("flip_average", "empty_offset", "fill_columns", "fill_threshold", "first_hit_label")
-"""The :class:`ModelConfig` fields that are SSZ's eval-mode inference rules: attributes of the same names on the
-generator, read at every call, so a loaded model's rules can be changed in place."""
+def finite_nonneg(name: str, v: Any) -> None:
+    """Raise :class:`~fruxel.errors.ConfigError` naming ``name`` unless ``v`` is a finite number >= 0."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise ConfigError(f"{name} must be a finite number >= 0, got {v!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- losses
+@dataclass(frozen=True)
+class ShellLossConfig:
+    """Settings of :class:`fruxel.train.losses.ShellLoss` (here, beside the other training settings, so that a
+    config is read without loading torch)."""
+
+    own_view: bool = True
+    """Include the grid's own camera at native resolution (pixel (x, y) looks down column (y, x))."""
+    novel_views: int = 2
+    """K: random novel poses drawn per batch (shared by the batch's volumes)."""
+    novel_size: tuple[int, int] = (128, 128)
+    """``(width, height)`` of each novel view, pixels."""
+    novel_hfov: float | None = None
+    """Horizontal field of view of the novel views, degrees (None: the grid's own)."""
+    azimuth: tuple[float, float] = (-60.0, 60.0)
+    """Range of the novel views' azimuth, degrees (0 = the grid's own viewing side)."""
+    elevation: tuple[float, float] = (5.0, 40.0)
+    """Range of the novel views' elevation above the grid's horizontal plane, degrees."""
+    distance: tuple[float, float] = (0.9, 1.3)
+    """Range of the novel views' distance, as a factor on 1.2 times the grid's bounding-box diagonal."""
+    weight_shell: float = 1.0
+    """Weight of :func:`shell_cross_entropy` in the total."""
+    weight_depth: float = 1.0
+    """Weight of :func:`depth_l1` (unit-free: the error is divided by ``z_far - z_near``) in the total."""
+    weight_voxel: float = 1.0
+    """Weight of :func:`visible_weighted_voxel_ce` in the total."""
+    weight_own_view: float = 0.0
+    """Weight of the own view's shell cross-entropy on its own in the total (needs ``own_view``). Its pixels also
+    count in :func:`shell_cross_entropy`, where they are one camera among ``1 + novel_views``; this term is what
+    the own-view first-hit accuracy of conventions section 9 measures, so it can be weighted up separately."""
+    weight_visible: float = 1.0
+    """Per-cell weight of the ground truth's shell cells in the voxel cross-entropy."""
+    weight_other: float = 0.1
+    """Per-cell weight of all other cells in the voxel cross-entropy."""
+    eps: float = 1e-6
+    """Added to the expected class probability in :func:`shell_cross_entropy`."""
+    seed: int = 0
+    """Base seed (>= 0) of the novel poses: draw n of distributed rank r is a pure function of ``(seed, r, n)``
+    (see :class:`ShellLoss`)."""
+    backend: str | None = None
+    """Kernel backend (``"warp"``, ``"opencl"``, an ``available_backends`` name, or None for the best)."""
+    device: str | None = None
+    """Warp device, or None to follow the data."""
+
+    def __post_init__(self) -> None:
+        where = "loss.shell_losses"
+        count(f"{where}.novel_views", self.novel_views, allow_zero=True)
+        if len(self.novel_size) != 2:
+            raise ConfigError(f"{where}.novel_size must be (width, height), got {self.novel_size!r}")
+        for v in self.novel_size:
+            count(f"{where}.novel_size", v)
+        if self.novel_hfov is not None and not (isinstance(self.novel_hfov, (int, float))
+                                                and math.isfinite(self.novel_hfov) and 0 < self.novel_hfov < 180):
+            raise ConfigError(f"{where}.novel_hfov must be in (0, 180) degrees or null, got {self.novel_hfov!r}")
+        for name in ("azimuth", "elevation", "distance"):
+            lo_hi = getattr(self, name)
+            if len(lo_hi) != 2 or not all(math.isfinite(v) for v in lo_hi) or lo_hi[0] > lo_hi[1]:
+                raise ConfigError(f"{where}.{name} must be a (low, high) range, got {lo_hi!r}")
+        for name in ("weight_shell", "weight_depth", "weight_voxel", "weight_own_view", "weight_visible",
+                     "weight_other", "eps"):
+            finite_nonneg(f"{where}.{name}", getattr(self, name))
+        count(f"{where}.seed", self.seed, allow_zero=True)
+        if self.weight_own_view and not self.own_view:
+            raise ConfigError(f"{where}.weight_own_view needs {where}.own_view")
+        if not self.own_view and not self.novel_views:
+            raise ConfigError(f"{where} needs the own view or at least one novel view")
+
 
 @dataclass(frozen=True)
 class LossConfig:
@@ -224,37 +127,28 @@ class LossConfig:
     """Weight of the class-weighted per-cell cross-entropy."""
     class_weight_power: float = 0.5
     """Class weights of the cross-entropy are ``frequency^-power`` (normalised to a mean of 1 over the cells),
-    frequencies counted on the training split: 0 = unweighted, 1 = inverse frequency. Empty, about 97 % of the
-    cells at 64^3, is down-weighted by it."""
+    frequencies counted on the training split: 0 = unweighted, 1 = inverse frequency. Empty, most of the cells,
+    is down-weighted by it."""
     iou: float = 1.0
     """Weight of the soft Jaccard loss ``1 - mean_c soft IoU_c`` over the occupied classes, the metric's own
     form (soft IoU with probabilities), counted over the whole batch."""
     depth: float = 0.5
-    """Weight of the cross-entropy of the columns' first-surface depth distribution (``lift = "depth"``) against
-    the ground truth's first occupied slice (or "no surface")."""
+    """Weight of the cross-entropy of the columns' first-surface depth distribution against the ground truth's
+    first occupied slice (or "no surface"); needs a network with a column depth head."""
     surface: float = 0.5
-    """Weight of the cross-entropy of the columns' first-surface class against the ground truth's."""
+    """Weight of the cross-entropy of the columns' first-surface class against the ground truth's; needs a network
+    with a surface class head."""
     first_hit: float = 0.0
     """Weight of the own view's first-hit cross-entropy: each column's first-hit distribution over "miss" and the
-    classes (:func:`fruxel.train.models.generator.first_hit_log_probs`, the cells taken as independent) against
-    the truth's first label, mean over the columns. The own-view term of the shell-aware losses computed on the
-    columns directly, without their kernels or novel views; what the ``first_hit_label`` rule decodes."""
-    fine_depth: float = 0.5
-    """Weight of the cross-entropy of the fine depth head (``model.fine_depth``) against the sub-slice bin of the
-    surface that the simulator's renderer sees on each column's centre ray (streamed data only; columns whose ray
-    grazes an edge, or whose surface is nearer than ``z_near``, are left out)."""
+    classes (:func:`fruxel.train.rules.first_hit_log_probs`, the cells taken as independent) against the truth's
+    first label, mean over the columns. The own-view term of the shell-aware losses computed on the columns
+    directly, without their kernels or novel views; what the ``first_hit_label`` rule decodes."""
     shell: bool = False
     """Add the shell-aware losses (:class:`fruxel.train.losses.ShellLoss`: own view and random novel views)."""
     shell_weight: float = 0.5
     """Weight of the shell-aware losses' total."""
-    shell_views: int = 2
-    """Random novel views per batch for the shell-aware losses."""
-    shell_view_size: int = 64
-    """Width and height of each novel view, pixels."""
-    shell_own_view: float = 0.0
-    """Weight, inside the shell-aware losses' total, of their cross-entropy over the grid's own view alone
-    (:attr:`fruxel.train.losses.ShellLossConfig.weight_own_view`): the own-view first-hit accuracy's own term.
-    At 0 the own view is one camera among ``1 + shell_views`` in the shell cross-entropy."""
+    shell_losses: ShellLossConfig = ShellLossConfig(novel_views=2, novel_size=(64, 64))
+    """The shell-aware losses' own settings (views, their poses and size, the terms' weights, the poses' seed)."""
     adversarial: bool = False
     """Add the adversarial term (conditional 3D PatchGAN, hinge loss)."""
     adversarial_weight: float = 0.05
@@ -265,25 +159,36 @@ class LossConfig:
     """Steps over which the adversarial weight rises linearly from 0 to its final value."""
     discriminator_lr: float = 2e-4
     """Learning rate of the discriminator (Adam, betas 0.5 / 0.999)."""
+    discriminator: tuple[int, ...] = (32, 64, 128)
+    """Channels of the 3D PatchGAN's stride-2 layers (:class:`fruxel.train.models.discriminator.
+    PatchDiscriminator3d`)."""
 
-    def check(self, path: str = "loss") -> None:
-        """Raise :class:`ConfigError` for impossible settings."""
-        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "first_hit", "fine_depth", "shell_weight",
-                     "shell_own_view", "adversarial_weight", "discriminator_lr"):
-            _finite_nonneg(f"{path}.{name}", getattr(self, name))
-        for name in ("shell_views", "adversarial_start", "adversarial_ramp"):
-            _positive_int(f"{path}.{name}", getattr(self, name), allow_zero=True)
-        _positive_int(f"{path}.shell_view_size", self.shell_view_size)
+    def __post_init__(self) -> None:
+        for name in ("ce", "class_weight_power", "iou", "depth", "surface", "first_hit", "shell_weight",
+                     "adversarial_weight", "discriminator_lr"):
+            finite_nonneg(f"loss.{name}", getattr(self, name))
+        for name in ("adversarial_start", "adversarial_ramp"):
+            count(f"loss.{name}", getattr(self, name), allow_zero=True)
+        if not self.discriminator:
+            raise ConfigError("loss.discriminator needs at least one layer")
+        for v in self.discriminator:
+            count("loss.discriminator", v)
+        if not isinstance(self.shell_losses, ShellLossConfig):
+            raise ConfigError(f"loss.shell_losses must be an object, got {self.shell_losses!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- data
+DATA_SOURCES = ("stream", "shards")
+"""Where training samples come from (:attr:`DataConfig.source`)."""
+
+
 @dataclass(frozen=True)
 class DataConfig:
-    """Where training and evaluation samples come from."""
+    """Where training and evaluation samples come from (:mod:`fruxel.train.samples`)."""
 
     source: str = "stream"
-    """``"stream"``: made on the fly by the simulator (:class:`fruxel.train.sim.StreamingDataset`), or
-    ``"shards"``: read from a data set folder written by ``fruxel-sim generate`` (``root``)."""
+    """``"stream"``: made on the fly by the simulator, or ``"shards"``: read from a data set folder written by
+    ``fruxel-sim generate`` (``root``)."""
     root: str = ""
     """The data set folder, for ``source = "shards"`` (its grid and image size must match the model)."""
     seed: int = 0
@@ -310,16 +215,15 @@ class DataConfig:
     frequency_samples: int = 256
     """Training samples counted for the cross-entropy's class frequencies."""
 
-    def check(self, path: str = "data") -> None:
-        """Raise :class:`ConfigError` for impossible settings."""
-        if self.source not in ("stream", "shards"):
-            raise ConfigError(f"{path}.source must be 'stream' or 'shards', got {self.source!r}")
+    def __post_init__(self) -> None:
+        if self.source not in DATA_SOURCES:
+            raise ConfigError(f"data.source must be one of {', '.join(DATA_SOURCES)}, got {self.source!r}")
         if self.source == "shards" and not self.root:
-            raise ConfigError(f"{path}.root must name a data set folder when {path}.source is 'shards'")
+            raise ConfigError("data.root must name a data set folder when data.source is 'shards'")
         for name in ("seed", "workers", "replay", "eval_samples"):
-            _positive_int(f"{path}.{name}", getattr(self, name), allow_zero=True)
+            count(f"data.{name}", getattr(self, name), allow_zero=True)
         for name in ("train_samples", "test_samples", "samples_per_scene", "reuse", "frequency_samples"):
-            _positive_int(f"{path}.{name}", getattr(self, name))
+            count(f"data.{name}", getattr(self, name))
 
 
 # ---------------------------------------------------------------------------------------------------- optimiser
@@ -340,16 +244,19 @@ class OptimConfig:
     grad_clip: float = 5.0
     """Largest gradient norm (0 = no clipping)."""
 
-    def check(self, path: str = "optim") -> None:
-        """Raise :class:`ConfigError` for impossible settings."""
+    def __post_init__(self) -> None:
         for name in ("lr", "weight_decay", "min_lr", "grad_clip"):
-            _finite_nonneg(f"{path}.{name}", getattr(self, name))
+            finite_nonneg(f"optim.{name}", getattr(self, name))
         if not (len(self.betas) == 2 and all(0.0 <= float(b) < 1.0 for b in self.betas)):
-            raise ConfigError(f"{path}.betas must be two numbers in [0, 1), got {self.betas!r}")
-        _positive_int(f"{path}.warmup", self.warmup, allow_zero=True)
+            raise ConfigError(f"optim.betas must be two numbers in [0, 1), got {self.betas!r}")
+        count("optim.warmup", self.warmup, allow_zero=True)
 
 
 # ---------------------------------------------------------------------------------------------------- run
+PRECISIONS = ("bf16", "fp32")
+"""Compute precisions of a run (:attr:`RunConfig.precision`)."""
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Length, batch and the machinery of a run."""
@@ -359,17 +266,16 @@ class RunConfig:
     batch_size: int = 32
     """Global batch size (divided among distributed ranks)."""
     seed: int = 0
-    """Seed of the model's initialisation, the shell losses' poses and the replay draws."""
+    """Seed of the model's initialisation and the replay draws."""
     precision: str = "bf16"
     """``"bf16"``: autocast to bfloat16 on CUDA (float32 on the CPU), or ``"fp32"``."""
     channels_last: bool = False
     """Keep activations channels-last (NDHWC) on CUDA. Off by default: with the default up-convolution the
-    contiguous layout measured faster on the H100 (benchmarks/bench_ssz.py)."""
+    contiguous layout measured faster on the H100 (BENCHMARKS.md)."""
     compile: bool = False
-    """``torch.compile`` the generator (fuses its elementwise work and cuts its kernel launches: on the H100 the
-    ``ssz64`` step went from 71.7 to 55.3 ms, forward + backward at batch 32; benchmarks/profile_ssz.py). On in
-    the GPU presets ``ssz64`` and ``paper``; compiling costs about a minute at the start of a run, and on the CPU
-    it needs a C++ compiler."""
+    """``torch.compile`` the generator (fuses its elementwise work and cuts its kernel launches; BENCHMARKS.md).
+    On in the GPU presets; compiling takes a while at the start of a run, and on the CPU it needs a C++
+    compiler."""
     checkpointing: bool = False
     """Recompute the 3D decoder's activations in the backward pass (less memory, more time)."""
     log_every: int = 50
@@ -384,30 +290,30 @@ class RunConfig:
     """Also write TensorBoard event files (when TensorBoard is installed)."""
     init: str = ""
     """A model file (shipped ``.safetensors`` or training checkpoint), or a shipped model's name (``ssz64``,
-    ``ssz128``), whose generator weights start the run instead of a fresh initialisation ("" = none): fine-tuning.
+    ``ssz128``), whose network weights start the run instead of a fresh initialisation ("" = none): fine-tuning.
     Parameters the file lacks (a layer the architecture gained since) keep their fresh initialisation and are named
     at the start; a parameter of another shape, or one the architecture does not have, stops the run. The
     optimiser, schedule and discriminator start afresh."""
 
-    def check(self, path: str = "run") -> None:
-        """Raise :class:`ConfigError` for impossible settings."""
+    def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "log_every"):
-            _positive_int(f"{path}.{name}", getattr(self, name))
+            count(f"run.{name}", getattr(self, name))
         for name in ("seed", "eval_every", "checkpoint_every"):
-            _positive_int(f"{path}.{name}", getattr(self, name), allow_zero=True)
-        if self.precision not in ("bf16", "fp32"):
-            raise ConfigError(f"{path}.precision must be 'bf16' or 'fp32', got {self.precision!r}")
-        _finite_nonneg(f"{path}.time_limit", self.time_limit)
+            count(f"run.{name}", getattr(self, name), allow_zero=True)
+        if self.precision not in PRECISIONS:
+            raise ConfigError(f"run.precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
+        finite_nonneg("run.time_limit", self.time_limit)
 
 
+# ---------------------------------------------------------------------------------------------------- the whole
 @dataclass(frozen=True)
 class TrainConfig:
-    """One SSZ experiment."""
+    """One training run."""
 
     name: str = "ssz64"
     """Name of the experiment (the preset it came from unless renamed); shown in reports."""
-    model: ModelConfig = field(default_factory=ModelConfig)
-    """Architecture."""
+    model: ModelConfig = field(default_factory=SSZConfig)
+    """Architecture (any registered one; :mod:`fruxel.train.models.registry`)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Objective."""
     data: DataConfig = field(default_factory=DataConfig)
@@ -417,20 +323,13 @@ class TrainConfig:
     run: RunConfig = field(default_factory=RunConfig)
     """Length and machinery."""
 
-    def check(self) -> TrainConfig:
-        """Validate every part; returns self. Raises :class:`ConfigError` naming the key."""
+    def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise ConfigError("name must be a non-empty string")
-        self.model.check()
-        self.loss.check()
-        self.data.check()
-        self.optim.check()
-        self.run.check()
-        if self.model.fine_depth and self.loss.fine_depth and self.data.source != "stream":
-            # Only the simulator has the rendered depth the term is trained on; shards keep images and labels alone.
-            raise ConfigError("loss.fine_depth needs data.source = 'stream' (shards hold no rendered depth); set "
-                              "loss.fine_depth to 0 to train the fine depth head only through the volume")
-        return self
+        for part, kind in (("model", ModelConfig), ("loss", LossConfig), ("data", DataConfig),
+                           ("optim", OptimConfig), ("run", RunConfig)):
+            if not isinstance(getattr(self, part), kind):
+                raise ConfigError(f"{part} must be a {kind.__name__}, got {type(getattr(self, part)).__name__}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON form with ``"version"``."""
@@ -443,15 +342,23 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: Any) -> TrainConfig:
         """A config from JSON data: a preset (key ``"preset"``, default the dataclass defaults) with the given
-        fields overridden. Raises :class:`ConfigError` naming the key."""
+        fields overridden; a config of version 1 is upgraded first (:func:`fruxel.train.legacy.upgrade_config`).
+
+        Raises:
+            ConfigError: naming the key.
+        """
+        from .legacy import upgrade_config
+
         if not isinstance(d, Mapping):
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         d = dict(d)
         version = d.pop("version", CONFIG_VERSION)
-        if version != CONFIG_VERSION:
+        if version == 1:
+            d = upgrade_config(d)
+        elif version != CONFIG_VERSION:
             raise ConfigError(f"config version {version!r} is not this program's version {CONFIG_VERSION}")
         base = preset(d.pop("preset")) if "preset" in d else cls()
-        return override(base, d, "").check()
+        return override(base, d, "")
 
     @classmethod
     def from_json(cls, text: str) -> TrainConfig:
@@ -466,40 +373,44 @@ class TrainConfig:
 # ---------------------------------------------------------------------------------------------------- presets
 def _presets() -> dict[str, TrainConfig]:
     tiny_grid = FruxelGrid(width=32, height=32, depth=32, z_near=0.5, z_far=8.0, hfov=60.0)
-    paper_grid = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=8.0, hfov=60.0)
+    grid128 = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=8.0, hfov=60.0)
+    gpu = DataConfig(workers=14, replay=4096, reuse=2)
     return {
         "tiny": TrainConfig(
             name="tiny",
-            model=ModelConfig(grid=tiny_grid, levels=4, stem=8, encoder=(16, 24, 32, 48), encoder_blocks=(1, 1, 1, 1),
-                              encoder_expand=2, topdown=(16, 24, 32, 48), decoder=(8, 16, 24, 32),
-                              decoder_blocks=(1, 1, 1, 1), discriminator=(16, 32), surface_fusion=True),
+            model=SSZConfig(grid=tiny_grid, levels=4, stem=8, encoder=(16, 24, 32, 48), encoder_blocks=(1, 1, 1, 1),
+                            encoder_expand=2, topdown=(16, 24, 32, 48), decoder=(8, 16, 24, 32),
+                            decoder_blocks=(1, 1, 1, 1)),
+            loss=LossConfig(discriminator=(16, 32)),
             data=DataConfig(workers=1, eval_samples=32, frequency_samples=64),
             optim=OptimConfig(warmup=20),
-            run=RunConfig(steps=2000, batch_size=8, precision="fp32", channels_last=False, log_every=10,
-                          eval_every=500, checkpoint_every=500),
+            run=RunConfig(steps=2000, batch_size=8, precision="fp32", log_every=10, eval_every=500,
+                          checkpoint_every=500),
         ),
-        "ssz64": TrainConfig(name="ssz64", model=ModelConfig(surface_fusion=True),
-                             data=DataConfig(workers=14, replay=4096, reuse=2), run=RunConfig(compile=True)),
-        "paper": TrainConfig(
-            name="paper",
-            model=ModelConfig(grid=paper_grid, image_scale=2, levels=6, stem=16, encoder=(24, 32, 48, 64, 96, 128),
-                              encoder_blocks=(1, 1, 2, 2, 2, 2), topdown=(24, 32, 32, 48, 64, 96),
-                              decoder=(8, 16, 24, 32, 48, 64), decoder_blocks=(0, 1, 1, 1, 2, 2),
-                              discriminator=(16, 32, 64, 128), surface_fusion=True),
-            data=DataConfig(workers=14),
-            run=RunConfig(batch_size=8, compile=True),
-        ),
+        # The shipped ssz64's architecture and image size (256 x 256: the stem reads it 2 x 2-pooled).
+        "ssz64": TrainConfig(name="ssz64", model=SSZConfig(detail_branch=24), data=gpu, run=RunConfig(compile=True)),
+        # The shipped ssz128's: ssz64 below a refinement level, 512 x 512 images, fine-tuned from the shipped ssz64
+        # with the whole network training (its last two stages; the level started alone: docs/model.md).
+        "ssz128": TrainConfig(
+            name="ssz128", model=SSZConfig(grid=grid128, detail_branch=24, refine=16),
+            loss=LossConfig(first_hit=1.0), data=dataclasses.replace(gpu, replay=2048),
+            optim=OptimConfig(lr=3e-4, warmup=100),
+            run=RunConfig(steps=5000, batch_size=16, compile=True, init="ssz64")),
     }
 
 
-PRESETS = ("tiny", "ssz64", "paper")
-"""Named presets: ``tiny`` (32^3 from 64^2, trains on a laptop CPU), ``ssz64`` (64^3 from 128^2), ``paper``
-(the paper's 128^3 from 512^2)."""
+PRESETS = ("tiny", "ssz64", "ssz128")
+"""Named presets: ``tiny`` (32^3 from 64^2, trains on a laptop CPU), ``ssz64`` and ``ssz128`` (the shipped models'
+architectures and image sizes: 64^3 from 256^2, 128^3 from 512^2)."""
+REPLACED_PRESETS = {"paper": "ssz128"}
+"""Presets that no longer exist, and what replaced them."""
 
 
 def preset(name: str) -> TrainConfig:
     """The preset ``name`` (one of :data:`PRESETS`)."""
     presets = _presets()
+    if name in REPLACED_PRESETS:
+        raise ConfigError(f"preset {name!r} was replaced by {REPLACED_PRESETS[name]!r}")
     if name not in presets:
         raise ConfigError(f"unknown preset {name!r}; choose one of {list(presets)}")
     return presets[name]
@@ -507,11 +418,13 @@ def preset(name: str) -> TrainConfig:
 
 # ---------------------------------------------------------------------------------------------------- JSON form
 def to_plain(obj: Any) -> Any:
-    """Dataclasses (grids and class tables by their own ``to_dict``), tuples and numpy scalars as plain JSON."""
+    """Dataclasses (grids and class tables by their own ``to_dict``, model configs with their ``architecture``),
+    tuples and numpy scalars as plain JSON."""
     if isinstance(obj, (FruxelGrid, ClassTable)):
         return obj.to_dict()
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        plain = {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {"architecture": obj.architecture, **plain} if isinstance(obj, ModelConfig) else plain
     if isinstance(obj, (tuple, list)):
         return [to_plain(v) for v in obj]
     if isinstance(obj, np.generic):
@@ -520,10 +433,11 @@ def to_plain(obj: Any) -> Any:
 
 
 def override(base: Any, changes: Mapping[str, Any], path: str) -> Any:
-    """``base`` (a config dataclass) with the fields in ``changes`` replaced, recursing into nested configs.
+    """``base`` (a config dataclass) with the fields in ``changes`` replaced, recursing into nested configs; the
+    result checks itself.
 
     Raises:
-        ConfigError: an unknown key, or a value of the wrong kind (the message names ``path.key``).
+        ConfigError: an unknown key, or a value of the wrong kind or impossible (the message names ``path.key``).
     """
     if not isinstance(changes, Mapping):
         raise ConfigError(f"{path or 'config'} must be a JSON object, got {type(changes).__name__}")
@@ -535,7 +449,9 @@ def override(base: Any, changes: Mapping[str, Any], path: str) -> Any:
             raise ConfigError(f"unknown config key {where!r}; known keys here: {sorted(fields)}")
         current = getattr(base, key)
         try:
-            if isinstance(current, FruxelGrid):
+            if isinstance(current, ModelConfig):
+                value = model_config_from_dict(value, current, where)
+            elif isinstance(current, FruxelGrid):
                 value = FruxelGrid.from_dict({**current.to_dict(), **value} if isinstance(value, Mapping) else value)
             elif isinstance(current, ClassTable):
                 value = ClassTable.from_dict(value)
@@ -546,11 +462,18 @@ def override(base: Any, changes: Mapping[str, Any], path: str) -> Any:
         except (GridError, ClassTableError) as e:
             raise ConfigError(f"{where}: {e}") from None
         kwargs[key] = value
-    return dataclasses.replace(base, **kwargs)
+    try:
+        return dataclasses.replace(base, **kwargs)
+    except (TypeError, ValueError) as e:
+        if isinstance(e, ConfigError):
+            raise
+        # A dataclass without its own check (a nested settings class) refusing a value.
+        raise ConfigError(f"{path or 'config'}: {e}") from None
 
 
 def _coerce(where: str, current: Any, value: Any) -> Any:
-    """``value`` as the kind of ``current`` (the default's type): tuples from lists, floats from integers."""
+    """``value`` as the kind of ``current`` (the default's type): tuples from lists, floats from integers. A field
+    whose default is None takes the value as it is (its dataclass checks it)."""
     if isinstance(current, bool):
         if not isinstance(value, bool):
             raise ConfigError(f"{where} must be true or false, got {value!r}")
@@ -573,13 +496,3 @@ def _coerce(where: str, current: Any, value: Any) -> Any:
         kind = type(current[0]) if current else None
         return tuple(_coerce(f"{where}[{i}]", kind(), v) if kind else v for i, v in enumerate(value))
     return value
-
-
-def _positive_int(name: str, v: Any, allow_zero: bool = False) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if allow_zero else 1):
-        raise ConfigError(f"{name} must be an integer >= {0 if allow_zero else 1}, got {v!r}")
-
-
-def _finite_nonneg(name: str, v: Any) -> None:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-        raise ConfigError(f"{name} must be a finite number >= 0, got {v!r}")

@@ -36,6 +36,11 @@ from fruxel.camera import Camera, look_at_grid, orbit_direction
 from fruxel.grid import FruxelGrid
 from fruxel.kernels.soft import SoftHits, soft_first_hit_groups
 
+from .config import ShellLossConfig
+
+__all__ = ["ShellLoss", "ShellLossConfig", "ShellLossTerms", "ShellTargets", "depth_l1", "random_poses",
+           "shell_cross_entropy", "visible_weighted_voxel_ce"]
+
 
 # ---------------------------------------------------------------------------------------------- losses
 def shell_cross_entropy(soft: SoftHits, target_labels: torch.Tensor, *, eps: float = 1e-6,
@@ -181,49 +186,6 @@ def group_by_size(cameras: list[Camera]) -> list[list[Camera]]:
 
 # ---------------------------------------------------------------------------------------------- combined
 @dataclass(frozen=True)
-class ShellLossConfig:
-    """Settings of :class:`ShellLoss`."""
-
-    own_view: bool = True
-    """Include the grid's own camera at native resolution (pixel (x, y) looks down column (y, x))."""
-    novel_views: int = 2
-    """K: random novel poses drawn per batch (shared by the batch's volumes)."""
-    novel_size: tuple[int, int] = (128, 128)
-    """``(width, height)`` of each novel view, pixels."""
-    novel_hfov: float = 60.0
-    """Horizontal field of view of the novel views, degrees."""
-    azimuth: tuple[float, float] = (-60.0, 60.0)
-    """Range of the novel views' azimuth, degrees (0 = the grid's own viewing side)."""
-    elevation: tuple[float, float] = (5.0, 40.0)
-    """Range of the novel views' elevation above the grid's horizontal plane, degrees."""
-    distance: tuple[float, float] = (0.9, 1.3)
-    """Range of the novel views' distance, as a factor on 1.2 times the grid's bounding-box diagonal."""
-    weight_shell: float = 1.0
-    """Weight of :func:`shell_cross_entropy` in the total."""
-    weight_depth: float = 1.0
-    """Weight of :func:`depth_l1` (unit-free: the error is divided by ``z_far - z_near``) in the total."""
-    weight_voxel: float = 1.0
-    """Weight of :func:`visible_weighted_voxel_ce` in the total."""
-    weight_own_view: float = 0.0
-    """Weight of the own view's shell cross-entropy on its own in the total (needs ``own_view``). Its pixels also
-    count in :func:`shell_cross_entropy`, where they are one camera among ``1 + novel_views``; this term is what
-    the own-view first-hit accuracy of SPEC section 9 measures, so it can be weighted up separately."""
-    weight_visible: float = 1.0
-    """Per-cell weight of the ground truth's shell cells in the voxel cross-entropy."""
-    weight_other: float = 0.1
-    """Per-cell weight of all other cells in the voxel cross-entropy."""
-    eps: float = 1e-6
-    """Added to the expected class probability in :func:`shell_cross_entropy`."""
-    seed: int = 0
-    """Base seed (>= 0) of the novel poses: draw n of distributed rank r is a pure function of ``(seed, r, n)``
-    (see :class:`ShellLoss`)."""
-    backend: str | None = None
-    """Kernel backend (``"warp"``, ``"opencl"``, an ``available_backends`` name, or None for the best)."""
-    device: str | None = None
-    """Warp device, or None to follow the data."""
-
-
-@dataclass(frozen=True)
 class ShellLossTerms:
     """What :class:`ShellLoss` computed for one batch."""
 
@@ -327,8 +289,9 @@ class ShellLoss:
         c = self.config
         cams = [self.grid.camera()] if c.own_view else []
         w, h = c.novel_size
+        hfov = self.grid.hfov if c.novel_hfov is None else c.novel_hfov
         cams += random_poses(self.grid, c.novel_views, self.pose_generator(self.draws), width=w, height=h,
-                             hfov=c.novel_hfov, azimuth=c.azimuth, elevation=c.elevation, distance=c.distance)
+                             hfov=hfov, azimuth=c.azimuth, elevation=c.elevation, distance=c.distance)
         if not cams:
             raise ValueError("ShellLoss needs the own view or at least one novel view")
         self.draws += 1

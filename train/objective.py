@@ -1,22 +1,27 @@
-"""The SSZ generator's training objective: per-cell class-weighted cross-entropy, a soft Jaccard (IoU) term,
+"""The network's training objective: per-cell class-weighted cross-entropy, a soft Jaccard (IoU) term,
 the image-side heads' cross-entropies (column surface depth and class), the shell-aware losses and the
 adversarial term, each switchable and weighted by :class:`~fruxel.train.config.LossConfig`.
 
 Targets come from the ground-truth label volume alone: a column's first occupied cell is what the grid's own
-camera sees of it (SPEC section 4, ``shell`` from the grid's own camera), so the own-view truth is derived here,
+camera sees of it (conventions section 4, ``shell`` from the grid's own camera), so the own-view truth is derived here,
 on the training device, and never read from elsewhere.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .config import LossConfig
-from .models.generator import first_hit_log_probs
+from .rules import first_hit_log_probs
+
+if TYPE_CHECKING:
+    from .losses import ShellLoss
+    from .models.registry import ModelOutput
 
 
 def class_frequencies(label_batches: Iterable[torch.Tensor], classes: int) -> np.ndarray:
@@ -78,37 +83,11 @@ def surface_targets(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return depth_bin, label
 
 
-def fine_depth_targets(surface_depth: torch.Tensor, z_near: float, dz: float, depth: int, bins: int
-                       ) -> torch.Tensor:
-    """Each column's sub-slice depth bin, the fine depth head's target.
-
-    Args:
-        surface_depth: ``(B, H, W)`` float camera-frame z of the first surface on each column's centre ray, metres
-            (:func:`fruxel.train.sim.images.column_surface_depth`): ``inf`` where the ray hits nothing, NaN where
-            unknown (the ray grazes an edge).
-        z_near, dz: the grid's first slice plane and slice thickness, metres.
-        depth: D, slices.
-        bins: R, bins per slice.
-
-    Returns:
-        ``(B, H, W)`` int64: ``k * R + r`` for a surface in sub-bin r of slice k, ``D * R`` (no surface) for one at
-        or beyond ``z_far`` or none, and -100 (ignored by the cross-entropy) where unknown or nearer than
-        ``z_near`` (the truth's first cell lies behind what the camera sees there).
-    """
-    n = depth * bins
-    z = surface_depth.float()
-    pos = (z - z_near) / dz * bins
-    ignored = torch.full_like(pos, -100.0)
-    # NaN fails every comparison: unknown columns stay ignored; +inf (nothing hit) is beyond z_far.
-    target = torch.where((pos >= 0) & (pos < n), pos.floor(), ignored)
-    return torch.where(pos >= n, torch.full_like(pos, float(n)), target).long()
-
-
 def soft_iou_loss(probs: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """``1 - mean_c IoU_c`` with soft counts, over the classes 1..C-1 present in ``labels`` (none: 0).
 
     ``IoU_c = sum(p_c [y = c]) / (sum(p_c) + sum([y = c]) - sum(p_c [y = c]))``, summed over the whole batch as
-    SPEC section 9 counts the metric.
+    conventions section 9 counts the metric.
 
     Args:
         probs: ``(B, C, D, H, W)`` float class probabilities.
@@ -128,36 +107,31 @@ def soft_iou_loss(probs: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
 
 
 class SSZObjective:
-    """The generator's loss terms for one batch (the adversarial term is added by the engine, which owns the
-    discriminator).
+    """The network's loss terms for one batch (the adversarial term is added by the engine, which owns the
+    discriminator). It reads the output contract (:class:`~fruxel.train.models.registry.ModelOutput`): the
+    ``depth`` and ``surface`` terms count when the network has those heads.
 
     Args:
         config: weights and switches.
         weights: ``(C,)`` class weights of the cross-entropy (:func:`class_weights`), on the training device.
         shell_loss: a :class:`fruxel.train.losses.ShellLoss`, or None when ``config.shell`` is off.
-        grid: the model's :class:`~fruxel.grid.FruxelGrid` (needed for the fine depth term).
     """
 
-    def __init__(self, config: LossConfig, weights: torch.Tensor, shell_loss=None, grid=None) -> None:  # noqa: ANN001
+    def __init__(self, config: LossConfig, weights: torch.Tensor, shell_loss: ShellLoss | None = None) -> None:
         self.config = config
         self.weights = weights
         self.shell_loss = shell_loss
-        self.grid = grid
 
-    def __call__(self, out, labels: torch.Tensor, surface_depth: torch.Tensor | None = None  # noqa: ANN001
-                 ) -> dict[str, torch.Tensor]:
+    def __call__(self, out: ModelOutput, labels: torch.Tensor) -> dict[str, torch.Tensor]:
         """The weighted terms and their total.
 
         Args:
-            out: the generator's :class:`~fruxel.train.models.generator.SSZOutput`.
+            out: the network's output.
             labels: ``(B, D, H, W)`` integer ground-truth labels (uint8 is fine), on the logits' device.
-            surface_depth: ``(B, H, W)`` float first-surface depth of each column's centre ray
-                (:func:`fine_depth_targets`), or None; the fine depth term needs it and a model with a fine head.
 
         Returns:
-            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "first_hit": ..., "fine_depth":
-            ..., "shell": ...}`` scalar tensors (unweighted terms; ``total`` is the weighted sum); absent terms are
-            left out.
+            ``{"total": ..., "ce": ..., "iou": ..., "depth": ..., "surface": ..., "first_hit": ..., "shell": ...}``
+            scalar tensors (unweighted terms; ``total`` is the weighted sum); absent terms are left out.
         """
         c = self.config
         logits = out.logits.float()
@@ -170,25 +144,19 @@ class SSZObjective:
         if c.iou:
             terms["iou"] = soft_iou_loss(torch.softmax(logits, dim=1), target)
             total = total + c.iou * terms["iou"]
-        if (c.depth and out.depth_logits is not None) or c.surface or c.first_hit:
-            depth_bin, surface = surface_targets(target)
-            if c.depth and out.depth_logits is not None:
+        depth = c.depth and out.depth_logits is not None
+        surface = c.surface and out.surface_logits is not None
+        if depth or surface or c.first_hit:
+            depth_bin, first_label = surface_targets(target)
+            if depth:
                 terms["depth"] = F.cross_entropy(out.depth_logits, depth_bin)
                 total = total + c.depth * terms["depth"]
-            if c.surface:
-                terms["surface"] = F.cross_entropy(out.surface_logits, surface)
+            if surface:
+                terms["surface"] = F.cross_entropy(out.surface_logits, first_label)
                 total = total + c.surface * terms["surface"]
             if c.first_hit:
-                terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), surface)
+                terms["first_hit"] = F.nll_loss(first_hit_log_probs(logits), first_label)
                 total = total + c.first_hit * terms["first_hit"]
-        if c.fine_depth and out.fine_logits is not None and surface_depth is not None:
-            g = self.grid
-            bins = (out.fine_logits.shape[1] - 1) // g.depth
-            target = fine_depth_targets(surface_depth, g.z_near, g.dz, g.depth, bins)
-            known = (target != -100).sum()
-            # A mean over the known columns; a batch without one (every ray grazing an edge) adds zero, not NaN.
-            terms["fine_depth"] = F.cross_entropy(out.fine_logits, target, reduction="sum") / known.clamp_min(1)
-            total = total + c.fine_depth * terms["fine_depth"]
         if self.shell_loss is not None:
             terms["shell"] = self.shell_loss(logits, labels).total
             total = total + c.shell_weight * terms["shell"]

@@ -31,7 +31,8 @@ import torch
 from fruxel.errors import FruxelError
 from fruxel.grid import FruxelGrid
 
-from .config import ModelConfig
+from .models.registry import ModelConfig
+from .rules import NO_RULES, InferenceRules, predict_logits
 
 PAD_VALUE = 128
 """Grey (uint8) the model sees where the photo has nothing."""
@@ -219,24 +220,22 @@ def to_tensor(images: Sequence[np.ndarray], device: torch.device | str = "cpu") 
 
 
 PRECISIONS = ("bfloat16", "autocast")
-"""How a :class:`Predictor` holds the generator on CUDA: weights stored in bfloat16 (the default: no casts per
-call; the batch norms' statistics are rounded to bfloat16), or float32 weights under bfloat16 autocast (every call
-casts each weight again). On 64 test samples of the shipped model (CPU, bfloat16) the two agree on 99.95 % of the
-cells, as autocast and float32 do, and their mIoU, completion and own view differ by at most 0.03 points."""
+"""How a :class:`Predictor` holds the network on CUDA: weights stored in bfloat16 (the default: no casts per call;
+the batch norms' statistics are rounded to bfloat16), or float32 weights under bfloat16 autocast (every call casts
+each weight again). How closely the two agree is measured in docs/experiments.md."""
 
 
 class Predictor:
-    """Batched prediction with a trained generator.
+    """Batched prediction with a trained network and its inference rules (:func:`fruxel.train.rules.predict_logits`).
 
-    On CUDA each input shape's forward pass is captured once as a CUDA graph and replayed: at batch 1 the eager
-    pass is bound by launching its 769 kernels from Python (11-24 ms on the H100 for ``ssz64``, against 1.8 ms of
-    kernel time; replayed, 2.1 ms), which the live robot demo pays every frame. With ``compile`` the captured
-    pass is Inductor's (fused kernels; under a minute to compile): 0.9 ms with bfloat16 weights, 1.1 ms under
-    autocast (BENCHMARKS.md, ``ssz-h100-graphs.json``). Work that follows the logits (a shell, a ray cast) can
-    join the same graph through :meth:`run`.
+    On CUDA each input shape's forward pass (the network and the rules together) is captured once as a CUDA graph
+    and replayed: at batch 1 the eager pass is bound by launching its kernels from Python, which the live robot
+    demo pays every frame. With ``compile`` the captured pass is Inductor's (fused kernels; it takes a while to
+    compile). Timings are in BENCHMARKS.md. Work that follows the logits (a shell, a ray cast) can join the same
+    graph through :meth:`run`.
 
     Args:
-        generator: the model, in eval mode (moved to ``device``, and to bfloat16 with that precision, in place).
+        network: the model, in eval mode (moved to ``device``, and to bfloat16 with that precision, in place).
         config: its architecture.
         device: where to predict.
         batch: images per forward pass.
@@ -244,6 +243,7 @@ class Predictor:
         compile: on CUDA, run the forward pass through ``torch.compile`` (Inductor, without its own CUDA graphs:
             the graphs here capture the compiled pass). Ignored on the CPU.
         precision: one of :data:`PRECISIONS`, on CUDA (the CPU predicts in float32).
+        rules: the inference rules applied after the network (the model file's own: :func:`load_predictor`).
 
     Raises:
         ValueError: an unknown precision.
@@ -252,17 +252,19 @@ class Predictor:
     MAX_GRAPHS = 4
     """Captures kept at once (a batched run needs two: the full batches and the last one)."""
 
-    def __init__(self, generator: torch.nn.Module, config: ModelConfig, device: torch.device | str = "cpu",
-                 batch: int = 8, graphs: bool = True, compile: bool = False, precision: str = "bfloat16") -> None:
+    def __init__(self, network: torch.nn.Module, config: ModelConfig, device: torch.device | str = "cpu",
+                 batch: int = 8, graphs: bool = True, compile: bool = False, precision: str = "bfloat16",
+                 rules: InferenceRules = NO_RULES) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.device = torch.device(device)
         cuda = self.device.type == "cuda"
         self.precision = precision if cuda else "float32"
-        self.generator = generator.to(self.device).eval()
+        self.network = network.to(self.device).eval()
         if self.precision == "bfloat16":
-            self.generator.to(torch.bfloat16)
+            self.network.to(torch.bfloat16)
         self.config = config
+        self.rules = rules
         self.batch = max(1, int(batch))
         self.graphs = bool(graphs) and cuda
         self.compiled = bool(compile) and cuda
@@ -271,9 +273,9 @@ class Predictor:
 
     def _eager(self, images: torch.Tensor) -> torch.Tensor:
         if self.precision == "bfloat16":
-            return self.generator(images.to(torch.bfloat16)).logits.float()
+            return predict_logits(self.network, images.to(torch.bfloat16), self.rules).float()
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "autocast"):
-            return self.generator(images).logits.float()
+            return predict_logits(self.network, images, self.rules).float()
 
     def _forward(self, images: torch.Tensor, then: Callable[[torch.Tensor], Any] | None = None) -> Any:
         logits = self._pass(images)
@@ -281,7 +283,8 @@ class Predictor:
 
     @torch.no_grad()
     def logits(self, images: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, h, w)`` float images -> ``(B, C, D, H, W)`` float32 logits (bfloat16 compute on CUDA)."""
+        """``(B, 3, h, w)`` float images -> ``(B, C, D, H, W)`` float32 logits under the rules (bfloat16 compute on
+        CUDA)."""
         out = self.run(images)
         # A graph writes the same buffer on every replay: a caller keeps its own copy.
         return out.clone() if self.graphs else out
@@ -347,9 +350,8 @@ class Predictor:
 def share_cpu(threads: int | None = None) -> int:
     """Set torch's CPU threads for prediction: ``threads``, or half the usable cores (at least 1), leaving the rest
     to what runs beside the model (rendering, kernels, a simulator). torch's own default, a thread per core,
-    stalls whenever another process takes a core, since its threads wait for each other at every operation: on a
-    shared 2-core machine with one core busy elsewhere, SSZ took 2-2.8 s a prediction on 2 threads and 0.14-0.15 s
-    on 1.
+    stalls whenever another process takes a core, since its threads wait for each other at every operation
+    (BENCHMARKS.md has the measurement).
 
     Returns:
         The number of threads set.
@@ -361,23 +363,16 @@ def share_cpu(threads: int | None = None) -> int:
     return int(threads)
 
 
-def default_model() -> str:
-    """Path of the SSZ model shipped with fruxel as the default (``ssz64``: 64^3 cells from a 256 x 256 image),
-    loaded when no checkpoint is given."""
-    from .export import shipped_model
-
-    return shipped_model("ssz64")
-
-
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
-                   compile: bool = False, precision: str = "bfloat16") -> Predictor:
+                   compile: bool = False, precision: str = "bfloat16", rules: InferenceRules | None = None
+                   ) -> Predictor:
     """A :class:`Predictor` of a shipped model or training checkpoint, a file or a shipped model's name
-    (:func:`fruxel.train.export.model_path`; the shipped default when ``path`` is None), on ``device`` (CUDA when
-    present); ``graphs``, ``compile`` and ``precision`` as :class:`Predictor`'s."""
-    from .export import load_generator
+    (:func:`fruxel.train.model_files.model_path`; the shipped default when ``path`` is None), on ``device`` (CUDA
+    when present), with the file's inference rules unless ``rules`` are given; ``graphs``, ``compile`` and
+    ``precision`` as :class:`Predictor`'s."""
+    from .model_files import load_model
 
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    gen, config, _ = load_generator(path or default_model(), device=dev)
-    return Predictor(gen, config, dev, batch, graphs, compile, precision)
-
-
+    m = load_model(path, device=dev)
+    return Predictor(m.network, m.config, dev, batch, graphs, compile, precision,
+                     m.rules if rules is None else rules)

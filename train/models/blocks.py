@@ -113,13 +113,11 @@ class InvertedResidual3d(nn.Module):
     Args:
         channels: input and output channels.
         expand: expansion factor of the hidden width.
-        group_width: channels per group of the 3x3x3 convolution: 1 is depthwise; larger groups run on cuDNN's
-            grouped kernels instead of PyTorch's own depthwise 3D kernel (see :func:`spatial_conv3d`).
         spatial: False leaves the 3x3x3 convolution out (a per-cell block, for the finest level, where the
             neighbourhood comes from the up-convolution below it).
     """
 
-    def __init__(self, channels: int, expand: int, group_width: int = 1, spatial: bool = True) -> None:
+    def __init__(self, channels: int, expand: int, spatial: bool = True) -> None:
         super().__init__()
         hidden = channels * expand
         project = Pointwise3d(hidden, channels)
@@ -127,7 +125,7 @@ class InvertedResidual3d(nn.Module):
         nn.init.zeros_(project.bias)
         layers: list[nn.Module] = [Pointwise3d(channels, hidden), act3d()]
         if spatial:
-            layers += [spatial_conv3d(hidden, group_width), act3d()]
+            layers += [depthwise_conv3d(hidden), act3d()]
         self.body = nn.Sequential(*layers, project)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -135,13 +133,9 @@ class InvertedResidual3d(nn.Module):
         return x + self.body(x)
 
 
-def spatial_conv3d(channels: int, group_width: int = 1) -> nn.Conv3d:
-    """The 3x3x3 convolution of the decoder's blocks, ``channels`` in and out, in groups of ``group_width``
-    channels (1 = depthwise)."""
-    gw = max(1, min(group_width, channels))
-    while channels % gw:
-        gw -= 1
-    return nn.Conv3d(channels, channels, 3, padding=1, groups=channels // gw)
+def depthwise_conv3d(channels: int) -> nn.Conv3d:
+    """The depthwise 3x3x3 convolution of the decoder's blocks, ``channels`` in and out."""
+    return nn.Conv3d(channels, channels, 3, padding=1, groups=channels)
 
 
 def channels_last(model: nn.Module) -> nn.Module:
@@ -157,64 +151,36 @@ def channels_last(model: nn.Module) -> nn.Module:
     return model
 
 
-UPSAMPLE_MODES = ("parity", "resize", "transpose")
-"""How :class:`Up3d` doubles the resolution (see its docstring)."""
-
-
 class Up3d(nn.Module):
     """Doubles the resolution of a volume: a depthwise-separable 3D up-convolution, LeakyReLU, pointwise 3D
-    convolution (SPEC section 8's decoder block).
+    convolution (conventions section 8's decoder block).
 
-    Three forms of the up-convolution, measured in ``benchmarks/bench_ssz.py`` (PyTorch's grouped
-    ``ConvTranspose3d`` and depthwise ``Conv3d`` have no fast CUDA kernels: pytorch issues 37406 and 47341):
-
-    * ``"transpose"``: ``ConvTranspose3d(c, c, 4, stride=2, padding=1, groups=c / group_width)``, the literal
-      form, run at the output resolution;
-    * ``"resize"``: nearest-neighbour x2, then a 3x3x3 convolution at the output resolution (one kernel shared by
-      the eight output parities of the transposed form);
-    * ``"parity"`` (default): the 3x3x3 convolution at the *input* resolution, then a depthwise transposed
-      convolution of kernel 2 and stride 2, which gives each of the eight output parities its own weight per
-      channel. The neighbourhood is gathered where there are eight times fewer cells, and the kernel-2 transposed
-      convolution, written as nearest x2 times a periodic weight, is one elementwise product. On the H100 this
-      keeps the finest level free of 3x3x3 work.
+    The up-convolution is written in its "parity" form: the depthwise 3x3x3 convolution at the *input*
+    resolution, then a depthwise transposed convolution of kernel 2 and stride 2, which gives each of the eight
+    output parities its own weight per channel. The neighbourhood is gathered where there are eight times fewer
+    cells, and the kernel-2 transposed convolution, written as nearest x2 times a periodic weight, is one
+    elementwise product (PyTorch's grouped ``ConvTranspose3d`` and depthwise ``Conv3d`` have no fast CUDA kernels:
+    pytorch issues 37406 and 47341; the forms measured are in BENCHMARKS.md).
 
     Args:
         cin, cout: input and output channels.
-        mode: one of :data:`UPSAMPLE_MODES`.
-        group_width: channels per group of the 3x3x3 convolution (1 = depthwise).
     """
 
-    def __init__(self, cin: int, cout: int, mode: str = "parity", group_width: int = 1) -> None:
+    def __init__(self, cin: int, cout: int) -> None:
         super().__init__()
-        if mode not in UPSAMPLE_MODES:
-            raise ValueError(f"upsample mode must be one of {UPSAMPLE_MODES}, got {mode!r}")
-        self.mode = mode
-        if mode == "transpose":
-            gw = max(1, min(group_width, cin))
-            while cin % gw:
-                gw -= 1
-            self.up = nn.ConvTranspose3d(cin, cin, 4, stride=2, padding=1, groups=cin // gw)
-        else:
-            self.up = spatial_conv3d(cin, group_width)
-        if mode == "parity":
-            # Depthwise ConvTranspose3d(kernel 2, stride 2) weights, one per channel and output parity.
-            self.parity = nn.Parameter(torch.ones(1, cin, 1, 2, 1, 2, 1, 2))
+        self.up = depthwise_conv3d(cin)
+        # Depthwise ConvTranspose3d(kernel 2, stride 2) weights, one per channel and output parity.
+        self.parity = nn.Parameter(torch.ones(1, cin, 1, 2, 1, 2, 1, 2))
         self.post = nn.Sequential(act3d(), Pointwise3d(cin, cout), act3d())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, cin, D, H, W)`` -> ``(B, cout, 2D, 2H, 2W)``."""
-        if self.mode == "resize":
-            x = self.up(nn.functional.interpolate(x, scale_factor=2.0, mode="nearest"))
-        elif self.mode == "parity":
-            y = self.up(x)
-            b, c, d, h, w = y.shape
-            up = (y[:, :, :, None, :, None, :, None] * self.parity.to(y.dtype)).reshape(b, c, 2 * d, 2 * h, 2 * w)
-            if y.is_contiguous(memory_format=torch.channels_last_3d) and not y.is_contiguous():
-                up = up.contiguous(memory_format=torch.channels_last_3d)
-            x = up
-        else:
-            x = self.up(x)
-        return self.post(x)
+        y = self.up(x)
+        b, c, d, h, w = y.shape
+        up = (y[:, :, :, None, :, None, :, None] * self.parity.to(y.dtype)).reshape(b, c, 2 * d, 2 * h, 2 * w)
+        if y.is_contiguous(memory_format=torch.channels_last_3d) and not y.is_contiguous():
+            up = up.contiguous(memory_format=torch.channels_last_3d)
+        return self.post(up)
 
 
 def coordinates(shape: tuple[int, int, int], device: torch.device, dtype: torch.dtype) -> torch.Tensor:
@@ -231,50 +197,45 @@ def coordinates(shape: tuple[int, int, int], device: torch.device, dtype: torch.
 
 class Lift(nn.Module):
     """2D-to-3D skip of one decoder level: merges the decoder's volume with the image features of the same
-    resolution copied into every depth slice (the Z-GAN skip), and, with a depth distribution, with where along
-    each column the visible surface lies.
+    resolution copied into every depth slice (the Z-GAN skip) and with where along each column the visible surface
+    lies.
 
     ``merge([x3d, copy(f2d), depth_features, coordinates])`` is one pointwise convolution over the concatenation;
     it is computed as the sum of a 3D pointwise convolution of ``x3d`` and of the small per-cell features, plus a
     2D pointwise convolution of ``f2d`` broadcast along depth. That is the same function without materialising
     the copy (which would be ``D`` times the image features).
 
-    Depth features per cell (when ``depth_channels`` is 2): the probability that the column's first surface is in
-    this slice (the column's distribution, pooled to the level's resolution and scaled so that a column sums to
-    its hit probability) and the cumulative probability up to and including it (0 in front of the surface,
-    1 behind). Cells in front of what the camera sees are empty; the cumulative channel says which those are.
+    Depth features per cell (2 channels): the probability that the column's first surface is in this slice (the
+    column's distribution, pooled to the level's resolution and scaled so that a column sums to its hit
+    probability) and the cumulative probability up to and including it (0 in front of the surface, 1 behind).
+    Cells in front of what the camera sees are empty; the cumulative channel says which those are.
 
     Args:
         c3d: channels of the decoder's volume (0 at the bottom level, where there is none yet).
         c2d: channels of the image features.
         cout: output channels.
-        depth_channels: 0 (plain Z-GAN copy) or 2.
-        fine_channels: R, the sub-slice bins of the fine depth features (0 = none). Their term starts at zero.
     """
 
-    def __init__(self, c3d: int, c2d: int, cout: int, depth_channels: int, fine_channels: int = 0) -> None:
+    DEPTH_CHANNELS = 2
+    """Channels of the depth features (:meth:`~.generator.SSZGenerator.depth_features`)."""
+
+    def __init__(self, c3d: int, c2d: int, cout: int) -> None:
         super().__init__()
-        self.depth_channels = depth_channels
         self.from_2d = nn.Conv2d(c2d, cout, 1, bias=False)
         self.from_3d = Pointwise3d(c3d, cout, bias=False) if c3d else None
         self.from_coords = Pointwise3d(3, cout, bias=True)
-        self.from_depth = Pointwise3d(depth_channels, cout, bias=False) if depth_channels else None
-        self.from_fine = Pointwise3d(fine_channels, cout, bias=False) if fine_channels else None
-        if self.from_fine is not None:
-            nn.init.zeros_(self.from_fine.weight)
+        self.from_depth = Pointwise3d(self.DEPTH_CHANNELS, cout, bias=False)
         self.post = act3d()
 
-    def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor | None,
-                shape: tuple[int, int, int], fine: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor,
+                shape: tuple[int, int, int]) -> torch.Tensor:
         """Merge one level.
 
         Args:
             x3d: ``(B, c3d, D, H, W)`` decoder volume, or None at the bottom level.
             f2d: ``(B, c2d, H, W)`` image features of this resolution.
-            depth: ``(B, depth_channels, D, H, W)`` depth features, or None when ``depth_channels`` is 0.
+            depth: ``(B, 2, D, H, W)`` depth features.
             shape: ``(D, H, W)`` of this level.
-            fine: ``(B, fine_channels, D, H, W)`` sub-slice depth features
-                (:meth:`~.generator.SSZGenerator.fine_features`), or None.
 
         Returns:
             ``(B, cout, D, H, W)``, in ``x3d``'s memory format.
@@ -287,10 +248,7 @@ class Lift(nn.Module):
             y = self.from_3d(x3d) + y
         elif y.shape[0] != f2d.shape[0]:
             y = y.expand(f2d.shape[0], -1, -1, -1, -1)
-        if self.from_depth is not None and depth is not None:
-            y = y + self.from_depth(depth.to(y.dtype))
-        if self.from_fine is not None and fine is not None:
-            y = y + self.from_fine(fine.to(y.dtype))
+        y = y + self.from_depth(depth.to(y.dtype))
         return self.post(y)
 
 
