@@ -26,6 +26,7 @@ Shell
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Iterator
@@ -199,17 +200,15 @@ class RobotDemoConfig:
     threads: int | None = None
     """torch's CPU threads for SSZ; unset: half the cores (at least 1), leaving the rest to the simulator, OpenGL
     and the kernels. torch's own default, a thread per core, stalls whenever another process takes a core (its
-    threads wait for each other): on the shared 2-core machine 2 threads gave 0.3-0.5 FPS where 1 gave 5.0-5.5
-    (:func:`fruxel.train.predict.share_cpu`)."""
+    threads wait for each other; :func:`fruxel.train.predict.share_cpu`)."""
     chase: ChaseView = field(default_factory=ChaseView)
     """Where the chase camera rides."""
     compile: bool = False
-    """On CUDA, compile SSZ's forward pass with ``torch.compile`` before the drive (about half a minute) and replay
-    the compiled pass as a CUDA graph (:class:`fruxel.train.predict.Predictor`)."""
+    """On CUDA, compile SSZ's forward pass with ``torch.compile`` before the drive (it takes a while) and replay the
+    compiled pass as a CUDA graph (:class:`fruxel.train.predict.Predictor`)."""
     flip_average: bool = True
     """Keep the model's ``flip_average`` rule (each camera image and its mirror image predicted and averaged) when
-    its file has it on; off, SSZ runs once a frame: on 2 CPU cores the shipped model's drive ran at 3.8-4.1 FPS
-    without it against 2.4-2.6 with it, at the other rules' accuracy (docs/model.md)."""
+    its file has it on; off, SSZ runs once a frame, faster at the other rules' accuracy (BENCHMARKS.md)."""
 
     def check(self) -> None:
         """Raise :class:`LiveError` for impossible settings."""
@@ -260,7 +259,7 @@ class RobotDemo:
         share_cpu(config.threads)
         self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile)
         if not config.flip_average:  # before the first frame: the Predictor compiles and captures then
-            self.predictor.generator.flip_average = False
+            self.predictor.rules = dataclasses.replace(self.predictor.rules, flip_average=False)
         mc = self.predictor.config
         self.grid, self.classes = mc.grid, mc.classes
         cam_w = config.size

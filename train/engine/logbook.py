@@ -41,6 +41,7 @@ class Logbook:
                 if k not in self.columns:
                     self.columns.append(k)
         self._rewrite()
+        self.commit()
         self.tb = None
         if tensorboard:
             try:
@@ -71,6 +72,23 @@ class Logbook:
             for k, v in values.items():
                 if isinstance(v, (int, float)) and math.isfinite(float(v)):
                     self.tb.add_scalar(k, float(v), step)
+
+    def commit(self) -> None:
+        """Mark the table as it is now as the checkpoint's: :meth:`rollback` returns here."""
+        self._committed = (len(self.rows), list(self.columns), os.path.getsize(self.path))
+
+    def rollback(self) -> None:
+        """Drop the rows added since the last :meth:`commit` (a checkpoint that could not be written), so that the
+        table never claims a step the run folder's checkpoint does not hold. Rows are appended, so the committed
+        table is the start of the file: it is cut there in place, which needs no disk space (a full disk is the
+        usual reason for a failed checkpoint). After a new column the file was rewritten, and so is it here."""
+        n, columns, size = self._committed
+        rewritten = columns != self.columns
+        self.rows, self.columns = self.rows[:n], columns
+        if rewritten:
+            self._rewrite()
+        else:
+            os.truncate(self.path, size)
 
     def close(self) -> None:
         """Flush TensorBoard."""

@@ -1,22 +1,27 @@
-"""Choosing a trained model's inference rules (``ModelConfig.empty_offset``, ``fill_threshold``) on training-split
-samples.
+"""Choosing a trained model's inference rules (:class:`fruxel.train.rules.InferenceRules`: the empty-logit offset
+and the ``fill_columns`` threshold) on training-split samples (``fruxel-calibrate``).
 
-The class-weighted cross-entropy that trains SSZ down-weights the empty class (about 97 % of the cells at 64^3),
-so the argmax of its logits calls cells occupied more readily than the cell-count metrics reward. After training,
-a constant added to every cell's empty logit moves that threshold. With ``fill_columns``, a column that the volume
-leaves empty gets a surface when the depth head's "no surface" probability is below ``fill_threshold``: a higher
-threshold gives the own view a surface in more of the columns the network is unsure of (a plain wall close to the
-camera), at the price of surfaces where the truth has none. Both are chosen here on samples of the training split
-(never the test split the model is evaluated on), with the rules applied exactly as the model applies them.
+The class-weighted cross-entropy that trains SSZ down-weights the empty class (most of the cells), so the argmax of
+its logits calls cells occupied more readily than the cell-count metrics reward. After training, a constant added
+to every cell's empty logit moves that threshold. With ``fill_columns``, a column that the volume leaves empty gets
+a surface when the depth head's "no surface" probability is below ``fill_threshold``: a higher threshold gives the
+own view a surface in more of the columns the network is unsure of (a plain wall close to the camera), at the price
+of surfaces where the truth has none. Both are chosen here on samples of the training split (never the test split
+the model is evaluated on), with the rules applied exactly as :func:`fruxel.train.rules.predict_logits` applies
+them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 import torch
 
+from fruxel.errors import ConfigError
+
+from ..rules import InferenceRules, first_hit_classes, first_hit_label, mirror_average, shift_and_fill
 from .metrics import Accumulator
 
 Rules = tuple[float, float]
@@ -24,68 +29,72 @@ Rules = tuple[float, float]
 
 
 @torch.no_grad()
-def sweep_rules(generator: Any, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], offsets: Sequence[float],
-                thresholds: Sequence[float], classes: int, *, fill: bool, device: torch.device,
-                grid: Any = None, backend: str | None = None, first_hit: bool = False) -> dict[Rules, Accumulator]:
-    """Metrics (cell IoUs, completion, own view; novel views with ``grid``) of the generator's predictions under
-    each pair of rules.
+def sweep_rules(network: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
+                offsets: Sequence[float], thresholds: Sequence[float], classes: int, *, base: InferenceRules,
+                device: torch.device, grid: Any = None, backend: str | None = None) -> dict[Rules, Accumulator]:
+    """Metrics (cell IoUs, completion, own view; novel views with ``grid``) of a network's predictions under each
+    pair of rules.
 
     Args:
-        generator: an :class:`~fruxel.train.models.generator.SSZGenerator`; its own inference rules are switched
-            off for the sweep and restored after it, all but ``flip_average``, which the rules swept act on (the
-            averaged logits are what they shift).
+        network: the network (in eval mode for the sweep, then back).
         batches: ``(images (B, 3, h, w) float in [0, 1], labels (B, D, H, W) integer)`` pairs.
         offsets: the offsets to try, added to every cell's empty logit (channel 0).
-        thresholds: the ``fill_threshold`` values to try with each offset, in (0, 1] (ignored without ``fill``).
+        thresholds: the ``fill_threshold`` values to try with each offset, in (0, 1] (ignored without
+            ``base.fill_columns``).
         classes: C, classes including empty.
-        fill: apply :func:`~fruxel.train.models.generator.fill_columns` after each shift.
+        base: the rules swept: its ``flip_average``, ``fill_columns`` and ``first_hit_label`` hold in every pair,
+            its ``fill_threshold`` is the one of every pair without ``fill_columns``.
         device: where to predict and count.
         grid: the labels' grid: also count the novel views of :func:`~.evaluate.novel_cameras` (None: not).
         backend: kernel backend of the novel views.
-        first_hit: apply :func:`~fruxel.train.models.generator.first_hit_label` after the other rules, in every
-            pair (``ModelConfig.first_hit_label``).
 
     Returns:
-        An accumulator per ``(offset, threshold)``; without ``fill`` the threshold of every key is the generator's
-        own.
+        An accumulator per ``(offset, threshold)``.
     """
     from fruxel import kernels
 
-    from ..models.generator import first_hit_classes, first_hit_label, inference_rules
     from .evaluate import count_views, novel_cameras
 
     cams = novel_cameras(grid) if grid is not None else []
-
-    ts = [float(t) for t in thresholds] if fill else [generator.fill_threshold]
+    ts = [float(t) for t in thresholds] if base.fill_columns else [base.fill_threshold]
     accs = {(float(o), t): Accumulator(classes) for o in offsets for t in ts}
-    training = generator.training
-    generator.eval()
+    training = network.training
+    network.eval()
     try:
         for image, labels in batches:
-            out = generator(image.to(device), rules=False)
+            image = image.to(device)
+            out = mirror_average(network, image, device.type != "cpu") if base.flip_average else network(image)
+            if base.fill_columns and out.depth_logits is None:
+                raise ConfigError("rules.fill_columns needs a network with a column depth head")
             logits = out.logits.float()
             target = labels.to(device).to(torch.uint8)
-            best = first_hit_classes(logits) if first_hit else None
+            best = first_hit_classes(logits) if base.first_hit_label else None
             truth_hits = [kernels.first_hit(target, grid, cam, backend=backend) for cam in cams]
             for (o, t), acc in accs.items():
-                shifted = inference_rules(logits, out.depth_logits, empty_offset=o, fill=fill, fill_threshold=t)
-                if first_hit:
+                shifted = shift_and_fill(logits, out.depth_logits, empty_offset=o, fill=base.fill_columns,
+                                         fill_threshold=t)
+                if best is not None:
                     shifted = first_hit_label(shifted, None, best=best)
                 pred = shifted.argmax(1).to(torch.uint8)
                 acc.add_volumes(pred, target)
                 if cams:
                     count_views(acc, pred, target, grid, cams, backend, truth_hits)
     finally:
-        generator.train(training)
+        network.train(training)
     return accs
+
+
+def rules_of(base: InferenceRules, chosen: Rules) -> InferenceRules:
+    """``base`` with the chosen ``(empty_offset, fill_threshold)``."""
+    return dataclasses.replace(base, empty_offset=chosen[0], fill_threshold=chosen[1])
 
 
 def rules_score(summary: dict[str, Any]) -> float:
     """What :func:`choose_rules` maximises: mIoU + completion IoU + own-view first-hit accuracy (the three metrics
     the project sets targets for) + novel-view first-hit accuracy when it was counted, in points, weighted equally.
 
-    Novel views matter because the rules can trade them away: on one model the offset and threshold chosen on the
-    first three alone added 3.5 points to them on the test split and cost 5.2 novel-view points (docs/model.md)."""
+    Novel views matter because the rules can trade them away: chosen on the first three alone, they once bought
+    those three points with more novel-view points lost (docs/experiments.md)."""
     novel = summary.get("novel_view_accuracy")
     return (summary["miou"] + summary["completion_iou"] + summary["own_view_accuracy"]
             + (novel if novel is not None else 0.0))

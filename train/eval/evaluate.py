@@ -1,4 +1,4 @@
-"""Evaluating a generator on samples: predictions, the metrics of SPEC section 9 and a picture of examples."""
+"""Evaluating a generator on samples: predictions, the metrics of conventions section 9 and a picture of examples."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ import torch
 from fruxel.classes import ClassTable
 from fruxel.grid import FruxelGrid
 
+from ..rules import InferenceRules, predict_logits
 from .metrics import Accumulator
 
 
 def novel_cameras(grid: FruxelGrid) -> list[Any]:
-    """The novel views of SPEC section 9: ``orbit_cameras(grid, 4)`` at the grid's own width and height."""
+    """The novel views of conventions section 9: ``orbit_cameras(grid, 4)`` at the grid's own width and height."""
     from fruxel.kernels import orbit_cameras
 
     return orbit_cameras(grid, 4, width=grid.width, height=grid.height)
@@ -52,12 +53,13 @@ the truth's device. The truth is given only so that baselines built from it (the
 its shape (the per-cell prior) can be evaluated like a network."""
 
 
-def generator_predict(generator: torch.nn.Module, autocast: bool = False) -> Predict:
-    """The prediction rule of a generator: the argmax of its logits (bfloat16 autocast on CUDA with ``autocast``)."""
+def model_predict(network: torch.nn.Module, rules: InferenceRules, autocast: bool = False) -> Predict:
+    """The prediction rule of a network and its inference rules: the argmax of its logits under the rules
+    (:func:`fruxel.train.rules.predict_logits`; bfloat16 autocast on CUDA with ``autocast``)."""
 
     def predict(image: torch.Tensor, _: torch.Tensor) -> torch.Tensor:
         with torch.autocast(image.device.type, dtype=torch.bfloat16, enabled=autocast):
-            logits = generator(image).logits
+            logits = predict_logits(network, image, rules)
         return logits.argmax(dim=1).to(torch.uint8)
 
     return predict
@@ -109,13 +111,15 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
 
 
 @torch.no_grad()
-def evaluate(generator: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, torch.Tensor]], grid: FruxelGrid,
-             classes: ClassTable, *, device: torch.device, novel: bool = True, backend: str | None = None,
-             autocast: bool = False, keep: int = 0) -> tuple[Accumulator, list[dict[str, Any]]]:
-    """Run the generator over batches and count every metric.
+def evaluate(network: torch.nn.Module, rules: InferenceRules, batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
+             grid: FruxelGrid, classes: ClassTable, *, device: torch.device, novel: bool = True,
+             backend: str | None = None, autocast: bool = False, keep: int = 0
+             ) -> tuple[Accumulator, list[dict[str, Any]]]:
+    """Run a network under its inference rules over batches and count every metric.
 
     Args:
-        generator: the model (switched to eval mode for the call, then back).
+        network: the model (switched to eval mode for the call, then back).
+        rules: its inference rules (:data:`fruxel.train.rules.NO_RULES` for the network's raw argmax).
         batches: ``(image, labels)`` pairs: ``(B, 3, h, w)`` float in [0, 1] and ``(B, D, H, W)`` integer labels,
             on any device.
         grid, classes: the grid and class table of the labels.
@@ -129,11 +133,11 @@ def evaluate(generator: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, t
         ``(accumulator, kept)``: kept samples as dicts of ``image`` (3, h, w) float, ``labels`` and ``pred``
         (D, H, W) uint8, all on the CPU.
     """
-    was_training = generator.training
-    generator.eval()
+    was_training = network.training
+    network.eval()
     try:
-        accs, kept = evaluate_predictions({"model": generator_predict(generator, autocast)}, batches, grid, classes,
+        accs, kept = evaluate_predictions({"model": model_predict(network, rules, autocast)}, batches, grid, classes,
                                           device=device, novel=novel, backend=backend, keep=keep)
     finally:
-        generator.train(was_training)
+        network.train(was_training)
     return accs["model"], kept

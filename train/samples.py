@@ -1,0 +1,538 @@
+"""Samples for a model: split S of a source (the simulator's stream or a data set folder) made or read for model M,
+in batches. The one data path of training, evaluation, calibration and the demos.
+
+Order and resuming
+    A rank's samples form a sequence of *blocks*, block ``q`` being one room's samples (``samples_per_scene``
+    consecutive indices, clipped to the rank's range). Streaming takes the rooms in index order; shards take each
+    epoch's rooms in a permutation seeded by the run. Worker ``w`` of ``K`` makes blocks ``q = w, w + K, ...``; the
+    DataLoader returns its workers' results round-robin, so the main process receives blocks in the order
+    ``q = 0, 1, 2, ...`` whatever ``K`` is. A batch is the next ``batch`` samples of that sequence, and the
+    position ``(next block, samples of it already used)`` is all a checkpoint needs to continue with exactly the
+    samples an uninterrupted run would have seen.
+
+Ranks
+    Rank ``r`` of ``n`` owns the room-aligned index range :func:`rank_range` of the split: disjoint ranges, so no
+    two ranks ever train on the same sample.
+
+Arrays
+    Blocks and batches hold ``image`` ``(N, h, w, 3)`` uint8 RGB (image rows and columns, the grid camera's
+    image), ``labels`` ``(N, D, H, W)`` uint8 (grid frame) and ``index`` ``(N,)`` int64; they stay uint8 until
+    the training device (:func:`fruxel.train.engine.data.to_device`), where images become ``(N, 3, h, w)`` float
+    in [0, 1].
+"""
+
+from __future__ import annotations
+
+import atexit
+import math
+import os
+import signal
+import sys
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from fruxel.errors import FruxelError
+
+from .config import DATA_SOURCES, DataConfig
+from .models.registry import ModelConfig
+
+
+class DataError(FruxelError, ValueError):
+    """Samples that cannot be had for a model: a data set folder that is missing, foreign, of another grid, image
+    size or class table, or without the split asked for; a corrupt shard found by a worker."""
+
+
+@dataclass(frozen=True)
+class SampleSource:
+    """Where samples come from."""
+
+    source: str = "stream"
+    """``"stream"``: made by the simulator for the model's grid and image size; ``"shards"``: a data set folder."""
+    root: str = ""
+    """The data set folder (``source = "shards"``)."""
+    seed: int = 0
+    """The simulator's base seed (streaming; a data set has its own)."""
+    augment: bool = True
+    """Appearance augmentation of streamed images (a data set has its own setting)."""
+    samples_per_scene: int = DataConfig.samples_per_scene
+    """Consecutive samples per room (streaming; a data set has its own)."""
+
+    def __post_init__(self) -> None:
+        if self.source not in DATA_SOURCES:
+            raise DataError(f"sample source must be one of {', '.join(DATA_SOURCES)}, got {self.source!r}")
+
+    @classmethod
+    def of(cls, data: DataConfig) -> SampleSource:
+        """The source a training run's :class:`~fruxel.train.config.DataConfig` describes."""
+        return cls(data.source, data.root, data.seed, data.augment, data.samples_per_scene)
+
+    def describe(self) -> str:
+        """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
+        if self.source == "shards":
+            return f"data set {self.root}"
+        return (f"simulator stream, seed {self.seed}, {self.samples_per_scene} samples per room, "
+                f"{'augmented' if self.augment else 'no augmentation'}")
+
+
+def sim_config(model: ModelConfig, source: SampleSource, splits: tuple[tuple[str, int], ...]) -> Any:
+    """The simulator settings that make ``model``'s samples from a streamed ``source``: its grid, class table and
+    image size, the source's rooms and augmentation, and ``splits`` (a streamed sample depends on the seed, the
+    split's name and its index, never on the split's size)."""
+    from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
+
+    return SimConfig(grid=model.grid, classes=model.classes, samples_per_scene=source.samples_per_scene,
+                     image=ImageConfig(size=model.image_size[1], augment=AugmentConfig(enabled=source.augment)),
+                     splits=splits)
+
+
+def check_data_set(root: str, model: ModelConfig) -> Any:
+    """The manifest of a data set folder, checked against a model.
+
+    Returns:
+        The data set's :class:`fruxel.train.sim.manifest.Manifest` (``.config``: its simulator config, ``.seed``).
+
+    Raises:
+        DataError: no data set there (or a broken manifest), or its grid (size and frustum), image size or
+            class table differ from the model's.
+    """
+    from fruxel.train.sim.manifest import MANIFEST, Manifest
+    from fruxel.train.sim.shards import DatasetError
+
+    path = os.path.join(root, MANIFEST)
+    if not os.path.isdir(root):
+        raise DataError(f"{root}: {'no such folder' if not os.path.exists(root) else 'not a folder'}")
+    if not os.path.isfile(path):
+        raise DataError(f"{root}: not a data set folder (no {MANIFEST}; make one with fruxel-sim generate)")
+    try:
+        manifest = Manifest.load(path)
+    except DatasetError as e:
+        raise DataError(str(e)) from None
+    sc = manifest.config
+    g, m = sc.grid, model.grid
+    problems = []
+    if g != m:
+        problems.append(f"grid {g.width}x{g.height}x{g.depth} z {g.z_near:g}..{g.z_far:g} m hfov {g.hfov:g} (the "
+                        f"model's: {m.width}x{m.height}x{m.depth} z {m.z_near:g}..{m.z_far:g} m hfov {m.hfov:g})")
+    if (sc.image_height, sc.image_width) != model.image_size:
+        problems.append(f"images {sc.image_width}x{sc.image_height} (the model's: {model.image_size[1]}x"
+                        f"{model.image_size[0]})")
+    if sc.classes != model.classes:
+        problems.append(f"classes {list(sc.classes.names)} (the model's: {list(model.classes.names)})")
+    if problems:
+        raise DataError(f"{root}: the data set does not fit the model: {'; '.join(problems)}")
+    return manifest
+
+
+def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | None:
+    """Samples in ``split`` of a data set (None for the stream, which has any number).
+
+    Raises:
+        DataError: see :func:`check_data_set`; a split the data set does not have.
+    """
+    if source.source != "shards":
+        return None
+    from fruxel.train.sim.dataset import ShardDataset
+    from fruxel.train.sim.shards import DatasetError
+
+    sc = check_data_set(source.root, model).config
+    names = [name for name, _ in sc.splits]
+    if split not in names:
+        raise DataError(f"{source.root}: the data set has no split {split!r} (its splits: {', '.join(names)})")
+    try:
+        # Refuses a split whose shards are not all written yet.
+        ShardDataset(source.root, split, verify=False)
+    except DatasetError as e:
+        raise DataError(str(e)) from None
+    return sc.split_samples(split)
+
+
+def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
+                  device: str | None = None) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """The first ``count`` samples of ``split`` in batches of ``batch`` (the last one smaller).
+
+    Args:
+        source: where the samples come from.
+        model: the model's architecture (grid, image size and classes of streamed samples).
+        split: e.g. ``"test"``.
+        count: samples, >= 1 (at most the split's size for a data set).
+        batch: samples per batch.
+        workers: DataLoader worker processes that make or read the samples (0: this process).
+        device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
+
+    Yields:
+        ``(images (B, h, w, 3) uint8, labels (B, D, H, W) uint8)`` CPU tensors.
+
+    Raises:
+        DataError: see :func:`check_data_set`; a corrupt shard.
+    """
+    if source.source == "shards":
+        spp = check_data_set(source.root, model).config.samples_per_scene
+        sim = None
+    else:
+        spp = source.samples_per_scene
+        sim = sim_config(model, source, ((split, count),))
+    plan = BlockPlan(0, count, spp, None)
+
+    def factory(block: int, skip: int) -> BlockStream:
+        # The stream ends after the blocks of ``count`` samples: the workers make nothing that is not used.
+        return BlockStream(plan, source.source, split, sim_config=sim, seed=source.seed, root=source.root,
+                           first_block=block, skip=skip, device=device, stop_block=plan.rooms[1] - plan.rooms[0])
+
+    loader = Batches(factory, batch, min(workers, math.ceil(count / spp)))
+    try:
+        done = 0
+        while done < count:
+            try:
+                b = next(loader)
+            except RuntimeError as e:
+                raise _worker_error(e) from None
+            take = min(count - done, len(b["index"]))
+            yield b["image"][:take], b["labels"][:take]
+            done += take
+    finally:
+        loader.close()
+
+
+def load_split(source: SampleSource, model: ModelConfig, split: str, count: int, *, workers: int = 0,
+               device: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``count`` samples of ``split`` at once (a training run's evaluation set): ``(images (N, h, w, 3)
+    uint8, labels (N, D, H, W) uint8)``, N = ``count`` or the split's size if smaller.
+
+    Raises:
+        DataError: no such split, or an empty one; see :func:`split_batches`.
+    """
+    size = split_size(source, model, split)
+    count = count if size is None else min(count, size)
+    if count <= 0:
+        raise DataError(f"{source.describe()}: no {split} split to evaluate on")
+    images, labels = zip(*split_batches(source, model, split, count, count, workers=workers, device=device),
+                         strict=True)
+    return torch.cat(images), torch.cat(labels)
+
+
+def training_batches(source: SampleSource, model: ModelConfig, samples: int, *, batch: int, workers: int,
+                     rank: int = 0, world: int = 1, position: tuple[int, int] = (0, 0), shuffle_seed: int = 0,
+                     pin: bool = False, device: str | None = None) -> Batches:
+    """The endless, resumable batches of a rank's part of the train split (see the module docstring).
+
+    Args:
+        source: where the samples come from.
+        model: the model (grid, image size and classes of streamed samples).
+        samples: the train split's size (:func:`train_split_size`).
+        batch: samples per batch (the rank's share of the global batch).
+        workers: DataLoader worker processes.
+        rank, world: this process's distributed rank and the number of ranks.
+        position: ``(block, used)`` to start from (a checkpoint's).
+        shuffle_seed: seed of the per-epoch room order of a data set (streaming takes rooms in order).
+        pin: pin batches in page-locked memory (for CUDA).
+        device: Warp device of the simulator's ``fruxelize``.
+
+    Raises:
+        DataError: fewer rooms than ranks.
+    """
+    spp = source.samples_per_scene
+    sim = None
+    if source.source == "shards":
+        spp = check_data_set(source.root, model).config.samples_per_scene
+    else:
+        sim = sim_config(model, source, (("train", samples),))
+    try:
+        lo, hi = rank_range(samples, spp, rank, world)
+    except ValueError as e:
+        where = source.root if source.source == "shards" else "data.train_samples"
+        raise DataError(f"{where}: training split: {e}") from None
+    plan = BlockPlan(lo, hi, spp, None if source.source == "stream" else shuffle_seed)
+
+    def factory(block: int, skip: int) -> BlockStream:
+        return BlockStream(plan, source.source, "train", sim_config=sim, seed=source.seed, root=source.root,
+                           first_block=block, skip=skip, device=device)
+
+    return Batches(factory, batch, workers, pin=pin, position=position)
+
+
+def train_split_size(source: SampleSource, model: ModelConfig, streamed: int) -> int:
+    """Samples of the train split: ``streamed`` for the stream, the data set's own for shards.
+
+    Raises:
+        DataError: see :func:`split_size`.
+    """
+    size = split_size(source, model, "train")
+    return streamed if size is None else size
+
+
+def _worker_error(e: RuntimeError) -> BaseException:
+    """A fruxel error raised in a DataLoader worker (a corrupt shard, say) as one :class:`DataError`.
+
+    The DataLoader re-raises a worker's exception as ``RuntimeError("Caught X in DataLoader worker process N ...
+    Original Traceback ... module.X: message")`` when ``X`` cannot be rebuilt from that text alone, as fruxel's
+    errors with a file and a problem cannot. Anything else (a bug) is returned as it was, traceback and all.
+    """
+    text = str(e)
+    last = text.strip().splitlines()[-1] if text.strip() else ""
+    kind, _, message = last.partition(": ")
+    if text.startswith("Caught ") and "DataLoader worker" in text and kind.startswith("fruxel.") and message:
+        return DataError(message)
+    return e
+
+
+def rank_range(samples: int, samples_per_scene: int, rank: int, world: int) -> tuple[int, int]:
+    """The index range ``[lo, hi)`` of rank ``rank`` of ``world`` in a split of ``samples`` samples: whole rooms,
+    disjoint between ranks, together the whole split.
+
+    Raises:
+        ValueError: fewer rooms than ranks.
+    """
+    rooms = math.ceil(samples / samples_per_scene)
+    if rooms < world:
+        raise ValueError(f"{rooms} rooms ({samples} samples) cannot be divided among {world} ranks")
+    a = rooms * rank // world
+    b = rooms * (rank + 1) // world
+    return a * samples_per_scene, min(samples, b * samples_per_scene)
+
+
+@dataclass(frozen=True)
+class BlockPlan:
+    """Which samples block ``q`` of a rank holds (see the module docstring)."""
+
+    lo: int
+    """First index of the rank's range."""
+    hi: int
+    """One past the last index of the rank's range."""
+    samples_per_scene: int
+    """Samples per room."""
+    shuffle_seed: int | None
+    """None: rooms in index order (streaming, one pass). Otherwise each epoch permutes the rooms with
+    ``default_rng([shuffle_seed, epoch])`` (shards)."""
+
+    @property
+    def rooms(self) -> tuple[int, int]:
+        """First room and one past the last room of the range."""
+        n = self.samples_per_scene
+        return self.lo // n, (self.hi - 1) // n + 1
+
+    def block(self, q: int) -> range:
+        """The indices of block ``q`` (any ``q >= 0``; the range repeats in epochs)."""
+        first, last = self.rooms
+        count = last - first
+        epoch, pos = divmod(q, count)
+        if self.shuffle_seed is None:
+            room = first + pos
+        else:
+            room = first + int(np.random.default_rng([self.shuffle_seed, epoch]).permutation(count)[pos])
+        n = self.samples_per_scene
+        return range(max(self.lo, room * n), min(self.hi, (room + 1) * n))
+
+
+class BlockStream(IterableDataset):
+    """Blocks of samples from ``first_block`` on, each worker making its share (see the module docstring).
+
+    Args:
+        plan: the rank's blocks.
+        source: ``"stream"`` (a :class:`~fruxel.train.sim.shards.SampleMaker` per worker) or ``"shards"``.
+        split: the split's name.
+        sim_config: the simulator config (streaming).
+        seed: the simulator's base seed (streaming).
+        root: the data set folder (shards).
+        first_block: the block to start with.
+        skip: samples of the first block to leave out (already used before a resume).
+        device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
+        stop_block: the block to stop before (None: endless, the range repeating in epochs). A loader that needs a
+            known number of samples (the evaluation set) stops there, so its workers make nothing more.
+    """
+
+    def __init__(self, plan: BlockPlan, source: str, split: str, *, sim_config: Any = None, seed: int = 0,
+                 root: str = "", first_block: int = 0, skip: int = 0, device: str | None = None,
+                 stop_block: int | None = None) -> None:
+        super().__init__()
+        self.plan = plan
+        self.source = source
+        self.split = split
+        self.sim_config = sim_config
+        self.seed = seed
+        self.root = root
+        self.first_block = first_block
+        self.skip = skip
+        self.device = device
+        self.stop_block = stop_block
+
+    def _reader(self) -> tuple[Callable[[int], Any], Callable[[], None]]:
+        """``(read, close)``: sample ``i`` of the split (simulated or read from shards), and the closing of what
+        reading holds."""
+        if self.source == "stream":
+            from fruxel.train.sim.sample import SampleMaker
+
+            maker = SampleMaker(self.sim_config, self.seed, backend="warp", device=self.device)
+            return (lambda i: maker.make(self.split, i)), maker.close
+        from fruxel.train.sim.dataset import ShardDataset
+
+        ds = ShardDataset(self.root, self.split)
+        return ds.sample, ds.close
+
+    def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        read, close = self._reader()
+        q = self.first_block + worker
+        # What reading holds (the renderer's OpenGL context and Warp meshes, or open shard files) is freed when the
+        # iteration ends or the generator is dropped; in a DataLoader worker, when its loop returns, before the
+        # interpreter exits. Left to the exit, the EGL and CUDA contexts are torn down in whatever order the
+        # interpreter's clean-up takes (the suspected cause of workers aborting after training on the H100).
+        try:
+            while self.stop_block is None or q < self.stop_block:
+                idx = self.plan.block(q)
+                if q == self.first_block:
+                    idx = idx[self.skip:]
+                samples = [read(i) for i in idx]
+                block = {
+                    "image": np.stack([s.image for s in samples]),
+                    "labels": np.stack([np.asarray(s.labels, dtype=np.uint8) for s in samples]),
+                    "index": np.asarray([s.index for s in samples], dtype=np.int64),
+                    "block": np.int64(q),
+                }
+                yield block
+                q += workers
+        finally:
+            close()
+
+
+def _init_worker(_: int) -> None:
+    """Set up a DataLoader worker process: one llvmpipe thread each when there are several, and an exit that skips
+    the interpreter's teardown."""
+    info = get_worker_info()
+    if info is not None and info.num_workers > 1:
+        # Each worker renders with one llvmpipe thread (the workers already use the cores); read when the
+        # renderer's context is made. NVIDIA's EGL ignores it.
+        os.environ.setdefault("LP_NUM_THREADS", "1")
+    # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
+    # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
+    # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream
+    # imports later still run, then this ends the process, skipping those of what was imported before (torch's) and
+    # the teardown. The worker's loop has returned and its stream is finalised by then (Batches.close), and the
+    # process's contexts (EGL, CUDA) are released by the kernel.
+    atexit.register(_exit_now)
+
+
+def _exit_now() -> None:
+    """End this process with status 0 at once, with Python's own output flushed."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+BATCH_KEYS = ("image", "labels", "index")
+"""What a batch of :class:`Batches` holds."""
+
+
+class Batches:
+    """Fixed-size batches of a rank's block sequence, resumable at a position.
+
+    Args:
+        stream_factory: called with ``(first_block, skip)``; returns a :class:`BlockStream`.
+        batch: samples per batch.
+        workers: DataLoader worker processes (0: blocks are made in this process).
+        pin: pin batches in page-locked memory (for CUDA).
+        position: ``(next block, samples of it already used)`` to start from.
+    """
+
+    def __init__(self, stream_factory: Any, batch: int, workers: int, *, pin: bool = False,
+                 position: tuple[int, int] = (0, 0)) -> None:
+        self.batch = batch
+        block, used = position
+        ds = stream_factory(block, used)
+        # A generator of its own: each iter() of a DataLoader draws a base seed from its generator, which would
+        # otherwise be torch's global one, whose state a checkpoint restores (a resumed run draws once more).
+        kwargs: dict[str, Any] = {"batch_size": None, "num_workers": workers, "pin_memory": pin,
+                                  "generator": torch.Generator().manual_seed(0)}
+        if workers:
+            kwargs.update(multiprocessing_context="spawn", prefetch_factor=4, persistent_workers=False,
+                          worker_init_fn=_init_worker)
+        self._loader = DataLoader(ds, **kwargs)
+        self._it: Iterator[dict[str, Any]] | None = None
+        self._start = (block, used)
+        self._next = (block, used)
+        self._buf: dict[str, Any] | None = None
+        self._block = block
+        self._offset = 0
+        self._base = 0
+
+    @property
+    def position(self) -> tuple[int, int]:
+        """``(block, used)``: where the next batch starts (a checkpoint stores this)."""
+        if self._buf is not None:
+            return self._block, self._base + self._offset
+        return self._next
+
+    def __next__(self) -> dict[str, torch.Tensor]:
+        """The next batch: ``batch`` samples, fewer only at the end of a stream with a last block.
+
+        Raises:
+            StopIteration: that stream has ended.
+        """
+        if self._it is None:
+            self._it = iter(self._loader)
+        parts: list[dict[str, torch.Tensor]] = []
+        need = self.batch
+        while need:
+            if self._buf is None:
+                nxt = next(self._it, None)
+                if nxt is None:  # a stream with a last block (stop_block) has ended
+                    if not parts:
+                        raise StopIteration
+                    break
+                self._buf = nxt
+                self._block = int(self._buf["block"])
+                self._offset = 0
+                # The stream's first block comes without the samples used before a resume.
+                self._base = self._start[1] if self._block == self._start[0] else 0
+            n = len(self._buf["index"])
+            take = min(n - self._offset, need)
+            sl = slice(self._offset, self._offset + take)
+            parts.append({k: torch.as_tensor(self._buf[k][sl]) for k in BATCH_KEYS if k in self._buf})
+            self._offset += take
+            need -= take
+            if self._offset == n:
+                self._next = (self._block + 1, 0)
+                self._buf = None
+        return {k: torch.cat([p[k] for p in parts]) if len(parts) > 1 else parts[0][k] for k in parts[0]}
+
+    def __iter__(self) -> Batches:
+        return self
+
+    def close(self) -> None:
+        """Stop the workers and wait until they have exited (idempotent).
+
+        A worker that a signal ends as it exits (its data no longer needed) gives one warning naming the signal,
+        not an error.
+        """
+        it, self._it = self._it, None
+        self._loader = None  # type: ignore[assignment]
+        # The DataLoader's iterator shuts its workers down when garbage-collected, and an error raised there (its
+        # SIGCHLD handler's "DataLoader worker (pid N) is killed by signal", when a worker dies while it exits)
+        # was printed as an ignored exception with a traceback. Shut down here instead, where it can be caught;
+        # whether the handler sees the death at all is a race, so the exit codes are read once all have ended.
+        shutdown = getattr(it, "_shutdown_workers", None)
+        if shutdown is None:
+            return
+        try:
+            shutdown()
+        except RuntimeError as e:
+            if not str(e).startswith("DataLoader worker"):
+                raise
+        ended = [f"pid {w.pid} by {_signal_name(-w.exitcode)}" for w in getattr(it, "_workers", ())
+                 if w.exitcode is not None and w.exitcode < 0]
+        if ended:
+            warnings.warn(f"data workers ended by a signal as they stopped, after their last batch was used: "
+                          f"{', '.join(ended)}", RuntimeWarning, stacklevel=2)
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
