@@ -67,7 +67,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "load_average_after": common.load_average(),
         "device": str(demo.predictor.device),
         "compiled": demo.predictor.compiled,
-        "flip_average": demo.predictor.generator.flip_average,
+        "flip_average": demo.predictor.rules.flip_average,
         "torch_threads": torch.get_num_threads(),
         "kernels": registry.describe(config.backend, config.device, probe),
         "opengl": gl_renderer_name(),

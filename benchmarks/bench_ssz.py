@@ -1,4 +1,4 @@
-"""SSZ benchmark: the 3D up-convolution variants, training throughput with the simulator streaming in the same
+"""SSZ benchmark: the 3D up-convolution, training throughput with the simulator streaming in the same
 run, and image -> logits (-> shell -> ray-cast) latency at batch 1.
 
 Parts (``--parts``, default all):
@@ -125,66 +125,19 @@ def bench_layers(device: Any, repeat: int, batch: int) -> list[dict[str, Any]]:
     return rows
 
 
-def bench_variants(device: Any, specs: list[str], batch: int = 32) -> list[dict[str, Any]]:
-    """Forward + backward (with the objective) of the whole ``ssz64`` generator per design variant: up-convolution
-    mode, group width of the 3x3x3 convolutions, channels-last, ``torch.compile``. Each spec is
-    ``GROUP_WIDTH,CHANNELS_LAST(0/1),COMPILE(0/1),UPSAMPLE``."""
-    import dataclasses
-
-    import torch
-
-    from fruxel.train.config import preset as get_preset
-    from fruxel.train.export import build_generator
-    from fruxel.train.models.blocks import channels_last
-    from fruxel.train.objective import SSZObjective
-
-    cfg = get_preset("ssz64")
-    rows = []
-    for spec in specs:
-        gw, cl, comp, up = spec.split(",")
-        m = dataclasses.replace(cfg.model, group_width=int(gw), upsample=up)
-        g = build_generator(m).to(device)
-        if cl == "1":
-            g = channels_last(g)
-        obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=device))
-        f = torch.compile(g) if comp == "1" else g
-        x = torch.rand(batch, 3, *m.image_size, device=device)
-        if cl == "1":
-            x = x.contiguous(memory_format=torch.channels_last)
-        y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=device, dtype=torch.uint8)
-
-        def step(f: Any = f, x: Any = x, y: Any = y, obj: Any = obj) -> None:
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-                loss = obj(f(x), y)["total"]
-            loss.backward()
-
-        ms = _median_ms(step, device, 10)
-        rows.append({"group_width": int(gw), "channels_last": cl == "1", "compiled": comp == "1", "upsample": up,
-                     "batch": batch, "ms": ms, "samples_per_s": batch / ms * 1000.0})
-        print(f"variant gw={gw} cl={cl} compile={comp} up={up}: {ms:.1f} ms, {batch / ms * 1000:.0f} samples/s",
-              flush=True)
-    return rows
-
-
-DEFAULT_VARIANTS = ["1,0,0,parity", "1,1,0,parity", "1000,1,0,parity", "1,1,1,parity", "1,0,0,resize",
-                    "1000,0,0,resize", "1,1,0,transpose"]
-"""The design variants timed by default (``--variants``)."""
-
-
 def bench_pointwise(device: Any, rounds: int = 5, batch: int = 32) -> list[dict[str, Any]]:
     """``pointwise`` part (module docstring): Pointwise3d's product against cuDNN's 1x1x1 Conv3d."""
     import torch
     from torch import nn
 
     from fruxel.train.config import preset as get_preset
-    from fruxel.train.export import build_generator
     from fruxel.train.models.blocks import Pointwise3d
     from fruxel.train.objective import SSZObjective
     from fruxel.train.predict import Predictor
 
     cfg = get_preset("ssz64")
     m = cfg.model
-    g = build_generator(m).to(device)
+    g = m.build().to(device)
     obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=device))
     x = torch.rand(batch, 3, *m.image_size, device=device)
     y = torch.randint(0, m.num_classes, (batch, *m.grid.shape), device=device, dtype=torch.uint8)
@@ -232,7 +185,7 @@ def bench_train(preset: str, device: Any, steps: int, workers: int, overrides: d
     cfg = override(get_preset(preset), {"data": {"workers": workers, "frequency_samples": 64},
                                         "run": {"steps": steps, "eval_every": 0, "checkpoint_every": 0,
                                                 "log_every": 10}}, "")
-    cfg = override(cfg, overrides, "").check()
+    cfg = override(cfg, overrides, "")
     out: dict[str, Any] = {"preset": preset, "batch": cfg.run.batch_size, "workers": workers, "steps": steps,
                            "overrides": overrides, "compile": cfg.run.compile}
     for profile in (True, False):
@@ -272,7 +225,7 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
     """Batch-1 latency of image -> logits and image -> logits -> shell -> 512^2 ray-cast; ``frozen`` compiles with
     Inductor's freezing (weights as constants: batch norms folded into their convolutions, layouts chosen once);
     ``form`` one of :data:`LATENCY_FORMS` (CUDA only; the CPU runs float32 contiguous); ``model_override``
-    replaces fields of the preset's ``ModelConfig`` (e.g. the inference rules ``fill_columns``, ``empty_offset``)."""
+    replaces fields of the preset's model config."""
     import numpy as np
     import torch
 
@@ -280,12 +233,11 @@ def bench_latency(preset: str, device: Any, repeat: int, compiled: bool, frozen:
     from fruxel.camera import Camera, orbit_direction
     from fruxel.render.raycast import shade
     from fruxel.train.config import preset as get_preset
-    from fruxel.train.export import build_generator
     from fruxel.train.models.blocks import channels_last
 
     cfg = get_preset(preset)
     m = dataclasses.replace(cfg.model, **(model_override or {}))
-    gen = build_generator(m).to(device).eval()
+    gen = m.build().to(device).eval()
     cuda = device.type == "cuda"
     if cuda and form == "channels-last":
         gen = channels_last(gen)
@@ -346,21 +298,19 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
     from fruxel import kernels
     from fruxel.camera import Camera, orbit_direction
     from fruxel.render.raycast import shade
-    from fruxel.train.config import INFERENCE_RULES
     from fruxel.train.config import preset as get_preset
-    from fruxel.train.export import build_generator, load_generator
+    from fruxel.train.model_files import load_model
     from fruxel.train.predict import Predictor
+    from fruxel.train.rules import NO_RULES
 
     if checkpoint:
-        gen, m, _ = load_generator(checkpoint)
-        m = dataclasses.replace(m, **(model_override or {}))
-        for name in INFERENCE_RULES:
-            setattr(gen, name, getattr(m, name))
+        loaded = load_model(checkpoint)
+        gen, m, rules = loaded.network, loaded.config, loaded.rules
     else:
         m = dataclasses.replace(get_preset(preset).model, **(model_override or {}))
-        gen = build_generator(m)
+        gen, rules = m.build(), NO_RULES
     t0 = time.perf_counter()
-    pred = Predictor(gen, m, device, batch=1, compile=compile, precision=precision)
+    pred = Predictor(gen, m, device, batch=1, compile=compile, precision=precision, rules=rules)
     h, w = m.image_size
     x = torch.rand(1, 3, h, w, device=device)
     pred.logits(x)  # compiles and captures
@@ -393,12 +343,10 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--parts", nargs="+", default=["layers", "variants", "pointwise", "train", "latency", "rules"],
-                   choices=["layers", "variants", "pointwise", "train", "latency", "rules"])
-    p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
-                   help="GROUP_WIDTH,CHANNELS_LAST,COMPILE,UPSAMPLE specs of the variants part")
+    p.add_argument("--parts", nargs="+", default=["layers", "pointwise", "train", "latency", "rules"],
+                   choices=["layers", "pointwise", "train", "latency", "rules"])
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
-    p.add_argument("--presets", nargs="+", default=["ssz64", "paper"])
+    p.add_argument("--presets", nargs="+", default=["ssz64", "ssz128"])
     p.add_argument("--steps", type=int, default=120, help="training steps per preset")
     p.add_argument("--workers", type=int, default=15, help="simulator processes per training run")
     p.add_argument("--train-override", default="{}", help="JSON config overrides of the training runs")
@@ -429,8 +377,6 @@ def main(argv: list[str] | None = None) -> int:
                               "torch": torch.__version__, "date": time.strftime("%Y-%m-%d")}
     if "layers" in args.parts:
         result["layers"] = bench_layers(device, args.repeat, args.batch)
-    if "variants" in args.parts:
-        result["variants"] = bench_variants(device, args.variants)
     if "pointwise" in args.parts:
         result["pointwise"] = bench_pointwise(device, batch=args.batch)
     if "train" in args.parts:
@@ -468,30 +414,34 @@ def bench_rules(device: Any, repeat: int, checkpoint: str | None = None) -> list
     import torch
 
     from fruxel.data import PHOTO
-    from fruxel.train.export import load_generator
-    from fruxel.train.predict import default_model, load_image, prepare_image, to_tensor
+    from fruxel.train.model_files import load_model
+    from fruxel.train.predict import load_image, prepare_image, to_tensor
+    from fruxel.train.rules import NO_RULES, predict_logits
 
-    path = checkpoint or default_model()
-    gen, m, _ = load_generator(path, device)
+    loaded = load_model(checkpoint, device)
+    gen, m, own = loaded.network, loaded.config, loaded.rules
+    path = loaded.path
     x = to_tensor([prepare_image(load_image(PHOTO), m)], device)
-    both = f"offset {m.empty_offset:g} + fill_columns {m.fill_threshold:g}"
-    settings = {"none": (0.0, False, False, False), both: (m.empty_offset, True, False, False),
-                f"{both} + first_hit_label": (m.empty_offset, True, True, False),
-                f"flip_average + {both} + first_hit_label": (m.empty_offset, True, True, True)}
+    both = f"offset {own.empty_offset:g} + fill_columns {own.fill_threshold:g}"
+    shifted = dataclasses.replace(NO_RULES, empty_offset=own.empty_offset, fill_columns=True,
+                                  fill_threshold=own.fill_threshold)
+    settings = {"none": NO_RULES, both: shifted,
+                f"{both} + first_hit_label": dataclasses.replace(shifted, first_hit_label=True),
+                f"flip_average + {both} + first_hit_label": dataclasses.replace(shifted, first_hit_label=True,
+                                                                                 flip_average=True)}
     times: dict[str, list[float]] = {k: [] for k in settings}
 
-    def call() -> None:
+    def call(rules: Any) -> None:
         with torch.no_grad():
-            gen(x)
+            predict_logits(gen, x, rules)
 
     for _ in range(3):
-        call()
+        call(NO_RULES)
     for _ in range(repeat):
-        for name, (offset, fill, label, flip) in settings.items():
-            gen.empty_offset, gen.fill_columns, gen.first_hit_label, gen.flip_average = offset, fill, label, flip
+        for name, rules in settings.items():
             _sync(device)
             t = time.perf_counter()
-            call()
+            call(rules)
             _sync(device)
             times[name].append((time.perf_counter() - t) * 1000.0)
     plain = statistics.median(times["none"])

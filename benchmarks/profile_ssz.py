@@ -58,7 +58,6 @@ def main(argv: list[str] | None = None) -> int:
     from torch.profiler import ProfilerActivity, profile
 
     from fruxel.train.config import preset
-    from fruxel.train.export import build_generator
     from fruxel.train.models.blocks import channels_last
     from fruxel.train.objective import SSZObjective
 
@@ -69,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = preset(args.preset)
     m = cfg.model
     batch = args.batch or cfg.run.batch_size
-    g = build_generator(m).to(dev)
+    g = m.build().to(dev)
     if args.channels_last:
         g = channels_last(g)
     obj = SSZObjective(cfg.loss, torch.ones(m.num_classes, device=dev))

@@ -453,7 +453,7 @@ def add_model_options(parser: Any) -> None:
     """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.
 
     ``--checkpoint`` is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name
-    (:func:`fruxel.train.export.load_generator` reads each); None (not given) means the model shipped with fruxel
+    (:func:`fruxel.train.model_files.load_model` reads each); None (not given) means the model shipped with fruxel
     as the default (``ssz64``). ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
     """
     parser.add_argument("--checkpoint", default=None, metavar="FILE",

@@ -1,4 +1,4 @@
-"""``fruxel-eval``: the metrics of SPEC section 9 for a trained SSZ model, against the two baselines.
+"""``fruxel-eval``: the metrics of conventions section 9 for a trained SSZ model, against the two baselines.
 
 Usage::
 
@@ -129,6 +129,41 @@ def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Ite
             bar.update(len(b[1]))
 
 
+def _source(args: argparse.Namespace, mc: Any) -> tuple[Any, int]:
+    """``(source, count)``: where the samples come from and how many are evaluated."""
+    from fruxel.train.samples import DataError, SampleSource, check_data_set, split_size
+
+    if args.data is None:
+        return SampleSource(seed=args.seed or 0, augment=args.augment), args.samples or STREAM_SAMPLES
+    source = SampleSource("shards", args.data, check_data_set(args.data, mc).seed)
+    available = split_size(source, mc, args.split)
+    count = args.samples or available
+    if count > available:
+        raise DataError(f"{args.data}: --samples {count}, but split {args.split!r} holds {available} samples")
+    return source, count
+
+
+def _prior(args: argparse.Namespace, source: Any, mc: Any, load: Any, device: Any) -> tuple[Any, dict[str, Any]]:
+    """The per-cell prior's prediction rule and what it counted."""
+    import torch
+
+    from fruxel.train.eval.baselines import CellPrior, prior_prediction
+    from fruxel.train.samples import DataError, split_size
+
+    n_prior = args.prior_samples
+    if source.source == "shards":
+        try:
+            n_prior = min(n_prior, split_size(source, mc, "train"))
+        except DataError:
+            raise DataError(f"{args.data}: the per-cell prior counts the train split, which this data set does "
+                            "not have; give --prior-samples 0 to leave the prior out") from None
+    prior = CellPrior(mc.grid.shape, mc.num_classes)
+    for _, labels in load("train", n_prior, "prior"):
+        prior.add(labels)
+    mode = torch.from_numpy(prior.mode()).to(device)
+    return (lambda image, truth: prior_prediction(mode, len(truth))), {"split": "train", "samples": prior.samples}
+
+
 def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     started = time.perf_counter()
     _check_options(args)
@@ -137,55 +172,29 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     from fruxel.kernels.registry import describe
     from fruxel.render.table1 import machine_info
-    from fruxel.train.config import INFERENCE_RULES
     from fruxel.train.engine.data import to_device
-    from fruxel.train.eval.baselines import CellPrior, oracle_prediction, prior_prediction
-    from fruxel.train.eval.evaluate import evaluate_predictions, generator_predict
-    from fruxel.train.eval.report import RULES, build_report, markdown_report
-    from fruxel.train.eval.samples import EvalData, EvalDataError, batches, data_set_manifest, split_size
-    from fruxel.train.eval.visual import example_sheet
-    from fruxel.train.export import load_generator
-    from fruxel.train.predict import default_model
+    from fruxel.train.eval.baselines import oracle_prediction
+    from fruxel.train.eval.evaluate import evaluate_predictions, model_predict
+    from fruxel.train.eval.report import build_report
+    from fruxel.train.model_files import load_model
+    from fruxel.train.samples import split_batches
 
     device = torch_device(args.device)
-    path = args.checkpoint or default_model()
-    generator, mc, training = load_generator(path, device=device)
-    grid, classes = mc.grid, mc.classes
-
-    if args.data is not None:
-        manifest = data_set_manifest(args.data, mc)
-        data = EvalData(source="shards", root=args.data, seed=manifest.seed)
-        available = split_size(data, mc, args.split)
-        count = args.samples or available
-        if count > available:
-            raise EvalDataError(f"{args.data}: --samples {count}, but split {args.split!r} holds {available} samples")
-    else:
-        data = EvalData(source="stream", seed=args.seed or 0, augment=args.augment)
-        count = args.samples or STREAM_SAMPLES
+    m = load_model(args.checkpoint, device=device)
+    mc = m.config
+    source, count = _source(args, mc)
     # Warp device of the simulator's fruxelize (streaming).
     sim_device = "cuda" if device.type == "cuda" else "cpu"
 
     def load(split: str, n: int, desc: str) -> Iterator[Any]:
-        return _progress(batches(data, mc, split, n, args.batch, workers=args.workers, device=sim_device), n, desc,
-                         args.quiet)
+        return _progress(split_batches(source, mc, split, n, args.batch, workers=args.workers, device=sim_device),
+                         n, desc, args.quiet)
 
     prior_info = None
-    predictors: dict[str, Any] = {"model": generator_predict(generator, autocast=device.type == "cuda")}
+    predictors: dict[str, Any] = {"model": model_predict(m.network, m.rules, autocast=device.type == "cuda")}
     if args.prior_samples:
-        n_prior = args.prior_samples
-        if data.source == "shards":
-            try:
-                n_prior = min(n_prior, split_size(data, mc, "train"))
-            except EvalDataError:
-                raise EvalDataError(f"{args.data}: the per-cell prior counts the train split, which this data set does "
-                                    "not have; give --prior-samples 0 to leave the prior out") from None
-        prior = CellPrior(grid.shape, len(classes.names))
-        for _, labels in load("train", n_prior, "prior"):
-            prior.add(labels)
-        mode = torch.from_numpy(prior.mode()).to(device)
-        predictors["prior"] = lambda image, truth: prior_prediction(mode, len(truth))
-        prior_info = {"split": "train", "samples": prior.samples}
-    predictors["oracle"] = lambda image, truth: oracle_prediction(truth, grid, args.backend)
+        predictors["prior"], prior_info = _prior(args, source, mc, load, device)
+    predictors["oracle"] = lambda image, truth: oracle_prediction(truth, mc.grid, args.backend)
 
     def as_input(pairs: Iterator[Any]) -> Iterator[Any]:
         for image, labels in pairs:
@@ -194,20 +203,27 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     with torch.no_grad():
         # Examples spread over the samples: consecutive samples are frames of one room.
         shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))  # 0: none
-        accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), grid, classes,
-                                          device=device, backend=args.backend, keep=shown.tolist())
-
+        accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), mc.grid,
+                                          mc.classes, device=device, backend=args.backend, keep=shown.tolist())
     machine = machine_info(str(device))
     machine.update(device=str(device), kernels=describe(args.backend, None, torch.zeros(1, device=device)))
     report = build_report(
-        accs, classes,
-        model={"file": str(path), "grid": grid.to_dict(), "image_size": list(mc.image_size), "training": training,
-               "inference_rules": {name: getattr(mc, name) for name in INFERENCE_RULES}},
-        data={"source": data.describe(), "kind": data.source, "root": data.root or None, "seed": data.seed,
-              "augment": data.augment if data.source == "stream" else None, "split": args.split, "samples": count,
-              "indices": f"indices 0..{count - 1}"},
+        accs, mc.classes,
+        model={"file": m.path, "architecture": mc.architecture, "grid": mc.grid.to_dict(),
+               "image_size": list(mc.image_size), "training": m.training, "inference_rules": m.rules.to_dict()},
+        data={"source": source.describe(), "kind": source.source, "root": source.root or None, "seed": source.seed,
+              "augment": source.augment if source.source == "stream" else None, "split": args.split,
+              "samples": count, "indices": f"indices 0..{count - 1}"},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
         seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None)
+    return _write(args, report, kept, mc, count)
+
+
+def _write(args: argparse.Namespace, report: dict[str, Any], kept: list[Any], mc: Any, count: int) -> int:
+    """Write the report, its Markdown and the examples, then name them."""
+    from fruxel.train.eval.report import RULES, markdown_report
+    from fruxel.train.eval.visual import example_sheet
+
     text = markdown_report(report)
     res = report["results"]
 
@@ -215,7 +231,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         v = res[rule]["miou"]
         return "n/a" if v is None else f"{v:.1f} %"
 
-    title = (f"{Path(path).name}, {count} {args.split} samples: mIoU "
+    title = (f"{Path(report['model']['file']).name}, {count} {args.split} samples: mIoU "
              + ", ".join(f"{RULES[r]} {miou(r)}" for r in res))
     out = args.out
     outputs = [
@@ -225,8 +241,8 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
                                                           encoding="utf-8")),
     ]
     if args.examples:
-        outputs.append((out / "examples.png",
-                        lambda tmp: example_sheet(kept, grid, classes, tmp, title=title, backend=args.backend)))
+        outputs.append((out / "examples.png", lambda tmp: example_sheet(kept, mc.grid, mc.classes, tmp, title=title,
+                                                                        backend=args.backend)))
     written = write_outputs(outputs)
     if not args.quiet:
         print(title)

@@ -420,8 +420,8 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
 
     import fruxel
     from fruxel.render.frames import RenderInput
+    from fruxel.train.model_files import model_path
     from fruxel.train.predict import (
-        default_model,
         empty_uncovered,
         frame_coverage,
         frame_image,
@@ -438,7 +438,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
     if args.truth is not None:
         t = fruxel.load(args.truth)
         truth = RenderInput(np.ascontiguousarray(t.labels), t.grid, t.classes, args.truth.stem)
-    checkpoint = str(args.checkpoint) if args.checkpoint is not None else default_model()
+    checkpoint = model_path(args.checkpoint)
     predictor = load_predictor(checkpoint, device=args.device, batch=1)
     if predictor.device.type == "cpu":
         share_cpu()

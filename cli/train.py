@@ -1,4 +1,4 @@
-"""``fruxel-train``: train SSZ, the image-to-fruxel network (SPEC section 8).
+"""``fruxel-train``: train SSZ, the image-to-fruxel network (conventions section 8).
 
     fruxel-train --preset tiny --out runs/tiny                 # 32^3 from 64^2, a laptop CPU
     fruxel-train --config my.json --out runs/x --device cuda   # a preset with fields overridden (JSON)
@@ -49,6 +49,16 @@ def _seconds(text: str) -> float:
     return v
 
 
+def _preset_name(text: str) -> str:
+    from fruxel.train.config import REPLACED_PRESETS
+
+    if text in REPLACED_PRESETS:
+        raise argparse.ArgumentTypeError(f"preset {text!r} was replaced by {REPLACED_PRESETS[text]!r}")
+    if text not in PRESETS:
+        raise argparse.ArgumentTypeError(f"unknown preset {text!r}; choose one of {', '.join(PRESETS)}")
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``fruxel-train``."""
     p = OneLineParser(prog=PROG, description="Train SSZ (one image -> a semantic fruxel model) on the streaming "
@@ -57,10 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
     what = p.add_mutually_exclusive_group()
     what.add_argument("--config", metavar="FILE",
                       help="JSON config: a preset (\"preset\": NAME) with any fields overridden")
-    what.add_argument("--preset", choices=PRESETS, help="a named config: tiny (32^3 from 64^2, a CPU), ssz64 "
-                      "(64^3 from 128^2), paper (128^3 from 512^2)")
+    what.add_argument("--preset", type=_preset_name, metavar="{" + ",".join(PRESETS) + "}",
+                      help="a named config: tiny (32^3 from 64^2, a CPU), ssz64 and ssz128 (the shipped models' "
+                      "architectures: 64^3 from 256^2, 128^3 from 512^2, the latter fine-tuned from ssz64)")
     p.add_argument("--out", metavar="RUN_DIR",
                    help="the run folder: checkpoints, shipped model, metrics, curves, examples (created)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="a new run may replace the run RUN_DIR holds (without it, that is refused)")
     p.add_argument("--resume", action="store_true",
                    help="continue RUN_DIR/last.pt with the run's own config (--steps, --time-limit and --workers "
                    "may change)")
@@ -120,7 +133,7 @@ def _config(args: argparse.Namespace) -> Any:
         config = preset(args.preset)
     else:
         raise UsageError("give --config FILE or --preset NAME for a new run, or --resume to continue one")
-    return override(config, _changes(args), "").check()
+    return override(config, _changes(args), "")
 
 
 def _main_rank() -> bool:
@@ -152,6 +165,7 @@ def _main(args: argparse.Namespace) -> int:
     if args.resume:
         given = [flag for flag, v in (("--config", args.config), ("--preset", args.preset),
                                       ("--batch-size", args.batch_size), ("--data", args.data)) if v is not None]
+        given += ["--overwrite"] if args.overwrite else []
         if given:
             raise UsageError(f"{', '.join(given)} cannot be given with --resume: a run continues with its own "
                              "config (only --steps, --time-limit and --workers may change)")
@@ -182,7 +196,7 @@ def _main(args: argparse.Namespace) -> int:
     trainer = None
     try:
         trainer = Trainer(config, args.out, resume=args.resume, device=args.device, progress=show,
-                          overrides=overrides if args.resume else None)
+                          overrides=overrides if args.resume else None, overwrite=args.overwrite)
         result = trainer.fit()
     except KeyboardInterrupt:
         if _main_rank():

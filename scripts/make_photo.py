@@ -11,8 +11,8 @@ as a fruxel model file; ``photo_truth128.npz`` holds its 128^3 labels, the truth
 
 Sample 43 was chosen because its camera sees every class (wall, floor, window, furniture, door and a sculpture),
 after looking at the own-view class counts of 58 test samples, with the first shipped model, whose own-view
-first-hit accuracy on it (92.1 %) was close to its mean over the test split (89.0 %): a typical photo, not the
-best one. The model shipped now reaches 95.4 % on it (90.2 % over the 1,024 test samples).
+first-hit accuracy on it was close to its mean over the test split: a typical photo, not the best one
+(docs/experiments.md; what today's model reads on it is the title of ``make demo``'s picture).
 
 The labels are exact on any machine (``fruxelize`` is deterministic); the image bytes are those of Mesa's
 llvmpipe (another OpenGL driver can round the shading differently, by about one grey level).
@@ -42,11 +42,10 @@ IMAGE_SIZE = 512
 def photo_config(model_file: str | Path | None = None) -> Any:
     """The simulator settings of the photo: a shipped model's grid and classes (the default model's unless
     ``model_file`` is given), a 512-pixel image."""
-    from fruxel.train.export import read_shipped
-    from fruxel.train.predict import default_model
+    from fruxel.train.model_files import read_model_file
     from fruxel.train.sim.config import ImageConfig, SimConfig
 
-    _, model, _ = read_shipped(model_file or default_model())
+    model = read_model_file(model_file).config
     return SimConfig(grid=model.grid, image=ImageConfig(size=IMAGE_SIZE), classes=model.classes,
                      samples_per_scene=SAMPLES_PER_SCENE, splits=(("train", 10_000_000), (SPLIT, TEST_SAMPLES)))
 
@@ -66,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128
     from fruxel.io import atomic_path, save
     from fruxel.model import FruxelModel
-    from fruxel.train.export import shipped_model
+    from fruxel.train.model_files import shipped_model
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=PHOTO.parent,

@@ -14,13 +14,12 @@ SMALL_GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hf
 
 
 def small_model_config() -> Any:
-    """A :class:`fruxel.train.config.ModelConfig`: a 16^3-from-64^2 SSZ architecture with a few thousand weights
+    """A :class:`fruxel.train.models.ssz.SSZConfig`: a 16^3-from-64^2 SSZ architecture with a few thousand weights
     (a forward pass takes milliseconds)."""
-    from fruxel.train.config import ModelConfig
+    from fruxel.train.models.ssz import SSZConfig
 
-    return ModelConfig(grid=SMALL_GRID, image_scale=2, levels=3, stem=4, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1),
-                       encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4), decoder_blocks=(1, 1, 1),
-                       discriminator=(8,))
+    return SSZConfig(grid=SMALL_GRID, image_scale=2, levels=3, stem=4, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1),
+                     encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4), decoder_blocks=(1, 1, 1))
 
 
 @pytest.fixture(scope="session")
@@ -28,11 +27,10 @@ def small_generator() -> Any:
     """``(generator, config)``: freshly initialised, with a widened output layer so that its argmax holds several
     classes (a fresh model predicts almost only empty cells)."""
     torch = pytest.importorskip("torch")
-    from fruxel.train.export import build_generator
-
     config = small_model_config()
     torch.manual_seed(0)
-    gen = build_generator(config).eval()
+    gen = config.build().eval()
+    torch.manual_seed(0)  # the head's draw does not depend on how many weights came before it
     with torch.no_grad():
         gen.head.weight.normal_(0.0, 8.0)
         gen.head.bias.zero_()
@@ -43,11 +41,11 @@ def small_generator() -> Any:
 @pytest.fixture(scope="session")
 def shipped_model(small_generator: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The small model as a shipped file (float32 weights, so that it predicts exactly as the checkpoint form)."""
-    from fruxel.train.export import save_shipped
+    from fruxel.train.model_files import save_model
 
     gen, config = small_generator
     path = tmp_path_factory.mktemp("models") / "small.safetensors"
-    save_shipped(path, gen, config, {"step": 0, "note": "fresh"}, half=False)
+    save_model(path, gen, config, training={"step": 0, "note": "fresh"}, half=False)
     return path
 
 

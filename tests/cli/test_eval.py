@@ -24,7 +24,7 @@ torch = pytest.importorskip("torch")
 from fruxel.train.eval.evaluate import count_views, novel_cameras  # noqa: E402 - needs torch
 from fruxel.train.eval.metrics import Accumulator  # noqa: E402
 from fruxel.train.eval.report import _rules_text  # noqa: E402
-from fruxel.train.export import load_generator  # noqa: E402
+from fruxel.train.model_files import load_model  # noqa: E402
 from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig  # noqa: E402
 from fruxel.train.sim.sample import SampleMaker  # noqa: E402
 from fruxel.train.sim.writer import generate  # noqa: E402
@@ -43,7 +43,8 @@ def streamed(split: str, count: int, seed: int = 0) -> list[Any]:
 def expected(model: Path, tests: list[Any], train_labels: list[np.ndarray] | None) -> dict[str, Accumulator]:
     """Counts of the model and the baselines made here: the model in batches of BATCH, the prior as a one-hot
     count, the oracle as each column's first occupied cell (no kernel), novel views through ``first_hit``."""
-    gen, config, _ = load_generator(model)
+    loaded = load_model(model)
+    gen, config = loaded.network, loaded.config
     rules: dict[str, list[torch.Tensor]] = {"model": [], "prior": [], "oracle": []}
     labels = torch.from_numpy(np.stack([s.labels for s in tests]))
     for i in range(0, len(tests), BATCH):

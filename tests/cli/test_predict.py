@@ -18,7 +18,7 @@ from fruxel.cli import predict as predict_cli
 
 torch = pytest.importorskip("torch")
 
-from fruxel.train.export import load_generator  # noqa: E402 - needs torch
+from fruxel.train.model_files import load_model  # noqa: E402 - needs torch
 from fruxel.train.predict import load_image, prepare_image  # noqa: E402
 
 
@@ -44,7 +44,8 @@ def error_line(capsys: pytest.CaptureFixture[str], prog: str = "fruxel-predict")
 
 def expected_logits(model: Path, image: Path, **prepare: Any) -> np.ndarray:
     """The logits ``(C, D, H, W)`` float32 of one photo, computed here from the model and the photo directly."""
-    gen, config, _ = load_generator(model)
+    loaded = load_model(model)
+    gen, config = loaded.network, loaded.config
     img = prepare_image(load_image(image), config, **prepare)
     x = torch.from_numpy(np.array(img)).permute(2, 0, 1)[None].float() / 255.0
     with torch.no_grad():
@@ -63,7 +64,7 @@ def test_png_and_odd_sized_jpeg_become_model_and_logits_files(shipped_model: Pat
     assert printed == [str(out / n) for n in names]
     assert sorted(p.name for p in out.iterdir()) == sorted(names)
 
-    _, config, _ = load_generator(shipped_model)
+    config = load_model(shipped_model).config
     for stem, image in (("room", png), ("odd", jpg)):
         model = fruxel.load(out / f"{stem}.npz")
         logits = fruxel.load_logits(out / f"{stem}.logits.npz")
@@ -175,7 +176,7 @@ def test_long_lens_photo_is_padded_at_the_models_scale(shipped_model: Path, tmp_
     """A 1-degree photo in a 60-degree grid would need a frame of 264000^2 pixels at its own scale."""
     big = tmp_path / "tele.png"
     Image.fromarray(np.full((3000, 4000, 3), 200, np.uint8)).save(big)
-    _, config, _ = load_generator(shipped_model)
+    config = load_model(shipped_model).config
     img = prepare_image(load_image(big), config, hfov=1.0, fit="pad")
     covered = np.argwhere(np.any(img != 128, axis=-1))
     assert img.shape == (64, 64, 3) and 0 < len(covered) <= 4

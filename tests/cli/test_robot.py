@@ -81,7 +81,7 @@ def test_no_flip_average_runs_ssz_once_a_frame(tmp_path: Path, no_display: None)
         """Batch sizes through the network's stem while the demo drives (one entry per network pass)."""
         demo = RobotDemo(_config(build_parser().parse_args([*argv, "--frames", "2", "--size", str(SIZE)])))
         calls: list[int] = []
-        demo.predictor.generator.stem.register_forward_pre_hook(lambda module, args: calls.append(args[0].shape[0]))
+        demo.predictor.network.stem.register_forward_pre_hook(lambda module, args: calls.append(args[0].shape[0]))
         assert len(list(demo.frames())) == 2
         return calls
 

@@ -68,7 +68,10 @@ def test_help_is_instant_and_imports_no_torch() -> None:
     ({"run": {"stepz": 3}}, "unknown config key 'run.stepz'"),
     ({"run": {"steps": "3"}}, "run.steps must be an integer"),
     ({"optim": {"lr": -1.0}}, "optim.lr must be a finite number >= 0"),
-    ({"loss": {"shell_own_view": float("nan")}}, "loss.shell_own_view must be a finite number >= 0"),
+    ({"loss": {"shell_losses": {"weight_own_view": float("nan")}}},
+     "loss.shell_losses.weight_own_view must be a finite number >= 0"),
+    ({"model": {"architecture": "unet"}}, "unknown model.architecture 'unet'"),
+    ({"version": 1, "model": {"fine_depth": 4}}, "model.fine_depth = 4 was removed"),
     ({"model": {"grid": {"width": 15}}}, "model.grid 15x64x64 must be divisible"),
     ({"preset": "huge"}, "unknown preset 'huge'"),
     ('{"run": {"steps": 3}', "not valid JSON"),
@@ -139,20 +142,21 @@ def test_ctrl_c_writes_a_checkpoint_and_resume_continues(tmp_path: Path, data: P
     shipped model; ``--resume`` continues from step 2 to the end; a further ``--resume`` has nothing to train
     unless ``--steps`` asks for more."""
     from fruxel.train.engine.checkpoint import LATEST, read_checkpoint
-    from fruxel.train.engine.trainer import SHIPPED, Trainer
-    from fruxel.train.export import load_generator
+    from fruxel.train.engine.run_folder import SHIPPED
+    from fruxel.train.engine.step import PhaseTimer
+    from fruxel.train.model_files import load_model
 
     config = _write(tmp_path / "c.json", CONFIG)
     run = tmp_path / "run"
-    tick = Trainer._tick
+    tick = PhaseTimer.tick
 
-    def interrupting(self: Trainer, step: int, phase: str | None) -> None:
-        if phase is None and step == 2:
+    def interrupting(self: PhaseTimer, step: int, phase: str | None) -> None:
+        if phase is None and step == 2:  # as step 2 starts: Ctrl-C inside the training loop
             raise KeyboardInterrupt
         tick(self, step, phase)
 
     with monkeypatch.context() as m:
-        m.setattr(Trainer, "_tick", interrupting)
+        m.setattr(PhaseTimer, "tick", interrupting)
         assert main(["--config", str(config), "--data", str(data), "--out", str(run), "--device", "cpu", "-q"]) == 130
     err = capsys.readouterr().err
     assert f"checkpoint of step 2 written to {run / LATEST}" in err and "--resume" in err
@@ -160,7 +164,7 @@ def test_ctrl_c_writes_a_checkpoint_and_resume_continues(tmp_path: Path, data: P
     ck = read_checkpoint(run / LATEST)
     assert ck.state["step"] == 2 and ck.config.name == "cli-test" and ck.config.data.root == str(data)
     for path in (run / LATEST, run / SHIPPED):
-        load_generator(path)
+        load_model(path)
 
     assert main(["--resume", "--out", str(run), "--device", "cpu"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
