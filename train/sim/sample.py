@@ -29,10 +29,6 @@ import numpy as np
 
 from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
 
-SURFACE_DEPTH_TOLERANCE = 0.5
-"""Largest spread, in slices, of the depths of the pixels around a column's centre ray that
-:attr:`Sample.surface_depth` still reads as one surface (beyond it the ray grazes an edge: NaN)."""
-
 MAX_ROOM_ATTEMPTS = 16
 """Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
 
@@ -63,10 +59,11 @@ class Sample:
     """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
     OpenCV camera axes."""
 
-    surface_depth: np.ndarray | None = None
-    """``(H, W)`` float32 camera-frame z of the first surface on each grid column's centre ray as rendered, metres
-    (:func:`~.images.column_surface_depth`: ``inf`` for none, NaN where the ray grazes an edge), the fine depth
-    head's target; None where unknown (samples read from shards: it is not stored)."""
+    @property
+    def surface_depth(self) -> None:
+        """Always None: samples carry no rendered depth. Kept only while ``fruxel.train.engine.data.BlockStream``
+        still asks for it (issue 35 removes the engine's side); delete it with that."""
+        return None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays keyed by :data:`FIELDS`."""
@@ -190,8 +187,6 @@ class SampleMaker:
         """
         from fruxel.kernels.fruxelize import fruxelize
 
-        from .images import column_surface_depth
-
         room, frame = self._locate(split, index)
         index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
@@ -200,16 +195,14 @@ class SampleMaker:
 
             self._renderer = SceneRenderer(self.config)
         self._renderer.set_scene(room.scene)
-        image, depth = self._renderer.render_with_depth(pose, augment_rng(self.seed, split, index))
-        g = self.config.grid
-        surface_depth = column_surface_depth(depth, g.width, g.height, tolerance=SURFACE_DEPTH_TOLERANCE * g.dz)
+        image = self._renderer.render(pose, augment_rng(self.seed, split, index))
         t1 = time.perf_counter()
         labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
                                       dtype=np.uint8)
         t2 = time.perf_counter()
         self.timings["render"] += t1 - t0
         self.timings["fruxelize"] += t2 - t1
-        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy(), surface_depth)
+        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
 
     def close(self) -> None:
         """Free the renderer's OpenGL context and the current room (idempotent)."""
