@@ -1,5 +1,5 @@
 """Camera images of simulated rooms (pyrender offscreen, PBR materials) with appearance augmentation, and the
-preview contact sheet.
+preview contact sheet. :class:`SceneRenderer` is the simulator's default renderer, ``"pyrender"`` (:mod:`.renderer`).
 
 Camera
     The robot camera of :meth:`SimConfig.image_camera`: ``S x (S * H / W)`` pixels with the grid's field of view
@@ -25,7 +25,7 @@ Determinism: the same scene, pose and generator give the same bytes on the same 
 and NVIDIA, by rounding of the shading).
 
 One offscreen renderer per process (:func:`fruxel.render.scene.renderers`): its OpenGL (EGL) context must not
-cross a ``fork``; the generator and the streaming data set start their workers with ``spawn``.
+cross a ``fork``; the generator and the training engine's data workers start with ``spawn``.
 """
 
 from __future__ import annotations
@@ -120,6 +120,8 @@ class _Drawn:
 
 class SceneRenderer:
     """Offscreen images of simulated rooms from the robot camera; one per process, reused across rooms.
+
+    The renderer called ``"pyrender"`` (the default of :attr:`SimConfig.renderer`; protocol in :mod:`.renderer`).
 
     Args:
         config: supplies the image size, clip planes, background and augmentation ranges, and the grid's field

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
+from .renderer import Renderer, make_renderer
 
 MAX_ROOM_ATTEMPTS = 16
 """Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
@@ -102,7 +103,8 @@ STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
 
 
 class SampleMaker:
-    """Computes samples from ``(config, seed, split, index)``; one per process (it owns an OpenGL context).
+    """Computes samples from ``(config, seed, split, index)``; one per process (it owns the renderer that
+    ``config.renderer`` names, :mod:`.renderer`, e.g. an OpenGL context).
 
     Consecutive indices of one room reuse the room, its trajectory, the meshes uploaded for ``fruxelize`` and the
     renderer's scene, so asking for samples in index order is fastest.
@@ -127,7 +129,7 @@ class SampleMaker:
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         """Seconds spent per stage of :data:`STAGES` since construction (for profiling)."""
         self._room: _Room | None = None
-        self._renderer: Any = None
+        self._renderer: Renderer | None = None
 
     def _load_room(self, split: str, scene: int) -> _Room:
         if self._room is not None and self._room.key == (split, scene):
@@ -191,9 +193,7 @@ class SampleMaker:
         index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
         if self._renderer is None:
-            from .images import SceneRenderer
-
-            self._renderer = SceneRenderer(self.config)
+            self._renderer = make_renderer(self.config)
         self._renderer.set_scene(room.scene)
         image = self._renderer.render(pose, augment_rng(self.seed, split, index))
         t1 = time.perf_counter()
@@ -205,7 +205,7 @@ class SampleMaker:
         return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
 
     def close(self) -> None:
-        """Free the renderer's OpenGL context and the current room (idempotent)."""
+        """Free the renderer (its OpenGL context, say) and the current room (idempotent)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

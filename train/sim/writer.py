@@ -20,6 +20,7 @@ from fruxel.io import atomic_write
 
 from .config import ConfigError, SimConfig
 from .manifest import MANIFEST, Manifest
+from .renderer import RENDERERS, register_renderer
 from .sample import SampleMaker
 from .shards import DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard, file_sha256
 
@@ -41,9 +42,13 @@ def _make_shard(maker: SampleMaker, spec: ShardSpec, out: str, tick: Callable[[]
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str | None, counter: Any) -> None:
+def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str | None, counter: Any,
+                 renderer: Any) -> None:
     # The workers already fill the cores: one llvmpipe thread each avoids oversubscription (NVIDIA ignores it).
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    # A renderer registered at run time in the parent is not registered in a fresh spawned process.
+    if config.renderer not in RENDERERS:
+        register_renderer(config.renderer, renderer)
     _WORKER["maker"] = SampleMaker(config, seed, backend=backend, device=device)
     _WORKER["counter"] = counter
 
@@ -130,7 +135,8 @@ def generate(
     if os.path.exists(mpath):
         manifest = Manifest.load(mpath)
         if manifest.config.digest() != config.digest() or manifest.seed != seed:
-            diff = [k for k, v in config.to_dict().items() if manifest.config.to_dict()[k] != v]
+            ours, theirs = config.to_dict(), manifest.config.to_dict()
+            diff = [k for k in dict.fromkeys([*ours, *theirs]) if ours.get(k) != theirs.get(k)]
             if manifest.seed != seed:
                 diff.append("seed")
             raise DatasetError(mpath, f"this folder holds a data set made with other settings (differs in: "
@@ -181,7 +187,7 @@ def _generate_parallel(todo: list[ShardSpec], out: str, config: SimConfig, seed:
     counter = ctx.Value("q", 0)
     shown = 0
     ex = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_worker_init,
-                             initargs=(config, seed, backend, device, counter))
+                             initargs=(config, seed, backend, device, counter, RENDERERS[config.renderer]))
     try:
         pending = {ex.submit(_worker_shard, spec, out) for spec in todo}
         while pending:
