@@ -15,8 +15,8 @@ Own-view truth
     copy of it: a stored image could disagree with the kernel's (by a float32 rounding of the depth, or a bug),
     and computing it in numpy took longer per sample than ``fruxelize`` on a GPU machine.
 
-Samples are written to shard files by :mod:`.shards` and :mod:`.writer`, and read or streamed as torch items by
-:mod:`.dataset`.
+Samples are written to shard files by :mod:`.shards` and :mod:`.writer` and read back by :mod:`.dataset`; training
+streams them, or reads the shards, through :mod:`fruxel.train.engine.data`.
 """
 
 from __future__ import annotations
