@@ -255,7 +255,8 @@ def _camera_response(colour: np.ndarray, post: dict[str, Any], rng: np.random.Ge
     """Exposure, white balance, gamma and noise on an ``(h, w, 3)`` uint8 image; returns ``(h, w, 3)`` uint8.
 
     The first three act on each channel alone, so they are one 256-entry table per channel, computed in float64
-    from the draws and applied by indexing: a few milliseconds at 512^2 where float image arithmetic took tens.
+    from the draws and applied by indexing, rather than float arithmetic on every pixel (the ``render`` stage of
+    the simulator's profile in BENCHMARKS.md includes them).
     """
     rgb = np.ascontiguousarray(colour[..., :3], dtype=np.uint8)
     if rng is None or not post:

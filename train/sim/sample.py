@@ -13,7 +13,8 @@ Own-view truth
     computed where it is needed, on the training device (:class:`fruxel.train.losses.ShellLoss` does, and hands
     it out as ``ShellTargets.own_view``), like the first hits of every other view. Samples do not carry a second
     copy of it: a stored image could disagree with the kernel's (by a float32 rounding of the depth, or a bug),
-    and computing it in numpy took longer per sample than ``fruxelize`` on a GPU machine.
+    and computing it in numpy on the host cost more per sample than ``fruxelize`` on a GPU (the ``own_view``
+    and ``fruxelize`` stages of the simulator's profile in BENCHMARKS.md).
 
 Samples are written to shard files by :mod:`.shards` and :mod:`.writer` and read back by :mod:`.dataset`; training
 streams them, or reads the shards, through :mod:`fruxel.train.engine.data`.
