@@ -27,7 +27,7 @@ from fruxel.train.sim.renderer import (
     renderer_names,
 )
 from fruxel.train.sim.sample import SampleMaker
-from fruxel.train.sim.shards import DatasetError
+from fruxel.train.sim.shards import DatasetError, ShardReader, shard_specs
 from fruxel.train.sim.writer import generate
 
 GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
@@ -102,14 +102,11 @@ def test_a_data_set_records_its_renderer(labels_renderer: str, tmp_path: Path) -
     generate(str(out), config, SEED, workers=2, progress=False)
     recorded = json.loads((out / MANIFEST).read_text())["config"]
     assert recorded["renderer"] == labels_renderer and SimConfig.from_dict(recorded) == config
-    from fruxel.train.sim.dataset import ShardDataset
-
-    ds = ShardDataset(out, "train")
-    for i in range(len(ds)):
-        s = ds.sample(i)
-        own = np.asarray(first_hit(s.labels, GRID, GRID.camera()).label)
-        np.testing.assert_array_equal(s.image, config.classes.colour_of(own))
-    ds.close()
+    for spec in shard_specs(config):
+        with ShardReader(str(out / spec.file), spec, config, SEED) as reader:
+            for s in reader.samples():
+                own = np.asarray(first_hit(s.labels, GRID, GRID.camera()).label)
+                np.testing.assert_array_equal(s.image, config.classes.colour_of(own))
     with pytest.raises(DatasetError, match="differs in: renderer"):
         generate(str(out), _config(), SEED, progress=False)
 
