@@ -9,8 +9,9 @@ Protocol (:class:`Renderer`)
     A renderer is made by its factory from the data set's :class:`~.config.SimConfig`, ``factory(config)``, and
     then used as
 
-    * ``set_scene(scene)``, once per room: the room's objects (meshes in the world frame, z up, metres, with
-      their colours and PBR factors) and lights; setting the room already set costs nothing;
+    * ``set_scene(scene)``: the room to draw, its objects (meshes in the world frame, z up, metres, with their
+      colours and PBR factors) and lights; :class:`~.sample.SampleMaker` calls it before every ``render``, so
+      setting the room already set should cost nothing;
     * ``render(pose, rng)``, once per sample: ``pose`` is the ``(4, 4)`` float64 camera-to-world transform of the
       robot camera (OpenCV camera axes: x right, y down, z forward; world frame z up, metres), ``rng`` the
       sample's augmentation generator (:func:`~.config.augment_rng`), or None for an image without augmentation.
@@ -34,9 +35,10 @@ Registry
 Adding a renderer
     Write one class with the three methods above and an ``__init__(self, config)``, and register it: in this
     package, one line in :data:`RENDERERS`; elsewhere, ``register_renderer("name", MyRenderer)`` before the
-    config naming it is made. ``fruxel-sim generate`` hands its worker processes the registered factory of the
-    config's renderer, so a class registered at run time works with ``--workers`` too (it must be importable by
-    its module and name, as pickle requires).
+    config naming it is made. :func:`~.writer.generate` hands its worker processes the registered factory of the
+    config's renderer, so a class registered at run time works with several workers too (it must be importable by
+    its module and name, as pickle requires); other spawned processes, such as the training engine's data workers,
+    know the renderers of :data:`RENDERERS` and those that the modules they import register.
 """
 
 from __future__ import annotations
