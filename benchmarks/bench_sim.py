@@ -7,7 +7,8 @@ shards and the manifest.
 Modes (``--mode``, comma-separated):
 
 * ``generate``  — ``fruxel.train.sim.writer.generate`` into a temporary folder with ``--workers`` processes;
-* ``streaming`` — a ``StreamingDataset`` through ``streaming_loader`` (spawned DataLoader workers), batches of 8;
+* ``streaming`` — the training engine's data path: ``fruxel.train.engine.data.BlockStream`` of the simulator
+  (``fruxelize`` on Warp, ``--device``) batched by ``Batches`` in spawned DataLoader workers, batches of 8;
 * ``profile``   — one process, seconds per stage (no files), plus shard encoding.
 
 Rates: *steady* counts from the moment every worker has delivered (start-up excluded), *end to end* from the call
@@ -89,22 +90,34 @@ def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size
             "bytes_per_sample": size / samples}
 
 
-def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, backend: str | None,
-                    device: str | None) -> dict[str, Any]:
-    """Time iterating a ``StreamingDataset`` of ``samples`` samples with ``workers`` DataLoader workers."""
-    from fruxel.train.sim.dataset import StreamingDataset, streaming_loader
+def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None
+                    ) -> dict[str, Any]:
+    """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
+    it) with ``workers`` DataLoader workers."""
+    from fruxel.train.engine.data import Batches, BlockPlan, BlockStream
 
     cfg = make_config(image, grid, samples, 64)
-    ds = StreamingDataset(cfg, "train", 0, backend=backend, device=device)
+    plan = BlockPlan(0, samples, cfg.samples_per_scene, None)
+    blocks = -(-samples // cfg.samples_per_scene)
+
+    def stream(block: int, skip: int) -> BlockStream:
+        return BlockStream(plan, "stream", "train", sim_config=cfg, seed=0, first_block=block, skip=skip,
+                           device=device, stop_block=blocks)
+
     marks: list[tuple[float, int]] = []
     t0 = time.perf_counter()
     done = 0
-    loader = streaming_loader(ds, batch_size=batch, workers=workers, **({"prefetch_factor": 4} if workers else {}))
-    for b in loader:
-        done += int(b["index"].shape[0])
-        marks.append((time.perf_counter(), done))
+    batches = Batches(stream, batch, workers)
+    try:
+        while done < samples:
+            done += int(next(batches)["index"].shape[0])
+            marks.append((time.perf_counter(), done))
+    finally:
+        batches.close()
     wall = time.perf_counter() - t0
-    return {"mode": "streaming", "batch": batch, **_rates(marks, t0, wall, samples, workers, workers * batch)}
+    # Samples come a room (block) at a time from each worker: steady once every worker has delivered one.
+    need = max(1, workers) * cfg.samples_per_scene
+    return {"mode": "streaming", "batch": batch, **_rates(marks, t0, wall, samples, workers, need)}
 
 
 def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int, workers: int,
@@ -266,7 +279,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seconds", type=float, default=40.0,
                    help="aim for about this long per case and mode (sets the sample count; default 40)")
     p.add_argument("--samples", type=int, default=None, help="fixed sample count instead of --seconds")
-    p.add_argument("--backend", default="warp", help="fruxelize backend (default warp)")
+    p.add_argument("--backend", default="warp", help="fruxelize backend of generate and profile (default warp; "
+                   "streaming uses the engine's, warp)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA when present, else CPU)")
     p.add_argument("--note", action="append", default=[], help="a note to print under the table (repeatable)")
     p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md or the chart")
@@ -293,7 +307,7 @@ def main(argv: list[str] | None = None) -> None:
                 shard = max(16, min(64, n // (2 * max(1, args.workers)) // 16 * 16))
                 r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device)
             elif mode == "streaming":
-                r = bench_streaming(image, grid, n, args.workers, 8, args.backend, args.device)
+                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device)
             elif mode == "profile":
                 r = bench_profile(image, grid, min(n, 64), args.backend, args.device)
             else:

@@ -1,7 +1,7 @@
 """``fruxel-sim``: make simulated data sets and preview samples.
 
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
-                        [--workers K] [--seed S] [--shard-size 64] [--backend warp]
+                        [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--renderer pyrender]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from fruxel.train.sim.config import DEFAULT_GRID, AugmentConfig, ImageConfig, SimConfig
+from fruxel.train.sim.renderer import renderer_names
 
 from .common import (
     OneLineParser,
@@ -46,6 +47,7 @@ def _config_options(p: argparse.ArgumentParser, image: ImageConfig) -> None:
     add_grid_options(p, DEFAULT_GRID)
     config_option(p, SimConfig, "samples_per_scene", type=positive_int, metavar="N")
     config_option(p, AugmentConfig, "enabled", "--no-augment", help="render without appearance augmentation")
+    config_option(p, SimConfig, "renderer", choices=renderer_names())
     p.add_argument("--seed", type=non_negative_int, default=0, help="base seed (default 0)")
     p.add_argument("--backend", default="warp", choices=("warp", "warp-cpu", "warp-cuda"),
                    help="fruxelize backend (default warp: CUDA when present, else CPU)")

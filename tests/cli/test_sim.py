@@ -71,7 +71,8 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path: Path, capsys: pytest.Captu
     assert len(err) == 1 and err[0].startswith("fruxel-sim: error:") and words in err[0]
 
 
-@pytest.mark.parametrize("argv", [["generate"], ["generate", "--out", "x", "--image", "0"], ["nope"], []])
+@pytest.mark.parametrize("argv", [["generate"], ["generate", "--out", "x", "--image", "0"], ["nope"], [],
+                                  ["generate", "--out", "x", "--renderer", "nope"]])
 def test_argparse_errors_are_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
         main(argv)

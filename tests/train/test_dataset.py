@@ -1,4 +1,5 @@
-"""Data sets of the simulator: deterministic shards, resume after a killed run, strict reading, streaming.
+"""Data sets of the simulator: deterministic shards, resume after a killed run, strict reading, and the same
+samples streamed through the training engine's data path (``fruxel.train.engine.data``).
 
 Everything runs on tiny settings (64x64 images, 16^3 grids, a few samples per shard) so that the whole file
 takes well under a minute on two cores.
@@ -35,14 +36,8 @@ from fruxel.train.sim.shards import DatasetError, ShardReader, encode_shard, sha
 from fruxel.train.sim.writer import generate
 
 torch = pytest.importorskip("torch")
-from fruxel.train.sim.dataset import (  # noqa: E402 - needs torch
-    ShardDataset,
-    StreamingDataset,
-    rank_range,
-    sample_tensors,
-    streaming_loader,
-    worker_range,
-)
+from fruxel.train.engine.data import Batches, BlockPlan, BlockStream, rank_range  # noqa: E402 - needs torch
+from fruxel.train.sim.dataset import ShardDataset, sample_tensors  # noqa: E402 - needs torch
 
 CONFIG = SimConfig(
     grid=FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0),
@@ -314,69 +309,59 @@ def test_shard_dataset_items(reference: Path) -> None:
         ds[6]
 
 
-def test_streaming_equals_shards(reference: Path) -> None:
+def _stream(plan: BlockPlan, **kwargs: object) -> BlockStream:
+    """The engine's stream of CONFIG's training split, made by the simulator."""
+    return BlockStream(plan, "stream", "train", sim_config=CONFIG, seed=SEED, **kwargs)
+
+
+def _assert_blocks_equal(got: list[dict], want: list[dict]) -> None:
+    assert len(got) == len(want) and len(got) > 0
+    for a, b in zip(got, want, strict=True):
+        assert a["index"].tolist() == b["index"].tolist()
+        for name in ("image", "labels"):
+            assert a[name].dtype == b[name].dtype and a[name].tobytes() == b[name].tobytes(), (a["index"], name)
+
+
+def test_streamed_blocks_are_the_shards_bytes(reference: Path) -> None:
+    """The training engine's stream made by the simulator gives the bytes of the shards the generator wrote for
+    the same config and seed, from the start, from a resume position inside a room, and for one rank's rooms."""
+    plan = BlockPlan(0, 6, CONFIG.samples_per_scene, None)
+    shards = list(BlockStream(plan, "shards", "train", root=str(reference), stop_block=2))
+    assert [b["index"].tolist() for b in shards] == [[0, 1, 2], [3, 4, 5]]
     ds = ShardDataset(reference, "train")
-    stream = StreamingDataset(CONFIG, "train", SEED)
-    got = list(stream.samples_numpy())
-    assert [s.index for s in got] == list(range(6))
-    for s in got:
-        ref = ds.sample(s.index)
-        for name, arr in s.arrays().items():
-            assert arr.tobytes() == ref.arrays()[name].tobytes(), (s.index, name)
-    stream.close()
-    tail = StreamingDataset(CONFIG, "train", SEED, start=4)
-    assert [s.index for s in tail.samples_numpy()] == [4, 5]
-    tail.close()
+    for i in range(6):
+        assert shards[i // 3]["image"][i % 3].tobytes() == ds.sample(i).image.tobytes()
+    _assert_blocks_equal(list(_stream(plan, stop_block=2)), shards)
+    # Resumed at block 1 with its first sample used: samples 4 and 5.
+    tail = list(_stream(plan, first_block=1, skip=1, stop_block=2))
+    assert [b["index"].tolist() for b in tail] == [[4, 5]]
+    assert tail[0]["image"].tobytes() == shards[1]["image"][1:].tobytes()
+    # Two ranks own disjoint whole rooms that together make the split; rank 1 streams the shards' second room.
+    assert [rank_range(6, 3, r, 2) for r in range(2)] == [(0, 3), (3, 6)]
+    lo, hi = rank_range(6, 3, 1, 2)
+    _assert_blocks_equal(list(_stream(BlockPlan(lo, hi, 3, None), stop_block=1)), shards[1:])
 
 
-def test_streaming_loader_with_two_spawned_workers(reference: Path) -> None:
+def test_batches_from_two_spawned_workers_equal_one_process(reference: Path) -> None:
+    """Batches of the simulator's stream are the same bytes, in the same order, whether one process or two
+    spawned DataLoader workers (each with its own renderer and meshes, blocks dealt round-robin) make them."""
+    plan = BlockPlan(0, 6, CONFIG.samples_per_scene, None)
+    made = {}
+    for workers in (0, 2):
+        batches = Batches(lambda block, skip: _stream(plan, first_block=block, skip=skip, stop_block=2), 2, workers)
+        try:
+            made[workers] = [next(batches) for _ in range(3)]
+        finally:
+            batches.close()
     ds = ShardDataset(reference, "train")
-    stream = StreamingDataset(CONFIG, "train", SEED)
-    loader = streaming_loader(stream, batch_size=2, workers=2)
-    seen, batches = [], 0
-    for batch in loader:
-        batches += 1
-        for b in range(batch["index"].shape[0]):
-            i = int(batch["index"][b])
-            seen.append(i)
-            ref = ds[i]
-            for name, t in ref.items():
-                assert torch.equal(batch[name][b], t), (i, name)
-    assert sorted(seen) == list(range(6))
-    # Each worker batches its own room (3 samples): 2 + 2 batches, one more than the DataLoader's len.
-    assert batches == stream.batches(2, 2) == 4 and len(loader) == 3
-    assert stream.batches(2, 2, drop_last=True) == 2 and stream.batches(4, 0) == 2
-
-
-def test_ranks_stream_equal_disjoint_shares(reference: Path) -> None:
-    for start, samples, world in ((0, 10, 3), (5, 17, 4), (0, 3, 3), (2, 2, 3), (0, 0, 1)):
-        parts = [rank_range(start, samples, r, world) for r in range(world)]
-        assert len({len(p) for p in parts}) == 1
-        assert [i for p in parts for i in p] == list(range(start, start + samples // world * world))
-    for bad in ((0, 10, 3, 3), (0, 10, -1, 3), (0, 10, 0, 0), (-1, 10, 0, 1)):
-        with pytest.raises(ValueError):
-            rank_range(*bad)
-    # Rank 1 of 2 streams samples 3..5, the same bytes as the shards; ranks 0..3 of 4 take one sample each.
-    ds = ShardDataset(reference, "train")
-    half = StreamingDataset(CONFIG, "train", SEED, rank=1, world_size=2)
-    got = list(half.samples_numpy())
-    half.close()
-    assert [s.index for s in got] == [3, 4, 5]
-    for s in got:
-        assert all(a.tobytes() == ds.sample(s.index).arrays()[k].tobytes() for k, a in s.arrays().items())
-    quarters = [StreamingDataset(CONFIG, "train", SEED, start=1, rank=r, world_size=4) for r in range(4)]
-    assert [(q.start, len(q)) for q in quarters] == [(1, 1), (2, 1), (3, 1), (4, 1)]
-    with pytest.raises(ValueError, match="rank"):
-        StreamingDataset(CONFIG, "train", SEED, rank=2, world_size=2)
-
-
-def test_worker_range_splits_whole_rooms() -> None:
-    for start, stop, n, workers in ((0, 10, 3, 2), (4, 23, 4, 3), (5, 6, 16, 4), (0, 100, 16, 16), (7, 7, 2, 2)):
-        parts = [worker_range(start, stop, n, w, workers) for w in range(workers)]
-        assert [i for p in parts for i in p] == list(range(start, stop))
-        # Every part but the first begins a room, so no room is split between two workers.
-        starts = [p.start for p in parts if len(p)]
-        assert all(s % n == 0 for s in starts[1:])
+    for one, two in zip(made[0], made[2], strict=True):
+        for name in ("image", "labels", "index"):
+            assert torch.equal(one[name], two[name]), name
+    assert [b["index"].tolist() for b in made[2]] == [[0, 1], [2, 3], [4, 5]]
+    for b in made[2]:
+        want = [ds.sample(int(i)) for i in b["index"]]
+        assert b["image"].numpy().tobytes() == np.stack([s.image for s in want]).tobytes()
+        assert b["labels"].numpy().tobytes() == np.stack([s.labels for s in want]).tobytes()
 
 
 def test_sample_tensors_keep_bytes(reference: Path) -> None:

@@ -5,10 +5,13 @@
 * :mod:`.assets` — optional real meshes: a folder per class, and Sweet Home 3D ``.sh3f`` libraries;
 * :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
+* :mod:`.renderer` — what draws the camera images: the renderer protocol and the registry of renderers by name
+  (:class:`.images.SceneRenderer`, pyrender, is the default), chosen by ``SimConfig.renderer``;
 * ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids; what the grid's own
   camera sees of them is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``;
 * data sets: :mod:`.sample` (a sample and its maker), :mod:`.shards` (shard files), :mod:`.manifest` (the data
-  set folder), :mod:`.writer` (``generate``), :mod:`.dataset` (torch data sets; needs torch).
+  set folder), :mod:`.writer` (``generate``), :mod:`.dataset` (reading shards with torch; training streams through
+  :mod:`fruxel.train.engine.data`).
 
 World frame: right-handed, metres, z up, the floor's top at z = 0 and the room's interior in
 ``[0, Lx] x [0, Ly] x [0, Lz]``. Camera poses are camera-to-world 4x4 matrices with OpenCV camera axes

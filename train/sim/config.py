@@ -1,7 +1,7 @@
 """Typed settings of the data set generator, their JSON form and the per-sample seed rule.
 
 Everything that decides a sample's *content* lives in :class:`SimConfig` (grid, image, augmentation, rooms,
-robot trajectories, scenes per trajectory, class table) together with the split sizes and the shard size; the
+robot trajectories, scenes per trajectory, class table, renderer) together with the split sizes and the shard size; the
 base seed is given separately. A data set's manifest records ``SimConfig.to_dict()`` and the seed, and a
 generator asked to resume refuses a folder made with anything else. How samples are computed (``backend``,
 ``device``, number of workers) is not part of it: every backend gives the same labels (SPEC section 4).
@@ -41,6 +41,7 @@ from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
+from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
 from .scene import RoomConfig, SceneError
 
@@ -198,8 +199,12 @@ class SimConfig:
     """Samples per shard file (the last shard of a split may hold fewer)."""
     splits: tuple[tuple[str, int], ...] = PAPER_SPLITS
     """``(name, samples)`` per split, in file order; names are lower-case letters, digits, '_' or '-'."""
+    renderer: str = DEFAULT_RENDERER
+    """The renderer that draws the camera images, by its name in the registry of :mod:`fruxel.train.sim.renderer`
+    (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials."""
 
     def __post_init__(self) -> None:
+        check_renderer(self.renderer)
         if not isinstance(self.grid, FruxelGrid):
             raise ConfigError(f"grid must be a FruxelGrid, got {type(self.grid).__name__}")
         if (self.image.size * self.grid.height) % self.grid.width:
@@ -259,8 +264,12 @@ class SimConfig:
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON dictionary of every field (tuples become lists), with ``"version"``:
-        :data:`CONFIG_VERSION`."""
-        return {
+        :data:`CONFIG_VERSION`.
+
+        ``"renderer"`` is left out when it is the default: data sets made before renderers had names record no
+        renderer, and their configs keep their digests (:meth:`digest`, in every manifest and shard).
+        """
+        out = {
             "version": CONFIG_VERSION,
             "grid": self.grid.to_dict(),
             "image": _plain(self.image),
@@ -271,6 +280,9 @@ class SimConfig:
             "shard_size": int(self.shard_size),
             "splits": [[name, int(n)] for name, n in self.splits],
         }
+        if self.renderer != DEFAULT_RENDERER:
+            out["renderer"] = self.renderer
+        return out
 
     @classmethod
     def from_dict(cls, d: Any) -> SimConfig:
@@ -284,7 +296,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names)
+        _expect_keys("config", d, names, optional=("renderer",))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -302,6 +314,7 @@ class SimConfig:
                 samples_per_scene=d["samples_per_scene"],
                 shard_size=d["shard_size"],
                 splits=tuple((s[0], s[1]) for s in splits),
+                renderer=d.get("renderer", DEFAULT_RENDERER),
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None
@@ -327,9 +340,9 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
-def _expect_keys(what: str, d: Mapping[str, Any], names: Sequence[str]) -> None:
+def _expect_keys(what: str, d: Mapping[str, Any], names: Sequence[str], optional: Sequence[str] = ()) -> None:
     missing = [n for n in names if n not in d]
-    extra = sorted(str(k) for k in d if k not in names)
+    extra = sorted(str(k) for k in d if k not in names and k not in optional)
     if missing or extra:
         raise ConfigError(f"{what}: missing keys {missing}, unexpected keys {extra}")
 

@@ -1,5 +1,5 @@
 """Camera images of simulated rooms (pyrender offscreen, PBR materials) with appearance augmentation, and the
-preview contact sheet.
+preview contact sheet. :class:`SceneRenderer` is the simulator's default renderer, ``"pyrender"`` (:mod:`.renderer`).
 
 Camera
     The robot camera of :meth:`SimConfig.image_camera`: ``S x (S * H / W)`` pixels with the grid's field of view
@@ -25,7 +25,7 @@ Determinism: the same scene, pose and generator give the same bytes on the same 
 and NVIDIA, by rounding of the shading).
 
 One offscreen renderer per process (:func:`fruxel.render.scene.renderers`): its OpenGL (EGL) context must not
-cross a ``fork``; the generator and the streaming data set start their workers with ``spawn``.
+cross a ``fork``; the generator and the training engine's data workers start with ``spawn``.
 """
 
 from __future__ import annotations
@@ -121,6 +121,8 @@ class _Drawn:
 class SceneRenderer:
     """Offscreen images of simulated rooms from the robot camera; one per process, reused across rooms.
 
+    The renderer called ``"pyrender"`` (the default of :attr:`SimConfig.renderer`; protocol in :mod:`.renderer`).
+
     Args:
         config: supplies the image size, clip planes, background and augmentation ranges, and the grid's field
             of view.
@@ -186,15 +188,6 @@ class SceneRenderer:
         Raises:
             RuntimeError: no room was set.
         """
-        return self.render_with_depth(pose, rng)[0]
-
-    def render_with_depth(self, pose: Any, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`render`'s image and the depth buffer of the same draw.
-
-        Returns:
-            ``(image, depth)``: the ``(S * H / W, S, 3)`` uint8 RGB image and the ``(S * H / W, S)`` float32
-            camera-frame z of the surface each pixel shows, metres (0 where it shows the background).
-        """
         if self._drawn is None:
             raise RuntimeError("SceneRenderer.render() needs a room: call set_scene() first")
         d = self._drawn
@@ -202,8 +195,8 @@ class SceneRenderer:
         post = self._prepare(d, rng if aug.enabled else None)
         d.scene.set_pose(d.camera, check_pose(pose) @ OPENCV_TO_OPENGL)
         renderer = renderers().get(self.config.image_width, self.config.image_height)
-        colour, depth = renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
-        return _camera_response(colour, post, rng if aug.enabled else None), np.asarray(depth, dtype=np.float32)
+        colour, _ = renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
+        return _camera_response(colour, post, rng if aug.enabled else None)
 
     def _prepare(self, d: _Drawn, rng: np.random.Generator | None) -> dict[str, Any]:
         """Set lights, ambient and object colours for one frame; returns the draws of the image-space steps."""
@@ -258,50 +251,12 @@ class SceneRenderer:
         self.close()
 
 
-def column_surface_depth(depth: np.ndarray, width: int, height: int, *, tolerance: float) -> np.ndarray:
-    """The depth of the first surface on each grid column's centre ray, read from a rendered depth buffer.
-
-    The image is the grid's own camera scaled by ``s = image width / W`` (SPEC section 1), so column ``(j, i)``'s
-    centre ray passes through image point ``(s (i + 1/2), s (j + 1/2))``: a pixel's centre for odd ``s``, the
-    corner of four pixels for even ``s``. The depth there is the harmonic mean of those pixels when they agree to
-    within ``tolerance``; where they do not, the ray grazes an edge and which side it hits is unknown (NaN).
-
-    Args:
-        depth: ``(s H, s W)`` float camera-frame z of each pixel's surface, metres, 0 for the background
-            (:meth:`SceneRenderer.render_with_depth`).
-        width, height: W and H, the grid's columns.
-        tolerance: largest spread of the pixels' depths that still counts as one surface, metres.
-
-    Returns:
-        ``(H, W)`` float32 depths, metres: ``inf`` where the ray shows the background, NaN where unknown.
-
-    Raises:
-        ValueError: an image that is not a whole multiple of the grid.
-    """
-    depth = np.asarray(depth, dtype=np.float32)
-    if depth.ndim != 2 or depth.shape[1] % width or depth.shape[0] * width != depth.shape[1] * height:
-        raise ValueError(f"depth image must be (s * {height}, s * {width}) for a whole s, got {depth.shape}")
-    s = depth.shape[1] // width
-    z = np.where(depth > 0, depth, np.inf)
-    # The pixels whose centres lie nearest the centre ray: one for odd s, the 2 x 2 around it for even s.
-    lo = (s - 1) // 2
-    n = 1 if s % 2 else 2
-    parts = np.stack([z[lo + a::s, lo + b::s][:height, :width] for a in range(n) for b in range(n)])
-    near, far = parts.min(axis=0), parts.max(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        spread = far - near
-        agree = np.isinf(near) | (spread <= tolerance)
-        # On a plane 1 / z is affine in the image, so the mean of 1 / z over pixels placed symmetrically about the
-        # ray is exactly the plane's 1 / z on it.
-        mean = np.where(np.isinf(far), np.inf, 1.0 / (1.0 / parts).mean(axis=0))
-    return np.where(agree & ~(np.isinf(far) & np.isfinite(near)), mean, np.nan).astype(np.float32)
-
-
 def _camera_response(colour: np.ndarray, post: dict[str, Any], rng: np.random.Generator | None) -> np.ndarray:
     """Exposure, white balance, gamma and noise on an ``(h, w, 3)`` uint8 image; returns ``(h, w, 3)`` uint8.
 
     The first three act on each channel alone, so they are one 256-entry table per channel, computed in float64
-    from the draws and applied by indexing: a few milliseconds at 512^2 where float image arithmetic took tens.
+    from the draws and applied by indexing, rather than float arithmetic on every pixel (the ``render`` stage of
+    the simulator's profile in BENCHMARKS.md includes them).
     """
     rgb = np.ascontiguousarray(colour[..., :3], dtype=np.uint8)
     if rng is None or not post:

@@ -25,7 +25,7 @@ Frames
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -33,7 +33,7 @@ import numpy as np
 from fruxel.errors import FruxelError
 
 if TYPE_CHECKING:
-    from .scene import Scene
+    from .scene import FreeSpace, Scene
 
 
 class TrajectoryError(FruxelError, RuntimeError):
@@ -329,69 +329,127 @@ def random_trajectory(
     if n_frames < 1 or steps_per_frame < 1:
         raise ValueError("n_frames and steps_per_frame must be >= 1")
     rng = np.random.default_rng(seed)
+    pos, theta = _start_pose(scene, rng, radius, margin, start)
+    driver = _RandomDriver(p, scene.free_space, radius + margin, rng, speed_range, max_turn_rate, segment_seconds,
+                           pos.copy(), theta)
+    commands = driver.commands((n_frames - 1) * steps_per_frame, max_retries)
+    # The states come from simulate() itself, so that a trajectory is exactly the model's response to its
+    # commands; the planner's own stepping differs from it only by rounding, far inside the margin.
+    states = simulate(commands, p, 0.0, 0.0, theta, pos)
+    return _frames(states, m, p, steps_per_frame)
+
+
+def _start_pose(scene: Scene, rng: np.random.Generator, radius: float, margin: float,
+                start: tuple[float, float, float] | None) -> tuple[np.ndarray, float]:
+    """The drive's start: ``start``, checked, or a random free cell centre and heading drawn from ``rng``.
+
+    Returns:
+        ``(position (2,) float64 world xy, heading radians)``.
+
+    Raises:
+        TrajectoryError: no free cell for a disk of ``radius + margin``, or a ``start`` that collides.
+    """
     fs = scene.free_space
     clear = radius + margin
-    spacing = fs.resolution / 2
-    if start is None:
-        cand = fs.cell_centres()[fs.free_centres(clear)]
-        if len(cand) == 0:
-            raise TrajectoryError(f"scene {scene.seed}: no free cell for a robot of radius {radius} m "
-                                  f"(+ {margin} m margin)")
-        pos = cand[int(rng.integers(len(cand)))].copy()
-        theta = float(rng.uniform(-math.pi, math.pi))
-    else:
-        pos, theta = np.array(start[:2], dtype=np.float64), float(start[2])
+    if start is not None:
+        pos = np.array(start[:2], dtype=np.float64)
         if fs.collides(pos, clear):
             raise TrajectoryError(f"start {tuple(start)} collides in scene {scene.seed}")
-    ad, bd = p.discretisation()
-    a = p.a
-    n_steps = (n_frames - 1) * steps_per_frame
-    x = np.array([0.0, 0.0])
+        return pos, float(start[2])
+    cand = fs.cell_centres()[fs.free_centres(clear)]
+    if len(cand) == 0:
+        raise TrajectoryError(f"scene {scene.seed}: no free cell for a robot of radius {radius} m "
+                              f"(+ {margin} m margin)")
+    pos = cand[int(rng.integers(len(cand)))].copy()
+    return pos, float(rng.uniform(-math.pi, math.pi))
 
-    def cruise() -> tuple[np.ndarray, int]:
-        v = rng.uniform(*speed_range)
-        w = rng.uniform(-max_turn_rate, max_turn_rate)
-        return _wheels(v * p.b_friction, w, p), int(round(rng.uniform(*segment_seconds) / p.dt))
 
-    def spin() -> tuple[np.ndarray, int]:
+@dataclass
+class _RandomDriver:
+    """The planner of :func:`random_trajectory`: the robot's state as it drives, and the random commands it tries.
+
+    Every draw comes from :attr:`rng` in the order of :meth:`commands`, so the same seed gives the same drive.
+    """
+
+    params: RobotParams
+    """Robot dynamics."""
+    free: FreeSpace
+    """The room's obstacle map."""
+    clear: float
+    """Radius of the disk kept in free space (footprint plus margin), metres."""
+    rng: np.random.Generator
+    """The drive's random generator."""
+    speed_range: tuple[float, float]
+    """Cruising speeds drawn, m/s."""
+    max_turn_rate: float
+    """Largest turn rate while cruising, rad/s."""
+    segment_seconds: tuple[float, float]
+    """Duration range of one cruising segment, seconds."""
+    pos: np.ndarray
+    """``(2,)`` float64 world xy of the robot now, metres."""
+    theta: float
+    """Heading now, radians from world +x towards +y."""
+    x: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """``(2,)`` float64 longitudinal state now: displacement (m) and speed (m/s)."""
+
+    def __post_init__(self) -> None:
+        self._ad, self._bd = self.params.discretisation()
+
+    def cruise(self) -> tuple[np.ndarray, int]:
+        """A random cruising segment: wheel commands ``(2,)`` and the steps to hold them."""
+        p, rng = self.params, self.rng
+        v = rng.uniform(*self.speed_range)
+        w = rng.uniform(-self.max_turn_rate, self.max_turn_rate)
+        return _wheels(v * p.b_friction, w, p), int(round(rng.uniform(*self.segment_seconds) / p.dt))
+
+    def spin(self) -> tuple[np.ndarray, int]:
+        """A random turn in place: wheel commands ``(2,)`` and the steps to hold them."""
+        p, rng = self.params, self.rng
         w = rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.0)
         return _wheels(0.0, w, p), int(round(rng.uniform(0.5, 2.0) / p.dt))
 
-    def safe(cmd: np.ndarray) -> bool:
+    def safe(self, cmd: np.ndarray) -> bool:
+        """Whether one step of ``cmd`` and the glide to a stop after it keep the disk in free space."""
+        p, x = self.params, self.x
         c = np.clip(cmd, -p.u_max, p.u_max)
-        nx = ad @ x + bd * c.mean()
-        th2 = theta + (c[0] - c[1]) * p.heading_gain * p.dt
-        p2 = pos + (nx[0] - x[0]) * np.array([math.cos(theta), math.sin(theta)])
-        glide = nx[1] / a if a > 0 else (np.inf if nx[1] != 0 else 0.0)
+        nx = self._ad @ x + self._bd * c.mean()
+        th2 = self.theta + (c[0] - c[1]) * p.heading_gain * p.dt
+        p2 = self.pos + (nx[0] - x[0]) * np.array([math.cos(self.theta), math.sin(self.theta)])
+        glide = nx[1] / p.a if p.a > 0 else (np.inf if nx[1] != 0 else 0.0)
         if not np.isfinite(glide):
             return False
-        pts = np.concatenate([_path_points(pos, theta, nx[0] - x[0], spacing),
+        spacing = self.free.resolution / 2
+        pts = np.concatenate([_path_points(self.pos, self.theta, nx[0] - x[0], spacing),
                               _path_points(p2, th2, glide, spacing)])
-        return not fs.collides(pts, clear).any()
+        return not self.free.collides(pts, self.clear).any()
 
-    pos0, theta0 = pos.copy(), theta
-    cmd, left = cruise()
-    commands = np.zeros((n_steps, 2))
-    for k in range(n_steps):
-        if left <= 0:
-            cmd, left = cruise()
-        tries = 0
-        while not safe(cmd) and tries < max_retries:
-            cmd, left = spin() if tries < max_retries // 2 else cruise()
-            tries += 1
-        if tries == max_retries and not safe(cmd):
-            cmd, left = np.zeros(2), 1
+    def step(self, cmd: np.ndarray) -> np.ndarray:
+        """Drive one step of ``cmd``; returns the clipped command ``(2,)``."""
+        p = self.params
         c = np.clip(cmd, -p.u_max, p.u_max)
-        commands[k] = c
-        x_next = ad @ x + bd * c.mean()
-        pos = pos + (x_next[0] - x[0]) * np.array([math.cos(theta), math.sin(theta)])
-        theta = theta + (c[0] - c[1]) * p.heading_gain * p.dt
-        x = x_next
-        left -= 1
-    # The states come from simulate() itself, so that a trajectory is exactly the model's response to its
-    # commands; the planner's own stepping differs from it only by rounding, far inside the margin.
-    states = simulate(commands, p, 0.0, 0.0, theta0, pos0)
-    return _frames(states, m, p, steps_per_frame)
+        x_next = self._ad @ self.x + self._bd * c.mean()
+        self.pos = self.pos + (x_next[0] - self.x[0]) * np.array([math.cos(self.theta), math.sin(self.theta)])
+        self.theta = self.theta + (c[0] - c[1]) * p.heading_gain * p.dt
+        self.x = x_next
+        return c
+
+    def commands(self, n_steps: int, max_retries: int) -> np.ndarray:
+        """Drive ``n_steps`` steps (see :func:`random_trajectory`); returns the ``(n_steps, 2)`` clipped wheel
+        commands ``(u_r, u_l)``."""
+        cmd, left = self.cruise()
+        out = np.zeros((n_steps, 2))
+        for k in range(n_steps):
+            if left <= 0:
+                cmd, left = self.cruise()
+            tries = 0
+            while not self.safe(cmd) and tries < max_retries:
+                cmd, left = self.spin() if tries < max_retries // 2 else self.cruise()
+                tries += 1
+            if tries == max_retries and not self.safe(cmd):
+                cmd, left = np.zeros(2), 1
+            out[k] = self.step(cmd)
+            left -= 1
+        return out
 
 
 def _wheels(u_mean: float, turn_rate: float, p: RobotParams) -> np.ndarray:

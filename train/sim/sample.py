@@ -13,10 +13,11 @@ Own-view truth
     computed where it is needed, on the training device (:class:`fruxel.train.losses.ShellLoss` does, and hands
     it out as ``ShellTargets.own_view``), like the first hits of every other view. Samples do not carry a second
     copy of it: a stored image could disagree with the kernel's (by a float32 rounding of the depth, or a bug),
-    and computing it in numpy took longer per sample than ``fruxelize`` on a GPU machine.
+    and computing it in numpy on the host cost more per sample than ``fruxelize`` on a GPU (the ``own_view``
+    and ``fruxelize`` stages of the simulator's profile in BENCHMARKS.md).
 
-Samples are written to shard files by :mod:`.shards` and :mod:`.writer`, and read or streamed as torch items by
-:mod:`.dataset`.
+Samples are written to shard files by :mod:`.shards` and :mod:`.writer` and read back by :mod:`.dataset`; training
+streams them, or reads the shards, through :mod:`fruxel.train.engine.data`.
 """
 
 from __future__ import annotations
@@ -28,10 +29,7 @@ from typing import Any
 import numpy as np
 
 from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
-
-SURFACE_DEPTH_TOLERANCE = 0.5
-"""Largest spread, in slices, of the depths of the pixels around a column's centre ray that
-:attr:`Sample.surface_depth` still reads as one surface (beyond it the ray grazes an edge: NaN)."""
+from .renderer import Renderer, make_renderer
 
 MAX_ROOM_ATTEMPTS = 16
 """Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
@@ -63,10 +61,11 @@ class Sample:
     """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
     OpenCV camera axes."""
 
-    surface_depth: np.ndarray | None = None
-    """``(H, W)`` float32 camera-frame z of the first surface on each grid column's centre ray as rendered, metres
-    (:func:`~.images.column_surface_depth`: ``inf`` for none, NaN where the ray grazes an edge), the fine depth
-    head's target; None where unknown (samples read from shards: it is not stored)."""
+    @property
+    def surface_depth(self) -> None:
+        """Always None: samples carry no rendered depth. Kept only while ``fruxel.train.engine.data.BlockStream``
+        still asks for it (issue 35 removes the engine's side); delete it with that."""
+        return None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays keyed by :data:`FIELDS`."""
@@ -105,7 +104,8 @@ STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
 
 
 class SampleMaker:
-    """Computes samples from ``(config, seed, split, index)``; one per process (it owns an OpenGL context).
+    """Computes samples from ``(config, seed, split, index)``; one per process (it owns the renderer that
+    ``config.renderer`` names, :mod:`.renderer`, e.g. an OpenGL context).
 
     Consecutive indices of one room reuse the room, its trajectory, the meshes uploaded for ``fruxelize`` and the
     renderer's scene, so asking for samples in index order is fastest.
@@ -130,7 +130,7 @@ class SampleMaker:
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         """Seconds spent per stage of :data:`STAGES` since construction (for profiling)."""
         self._room: _Room | None = None
-        self._renderer: Any = None
+        self._renderer: Renderer | None = None
 
     def _load_room(self, split: str, scene: int) -> _Room:
         if self._room is not None and self._room.key == (split, scene):
@@ -190,29 +190,23 @@ class SampleMaker:
         """
         from fruxel.kernels.fruxelize import fruxelize
 
-        from .images import column_surface_depth
-
         room, frame = self._locate(split, index)
         index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
         if self._renderer is None:
-            from .images import SceneRenderer
-
-            self._renderer = SceneRenderer(self.config)
+            self._renderer = make_renderer(self.config)
         self._renderer.set_scene(room.scene)
-        image, depth = self._renderer.render_with_depth(pose, augment_rng(self.seed, split, index))
-        g = self.config.grid
-        surface_depth = column_surface_depth(depth, g.width, g.height, tolerance=SURFACE_DEPTH_TOLERANCE * g.dz)
+        image = self._renderer.render(pose, augment_rng(self.seed, split, index))
         t1 = time.perf_counter()
         labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
                                       dtype=np.uint8)
         t2 = time.perf_counter()
         self.timings["render"] += t1 - t0
         self.timings["fruxelize"] += t2 - t1
-        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy(), surface_depth)
+        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
 
     def close(self) -> None:
-        """Free the renderer's OpenGL context and the current room (idempotent)."""
+        """Free the renderer (its OpenGL context, say) and the current room (idempotent)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

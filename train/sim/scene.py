@@ -653,6 +653,86 @@ def _place_opening(rng: np.random.Generator, walls: list[_Wall], kind: str, w: f
 
 
 # ---------------------------------------------------------------------------------------------- the generator
+@dataclass
+class _Draft:
+    """A room being generated: its random generator, settings and sizes, and what is made so far.
+
+    Every random draw of a room comes from :attr:`rng`, in the order of :func:`make_scene`'s steps: a step moved,
+    or a draw added, gives other rooms for the same seeds.
+    """
+
+    rng: np.random.Generator
+    """The room's one random generator, ``numpy.random.default_rng(seed)``."""
+    cfg: RoomConfig
+    """The ranges drawn from."""
+    ids: dict[str, int]
+    """Label of each class name drawn (:meth:`RoomConfig.class_ids`)."""
+    library: AssetLibrary | None
+    """Assets to draw from, or None."""
+    lx: float
+    """Interior length along x, metres."""
+    ly: float
+    """Interior width along y, metres."""
+    lz: float
+    """Interior height, metres."""
+    tw: float
+    """Wall thickness, metres."""
+    objects: list[SceneObject] = field(default_factory=list)
+    """The solids made so far, in priority order."""
+    footprints: list[_Footprint] = field(default_factory=list)
+    """Floor footprints of the objects standing in the room (furniture, sculptures)."""
+    keep_out: list[_Footprint] = field(default_factory=list)
+    """Floor areas no standing object may take (in front of the doors)."""
+
+    def add(self, name: str, label: int, v: np.ndarray, f: np.ndarray, color: tuple[float, ...], metallic: float,
+            roughness: float) -> None:
+        """Append a solid: vertices ``(V, 3)`` and faces ``(F, 3)`` in the world frame, its look."""
+        self.objects.append(SceneObject(name, label, _make_mesh(v, f), tuple(float(c) for c in color),
+                                        float(metallic), float(roughness)))
+
+    def place(self, walls: list[_Wall], v: np.ndarray, against_wall: float) -> np.ndarray | None:
+        """Find a free spot on the floor for an object and record its footprint.
+
+        Args:
+            walls: the room's walls.
+            v: ``(V, 3)`` vertices of the object in its own frame (z up, its back towards +y).
+            against_wall: chance that each try puts its back to a random wall rather than anywhere.
+
+        Returns:
+            The ``(V, 3)`` world vertices of the placed object, or None when no try of
+            ``cfg.placement_tries`` fits (inside the room, clear of other footprints and the doors' areas).
+        """
+        rng, cfg = self.rng, self.cfg
+        lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
+        off, half = (lo + hi) / 2, (hi - lo) / 2
+        for _ in range(cfg.placement_tries):
+            if rng.uniform() < against_wall:
+                wall = walls[int(rng.integers(4))]
+                yaw = math.atan2(wall.normal[1], wall.normal[0]) - math.pi / 2
+                s = rng.uniform(0.0, wall.length)
+                # The piece's back (+y in its frame) faces the wall, 2 cm in front of the inner face.
+                centre = wall.start + s * wall.along - wall.normal * (half[1] + 0.02)
+            else:
+                yaw = rng.uniform(0.0, 2 * math.pi)
+                centre = np.array([rng.uniform(0.0, self.lx), rng.uniform(0.0, self.ly)])
+            fp = _Footprint(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), float(yaw))
+            corners = fp.corners()
+            if corners.min() < 0.01 or np.any(corners.max(axis=0) > np.array([self.lx, self.ly]) - 0.01):
+                continue
+            if any(_overlap(fp, o, cfg.min_gap) for o in self.footprints + self.keep_out):
+                continue
+            self.footprints.append(fp)
+            r = _rot_z(yaw)
+            return (v - np.array([off[0], off[1], 0.0])) @ r.T + np.array([centre[0], centre[1], 0.0])
+        return None
+
+
+_Door = tuple[_Wall, float, float, float]
+"""A door's opening: ``(wall, x0, width, height)``, wall frame, metres."""
+_Window = tuple[_Wall, float, float, float, float]
+"""A window's opening: ``(wall, x0, width, z0, z1)``, wall frame, metres."""
+
+
 def make_scene(seed: int, config: RoomConfig | None = None, classes: ClassTable = DEFAULT_CLASSES) -> Scene:
     """Generate a room from a seed.
 
@@ -674,117 +754,136 @@ def make_scene(seed: int, config: RoomConfig | None = None, classes: ClassTable 
     rng = np.random.default_rng(seed)
     library = _load_library(cfg)
     lx, ly, lz = (rng.uniform(*r) for r in (cfg.length_range, cfg.width_range, cfg.height_range))
-    tw = rng.uniform(*cfg.wall_thickness_range)
-    ft = cfg.floor_thickness
-    objects: list[SceneObject] = []
+    room = _Draft(rng, cfg, ids, library, lx, ly, lz, rng.uniform(*cfg.wall_thickness_range))
+    _add_floor(room)
+    walls = _walls(lx, ly, room.tw)
+    doors = _door_openings(room, walls)
+    windows = _window_openings(room, walls)
+    _add_walls(room, walls)
+    frame_colour = _hsv(rng.uniform(), rng.uniform(0.0, 0.2), rng.uniform(0.3, 0.95))
+    _add_windows(room, windows, frame_colour)
+    handles = _add_doors(room, doors, frame_colour)
+    room.keep_out = _door_areas(doors, cfg.door_clearance)
+    _add_furniture(room, walls)
+    _add_sculptures(room, walls)
+    lights = _lights(rng, lx, ly, lz, cfg)
+    free = _free_space(lx, ly, room.footprints + handles, cfg.free_space_resolution)
+    return Scene(tuple(room.objects), np.array([lx, ly, lz]), tuple(lights), free, int(seed), classes)
 
-    def add(name: str, label: int, v: np.ndarray, f: np.ndarray, color: tuple[float, ...], metallic: float,
-            roughness: float) -> None:
-        objects.append(SceneObject(name, label, _make_mesh(v, f), tuple(float(c) for c in color), float(metallic),
-                                   float(roughness)))
 
-    add("floor", ids["floor"], *boxes([[-tw, -tw, -ft]], [[lx + tw, ly + tw, 0.0]]), _floor_colour(rng),
-        0.0, rng.uniform(0.4, 0.9))
-    if cfg.ceiling:
-        add("ceiling", ids[cfg.ceiling_class], *boxes([[-tw, -tw, lz]], [[lx + tw, ly + tw, lz + ft]]),
-            _hsv(0.0, 0.0, rng.uniform(0.85, 0.98)), 0.0, 0.9)
+def _add_floor(room: _Draft) -> None:
+    """The floor slab under the interior and the walls, and the ceiling slab on the walls when asked for."""
+    rng, tw, ft = room.rng, room.tw, room.cfg.floor_thickness
+    lx, ly, lz = room.lx, room.ly, room.lz
+    room.add("floor", room.ids["floor"], *boxes([[-tw, -tw, -ft]], [[lx + tw, ly + tw, 0.0]]), _floor_colour(rng),
+             0.0, rng.uniform(0.4, 0.9))
+    if room.cfg.ceiling:
+        room.add("ceiling", room.ids[room.cfg.ceiling_class], *boxes([[-tw, -tw, lz]], [[lx + tw, ly + tw, lz + ft]]),
+                 _hsv(0.0, 0.0, rng.uniform(0.85, 0.98)), 0.0, 0.9)
 
-    walls = _walls(lx, ly, tw)
+
+def _door_openings(room: _Draft, walls: list[_Wall]) -> list[_Door]:
+    """Draw the doors and cut their openings into ``walls`` (fewer doors when the walls have no room left)."""
+    rng, cfg = room.rng, room.cfg
     doors = []
     for _ in range(int(rng.integers(cfg.doors[0], cfg.doors[1] + 1))):
-        w, h = rng.uniform(0.8, 1.0), min(rng.uniform(2.0, 2.15), lz - 0.15)
+        w, h = rng.uniform(0.8, 1.0), min(rng.uniform(2.0, 2.15), room.lz - 0.15)
         placed = _place_opening(rng, walls, "door", w, 0.0, h, cfg.placement_tries)
         if placed is not None:
             doors.append((placed[0], placed[1], w, h))
+    return doors
+
+
+def _window_openings(room: _Draft, walls: list[_Wall]) -> list[_Window]:
+    """Draw the windows and cut their openings into ``walls`` (fewer windows when the walls have no room left)."""
+    rng, cfg = room.rng, room.cfg
     windows = []
     for _ in range(int(rng.integers(cfg.windows[0], cfg.windows[1] + 1))):
         w = rng.uniform(0.6, 1.6)
         z0 = rng.uniform(0.7, 1.0)
-        z1 = min(z0 + rng.uniform(0.9, 1.4), lz - 0.2)
+        z1 = min(z0 + rng.uniform(0.9, 1.4), room.lz - 0.2)
         placed = _place_opening(rng, walls, "window", w, z0, z1, cfg.placement_tries)
         if placed is not None:
             windows.append((placed[0], placed[1], w, z0, z1))
+    return windows
 
-    wall_colour = _wall_colour(rng)
+
+def _add_walls(room: _Draft, walls: list[_Wall]) -> None:
+    """The four wall slabs, with holes where the openings are, in one colour."""
+    wall_colour = _wall_colour(room.rng)
     for n, wall in enumerate(walls):
         holes = [(a, z0, b, z1) for _, a, z0, b, z1 in wall.openings]
-        v, f = slab_with_holes(wall.length, lz, tw, holes)
-        add(f"wall_{n}", ids["wall"], wall.to_world(v), f, wall_colour, 0.0, rng.uniform(0.6, 0.95))
+        v, f = slab_with_holes(wall.length, room.lz, room.tw, holes)
+        room.add(f"wall_{n}", room.ids["wall"], wall.to_world(v), f, wall_colour, 0.0, room.rng.uniform(0.6, 0.95))
 
-    frame_colour = _hsv(rng.uniform(), rng.uniform(0.0, 0.2), rng.uniform(0.3, 0.95))
+
+def _add_windows(room: _Draft, windows: list[_Window], frame_colour: tuple[float, ...]) -> None:
+    """Fill each window opening: an asset, or a frame with its glass."""
+    rng, tw, label = room.rng, room.tw, room.ids["window"]
     for n, (wall, x0, w, z0, z1) in enumerate(windows):
         fw, depth = rng.uniform(0.04, 0.08), tw * rng.uniform(0.5, 0.9)
         y0 = (tw - depth) / 2
-        asset = _pick(rng, library, "window", cfg.asset_probability)
+        asset = _pick(rng, room.library, "window", room.cfg.asset_probability)
         if asset is not None:
             v, f = _fit_asset(asset, [x0, y0, z0], [x0 + w, y0 + depth, z1])
-            add(f"window_{n}", ids["window"], wall.to_world(v), f, frame_colour, 0.0, 0.5)
+            room.add(f"window_{n}", label, wall.to_world(v), f, frame_colour, 0.0, 0.5)
             continue
         v, f = slab_with_holes(w, z1 - z0, depth, [(fw, fw, w - fw, z1 - z0 - fw)])
-        add(f"window_{n}_frame", ids["window"], wall.to_world(v + [x0, y0, z0]), f, frame_colour, 0.0, 0.5)
+        room.add(f"window_{n}_frame", label, wall.to_world(v + [x0, y0, z0]), f, frame_colour, 0.0, 0.5)
         # The glass fills nearly the frame's depth (double glazing): a pane a few millimetres thin would hold
         # almost no cell centre, and the ground truth of the opening would be stripes of window in empty space.
         gv, gf = boxes([[x0 + fw, y0 + 0.005, z0 + fw]], [[x0 + w - fw, y0 + depth - 0.005, z1 - fw]])
-        add(f"window_{n}_glass", ids["window"], wall.to_world(gv), gf, (0.75, 0.87, 0.95, 0.3), 0.0, 0.05)
+        room.add(f"window_{n}_glass", label, wall.to_world(gv), gf, (0.75, 0.87, 0.95, 0.3), 0.0, 0.05)
 
-    handles: list[_Footprint] = []
+
+def _add_doors(room: _Draft, doors: list[_Door], frame_colour: tuple[float, ...]) -> list[_Footprint]:
+    """Fill each door opening: an asset, or a frame, a leaf and a handle.
+
+    Returns:
+        The floor footprints of the handles, which may stick out of a thin wall into the room.
+    """
+    rng, tw, label = room.rng, room.tw, room.ids["door"]
+    handles = []
     for n, (wall, x0, w, h) in enumerate(doors):
         fw, depth = rng.uniform(0.04, 0.07), tw * rng.uniform(0.6, 0.95)
         y0 = (tw - depth) / 2
         wood = _hsv(rng.uniform(0.04, 0.1), rng.uniform(0.3, 0.7), rng.uniform(0.25, 0.85))
-        asset = _pick(rng, library, "door", cfg.asset_probability)
+        asset = _pick(rng, room.library, "door", room.cfg.asset_probability)
         if asset is not None:
             v, f = _fit_asset(asset, [x0, y0, 0.0], [x0 + w, y0 + depth, h])
-            add(f"door_{n}", ids["door"], wall.to_world(v), f, wood, 0.0, 0.6)
+            room.add(f"door_{n}", label, wall.to_world(v), f, wood, 0.0, 0.6)
             continue
         v, f = slab_with_holes(w, h, depth, [(fw, 0.0, w - fw, h - fw)])
-        add(f"door_{n}_frame", ids["door"], wall.to_world(v + [x0, y0, 0.0]), f, frame_colour, 0.0, 0.5)
+        room.add(f"door_{n}_frame", label, wall.to_world(v + [x0, y0, 0.0]), f, frame_colour, 0.0, 0.5)
         lt = max(depth * rng.uniform(0.5, 0.8), 0.04)
         lv, lf = boxes([[x0 + fw, tw / 2 - lt / 2, 0.0]], [[x0 + w - fw, tw / 2 + lt / 2, h - fw]])
-        add(f"door_{n}_leaf", ids["door"], wall.to_world(lv), lf, wood, 0.0, rng.uniform(0.4, 0.8))
+        room.add(f"door_{n}_leaf", label, wall.to_world(lv), lf, wood, 0.0, rng.uniform(0.4, 0.8))
         hx = x0 + w - fw - 0.1 if rng.uniform() < 0.5 else x0 + fw + 0.06
         hv, hf = boxes([[hx, tw / 2 - lt / 2 - 0.06, 0.95]], [[hx + 0.04, tw / 2 + lt / 2 + 0.06, 1.05]])
-        add(f"door_{n}_handle", ids["door"], wall.to_world(hv), hf, (0.8, 0.8, 0.78, 1.0), 1.0, 0.3)
+        room.add(f"door_{n}_handle", label, wall.to_world(hv), hf, (0.8, 0.8, 0.78, 1.0), 1.0, 0.3)
         # A handle may stick out of a thin wall into the room: the robot must not drive into it.
         hw = wall.to_world(hv)
         hlo, hhi = hw[:, :2].min(axis=0), hw[:, :2].max(axis=0)
         handles.append(_Footprint(*((hlo + hhi) / 2), *((hhi - hlo) / 2), 0.0))
+    return handles
 
-    keep_out = []
+
+def _door_areas(doors: list[_Door], clearance: float) -> list[_Footprint]:
+    """The floor area kept free in front of (inside) each door: ``clearance`` deep, 10 cm wider each side."""
+    areas = []
     for wall, x0, w, _ in doors:
-        c = wall.to_world(np.array([[x0 + w / 2, -cfg.door_clearance / 2, 0.0]]))[0]
+        c = wall.to_world(np.array([[x0 + w / 2, -clearance / 2, 0.0]]))[0]
         yaw = math.atan2(wall.along[1], wall.along[0])
-        keep_out.append(_Footprint(c[0], c[1], w / 2 + 0.1, cfg.door_clearance / 2, yaw))
-    footprints: list[_Footprint] = []
+        areas.append(_Footprint(c[0], c[1], w / 2 + 0.1, clearance / 2, yaw))
+    return areas
 
-    def place(v: np.ndarray, against_wall: float) -> tuple[np.ndarray, _Footprint] | None:
-        lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
-        off, half = (lo + hi) / 2, (hi - lo) / 2
-        for _ in range(cfg.placement_tries):
-            if rng.uniform() < against_wall:
-                wall = walls[int(rng.integers(4))]
-                yaw = math.atan2(wall.normal[1], wall.normal[0]) - math.pi / 2
-                s = rng.uniform(0.0, wall.length)
-                # The piece's back (+y in its frame) faces the wall, 2 cm in front of the inner face.
-                centre = wall.start + s * wall.along - wall.normal * (half[1] + 0.02)
-            else:
-                yaw = rng.uniform(0.0, 2 * math.pi)
-                centre = np.array([rng.uniform(0.0, lx), rng.uniform(0.0, ly)])
-            fp = _Footprint(float(centre[0]), float(centre[1]), float(half[0]), float(half[1]), float(yaw))
-            corners = fp.corners()
-            if corners.min() < 0.01 or np.any(corners.max(axis=0) > np.array([lx, ly]) - 0.01):
-                continue
-            if any(_overlap(fp, o, cfg.min_gap) for o in footprints + keep_out):
-                continue
-            footprints.append(fp)
-            r = _rot_z(yaw)
-            world = (v - np.array([off[0], off[1], 0.0])) @ r.T + np.array([centre[0], centre[1], 0.0])
-            return world, fp
-        return None
 
+def _add_furniture(room: _Draft, walls: list[_Wall]) -> None:
+    """Draw and place the furniture pieces (assets or procedural kinds); a piece with no free spot is left out."""
+    rng, cfg = room.rng, room.cfg
     kinds = list(cfg.furniture_kinds)
     for n in range(int(rng.integers(cfg.furniture[0], cfg.furniture[1] + 1))):
-        asset = _pick(rng, library, "furniture", cfg.asset_probability)
+        asset = _pick(rng, room.library, "furniture", cfg.asset_probability)
         if asset is not None:
             v, f = np.asarray(asset.mesh.vertices, dtype=np.float64), np.asarray(asset.mesh.faces)
             kind, wall_p = asset.name, 0.5
@@ -795,12 +894,17 @@ def make_scene(seed: int, config: RoomConfig | None = None, classes: ClassTable 
         colour = _furniture_colour(rng)
         metallic, roughness = (rng.uniform(0.6, 1.0), rng.uniform(0.2, 0.5)) if rng.uniform() < 0.1 else (
             0.0, rng.uniform(0.4, 0.95))
-        placed = place(v, wall_p)
+        placed = room.place(walls, v, wall_p)
         if placed is not None:
-            add(f"{kind}_{n}", ids["furniture"], placed[0], f, colour, metallic, roughness)
+            room.add(f"{kind}_{n}", room.ids["furniture"], placed, f, colour, metallic, roughness)
 
+
+def _add_sculptures(room: _Draft, walls: list[_Wall]) -> None:
+    """Draw and place the sculptures (assets or procedural statues), bronze or stone; one with no free spot is
+    left out."""
+    rng, cfg = room.rng, room.cfg
     for n in range(int(rng.integers(cfg.sculptures[0], cfg.sculptures[1] + 1))):
-        asset = _pick(rng, library, "sculpture", cfg.asset_probability)
+        asset = _pick(rng, room.library, "sculpture", cfg.asset_probability)
         if asset is not None:
             v, f = np.asarray(asset.mesh.vertices, dtype=np.float64), np.asarray(asset.mesh.faces)
         else:
@@ -809,13 +913,9 @@ def make_scene(seed: int, config: RoomConfig | None = None, classes: ClassTable 
             colour, metallic, roughness = _hsv(rng.uniform(0.05, 0.12), 0.6, rng.uniform(0.3, 0.6)), 0.9, 0.35
         else:
             colour, metallic, roughness = _hsv(rng.uniform(), rng.uniform(0, 0.1), rng.uniform(0.55, 0.95)), 0.0, 0.8
-        placed = place(v, 0.2)
+        placed = room.place(walls, v, 0.2)
         if placed is not None:
-            add(f"sculpture_{n}", ids["sculpture"], placed[0], f, colour, metallic, roughness)
-
-    lights = _lights(rng, lx, ly, lz, cfg)
-    free = _free_space(lx, ly, footprints + handles, cfg.free_space_resolution)
-    return Scene(tuple(objects), np.array([lx, ly, lz]), tuple(lights), free, int(seed), classes)
+            room.add(f"sculpture_{n}", room.ids["sculpture"], placed, f, colour, metallic, roughness)
 
 
 def _lights(rng: np.random.Generator, lx: float, ly: float, lz: float, cfg: RoomConfig) -> list[Light]:

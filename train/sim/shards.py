@@ -48,7 +48,8 @@ VERSION = 2
 (``view_depth_*``, ``view_label_*``), which are now ``first_hit`` of the labels (see :mod:`.sample`)."""
 COMPRESS_LEVEL = 1
 """zlib level of the shard members: label volumes are mostly runs that level 1 already packs tightly, and images
-barely compress at any level, while higher levels cost several times the time (measured in bench_sim.py)."""
+barely compress at any level, while higher levels take longer (the ``encode`` stage of the simulator's profile,
+``benchmarks/bench_sim.py``, results in BENCHMARKS.md)."""
 MAX_META_CHARS = 1 << 24
 """Longest shard meta JSON accepted, in characters."""
 

@@ -13,13 +13,14 @@ import contextlib
 import hashlib
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from fruxel.io import atomic_write
 
 from .config import ConfigError, SimConfig
 from .manifest import MANIFEST, Manifest
+from .renderer import RENDERERS, register_renderer
 from .sample import SampleMaker
 from .shards import DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard, file_sha256
 
@@ -41,9 +42,13 @@ def _make_shard(maker: SampleMaker, spec: ShardSpec, out: str, tick: Callable[[]
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str | None, counter: Any) -> None:
+def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str | None, counter: Any,
+                 renderer: Any) -> None:
     # The workers already fill the cores: one llvmpipe thread each avoids oversubscription (NVIDIA ignores it).
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    # A renderer registered at run time in the parent is not registered in a fresh spawned process.
+    if config.renderer not in RENDERERS:
+        register_renderer(config.renderer, renderer)
     _WORKER["maker"] = SampleMaker(config, seed, backend=backend, device=device)
     _WORKER["counter"] = counter
 
@@ -106,8 +111,8 @@ def generate(
         out: the folder (created if missing).
         config: the generator settings.
         seed: the base seed, >= 0.
-        workers: processes making shards in parallel (``spawn`` start method: each owns an OpenGL context); 1
-            makes them in this process.
+        workers: processes making shards in parallel (``spawn`` start method: each owns a renderer, e.g. an
+            OpenGL context); 1 makes them in this process.
         backend, device: ``fruxelize`` backend and Warp device (see :class:`SampleMaker`).
         progress: show a tqdm progress bar (samples) on stderr.
         callback: called in this process as ``callback(done, total)`` (samples) whenever progress is shown, e.g.
@@ -123,43 +128,18 @@ def generate(
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"workers must be a positive integer, got {workers!r}")
     out = os.fsdecode(out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise DatasetError(out, "the output exists and is not a folder")
-    os.makedirs(out, exist_ok=True)
-    mpath = os.path.join(out, MANIFEST)
-    if os.path.exists(mpath):
-        manifest = Manifest.load(mpath)
-        if manifest.config.digest() != config.digest() or manifest.seed != seed:
-            diff = [k for k, v in config.to_dict().items() if manifest.config.to_dict()[k] != v]
-            if manifest.seed != seed:
-                diff.append("seed")
-            raise DatasetError(mpath, f"this folder holds a data set made with other settings (differs in: "
-                                      f"{', '.join(diff)}); use another --out, or delete the folder to start over")
-    else:
-        manifest = Manifest(config, seed)
+    manifest, mpath = _open_folder(out, config, seed)
     _remove_temporaries(out)
     todo = _check_existing(out, manifest)
     manifest.complete = not todo
     manifest.save(mpath)
     total = sum(n for _, n in config.splits)
-    done = total - sum(s.count for s in todo)
 
-    from tqdm import tqdm
+    def finished(spec: ShardSpec, sha: str) -> None:
+        manifest.hashes[spec.file] = sha
+        manifest.save(mpath)
 
-    with tqdm(total=total, initial=done, unit="sample", desc="fruxel-sim generate", disable=not progress,
-              dynamic_ncols=True, smoothing=0.1) as bar:
-        counted = [done]
-
-        def advance(n: int) -> None:
-            bar.update(n)
-            counted[0] += n
-            if callback is not None and n:
-                callback(counted[0], total)
-
-        def finished(spec: ShardSpec, sha: str) -> None:
-            manifest.hashes[spec.file] = sha
-            manifest.save(mpath)
-
+    with _progress(total, total - sum(s.count for s in todo), progress, callback) as advance:
         if workers == 1 or len(todo) <= 1:
             with SampleMaker(config, seed, backend=backend, device=device) as maker:
                 for spec in todo:
@@ -169,6 +149,53 @@ def generate(
     manifest.complete = True
     manifest.save(mpath)
     return manifest
+
+
+def _open_folder(out: str, config: SimConfig, seed: int) -> tuple[Manifest, str]:
+    """The data set folder ``out`` (created if missing) and its manifest: the one there, which must record
+    ``config`` and ``seed``, or a new one (not saved yet).
+
+    Returns:
+        ``(manifest, path of manifest.json)``.
+
+    Raises:
+        DatasetError: ``out`` is a file, a bad manifest, or one of other settings (the message names them).
+    """
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise DatasetError(out, "the output exists and is not a folder")
+    os.makedirs(out, exist_ok=True)
+    mpath = os.path.join(out, MANIFEST)
+    if not os.path.exists(mpath):
+        return Manifest(config, seed), mpath
+    manifest = Manifest.load(mpath)
+    if manifest.config.digest() != config.digest() or manifest.seed != seed:
+        ours, theirs = config.to_dict(), manifest.config.to_dict()
+        diff = [k for k in dict.fromkeys([*ours, *theirs]) if ours.get(k) != theirs.get(k)]
+        if manifest.seed != seed:
+            diff.append("seed")
+        raise DatasetError(mpath, f"this folder holds a data set made with other settings (differs in: "
+                                  f"{', '.join(diff)}); use another --out, or delete the folder to start over")
+    return manifest, mpath
+
+
+@contextlib.contextmanager
+def _progress(total: int, done: int, show: bool, callback: Callable[[int, int], None] | None
+              ) -> Iterator[Callable[[int], None]]:
+    """A tqdm bar of ``total`` samples starting at ``done`` (hidden unless ``show``); yields ``advance(n)``,
+    which moves it on by ``n`` samples and calls ``callback(done, total)`` when n > 0."""
+    from tqdm import tqdm
+
+    with tqdm(total=total, initial=done, unit="sample", desc="fruxel-sim generate", disable=not show,
+              dynamic_ncols=True, smoothing=0.1) as bar:
+        counted = [done]
+
+        def advance(n: int) -> None:
+            bar.update(n)
+            counted[0] += n
+            if callback is not None and n:
+                callback(counted[0], total)
+
+        yield advance
 
 
 def _generate_parallel(todo: list[ShardSpec], out: str, config: SimConfig, seed: int, workers: int,
@@ -181,7 +208,7 @@ def _generate_parallel(todo: list[ShardSpec], out: str, config: SimConfig, seed:
     counter = ctx.Value("q", 0)
     shown = 0
     ex = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_worker_init,
-                             initargs=(config, seed, backend, device, counter))
+                             initargs=(config, seed, backend, device, counter, RENDERERS[config.renderer]))
     try:
         pending = {ex.submit(_worker_shard, spec, out) for spec in todo}
         while pending:
