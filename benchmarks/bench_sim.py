@@ -7,7 +7,7 @@ shards and the manifest.
 Modes (``--mode``, comma-separated):
 
 * ``generate``  — ``fruxel.train.sim.writer.generate`` into a temporary folder with ``--workers`` processes;
-* ``streaming`` — the training engine's data path: ``fruxel.train.engine.data.BlockStream`` of the simulator
+* ``streaming`` — the one data path: ``fruxel.train.samples.BlockStream`` of the simulator
   (``fruxelize`` on Warp, ``--device``) batched by ``Batches`` in spawned DataLoader workers, batches of 8;
 * ``profile``   — one process, seconds per stage (no files), plus shard encoding.
 
@@ -94,7 +94,7 @@ def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: in
                     ) -> dict[str, Any]:
     """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
     it) with ``workers`` DataLoader workers."""
-    from fruxel.train.engine.data import Batches, BlockPlan, BlockStream
+    from fruxel.train.samples import Batches, BlockPlan, BlockStream
 
     cfg = make_config(image, grid, samples, 64)
     plan = BlockPlan(0, samples, cfg.samples_per_scene, None)

@@ -142,7 +142,8 @@ def _main(args: argparse.Namespace) -> None:
               if s[k] is not None} for r, s in summaries.items()}
     calibration = {"data": args.data or f"stream:seed={source.seed}", "split": args.split, "samples": count,
                    "rules": rules.to_dict(), "sweep": sweep}
-    save_model(args.out, m.network.cpu(), m.config, rules, {**m.training, "calibration": calibration})
+    # Stored as the file stored them: the weights written back are the weights read.
+    save_model(args.out, m.network.cpu(), m.config, rules, {**m.training, "calibration": calibration}, half=m.half)
     print(f"wrote {args.out}: {rules}")
 
 

@@ -84,6 +84,8 @@ class LoadedModel:
     """How it was trained."""
     path: str
     """The file it was read from."""
+    half: bool = False
+    """Whether the file stores float16 weights (saving with ``half=half`` writes the same weights back)."""
 
 
 def save_model(path: str | os.PathLike[str], network: torch.nn.Module, config: ModelConfig,
@@ -220,4 +222,5 @@ def load_model(path: str | os.PathLike[str] | None = None, device: str | torch.d
         detail = lines[1] if len(lines) > 1 else lines[0] if lines else type(e).__name__
         detail = detail if len(detail) <= 300 else detail[:297] + "..."
         raise ModelFileError(path, f"weights do not fit the model config ({detail})") from None
-    return LoadedModel(network.to(device).eval(), f.config, f.rules, f.training, path)
+    half = any(v.dtype == torch.float16 for v in f.state.values())
+    return LoadedModel(network.to(device).eval(), f.config, f.rules, f.training, path, half)

@@ -1,5 +1,5 @@
 """Data sets of the simulator: deterministic shards, resume after a killed run, strict reading, and the same
-samples streamed through the training engine's data path (``fruxel.train.engine.data``).
+samples streamed through the training engine's data path (``fruxel.train.samples``).
 
 Everything runs on tiny settings (64x64 images, 16^3 grids, a few samples per shard) so that the whole file
 takes well under a minute on two cores.
@@ -36,7 +36,7 @@ from fruxel.train.sim.shards import DatasetError, ShardReader, encode_shard, sha
 from fruxel.train.sim.writer import generate
 
 torch = pytest.importorskip("torch")
-from fruxel.train.engine.data import Batches, BlockPlan, BlockStream, rank_range  # noqa: E402 - needs torch
+from fruxel.train.samples import Batches, BlockPlan, BlockStream, rank_range  # noqa: E402 - needs torch
 from fruxel.train.sim.dataset import ShardDataset, sample_tensors  # noqa: E402 - needs torch
 
 CONFIG = SimConfig(

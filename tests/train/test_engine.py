@@ -30,18 +30,23 @@ from fruxel.train.engine.checkpoint import (  # noqa: E402
     rng_state,
     save_checkpoint,
 )
-from fruxel.train.engine.data import Batches, BlockPlan, BlockStream  # noqa: E402
-from fruxel.train.engine.trainer import SHIPPED, Trainer, TrainingError, sim_config  # noqa: E402
+from fruxel.train.engine.run_folder import SHIPPED  # noqa: E402
+from fruxel.train.engine.step import PhaseTimer  # noqa: E402
+from fruxel.train.engine.trainer import Trainer, TrainingError  # noqa: E402
 from fruxel.train.eval.evaluate import evaluate  # noqa: E402
-from fruxel.train.export import build_generator, load_generator, save_shipped  # noqa: E402
+from fruxel.train.model_files import load_model, read_model_file, save_model  # noqa: E402
 from fruxel.train.objective import SSZObjective, class_frequencies, class_weights  # noqa: E402
+from fruxel.train.rules import NO_RULES  # noqa: E402
+from fruxel.train.samples import Batches, BlockPlan, BlockStream, SampleSource  # noqa: E402
+from fruxel.train.samples import sim_config as make_sim_config  # noqa: E402
 from fruxel.train.sim.writer import generate  # noqa: E402
 
 TINY: dict[str, Any] = {
     "preset": "tiny", "name": "engine-test",
     "model": {"grid": {"width": 16, "height": 16, "depth": 16}, "levels": 3, "stem": 8, "encoder": [8, 12, 16],
               "encoder_blocks": [1, 1, 1], "topdown": [8, 12, 16], "decoder": [4, 8, 12],
-              "decoder_blocks": [1, 1, 1], "discriminator": [8]},
+              "decoder_blocks": [1, 1, 1]},
+    "loss": {"discriminator": [8]},
     "data": {"workers": 0, "samples_per_scene": 4, "train_samples": 64, "test_samples": 4, "eval_samples": 4,
              "frequency_samples": 4},
     "optim": {"warmup": 2},
@@ -53,7 +58,13 @@ TINY: dict[str, Any] = {
 
 def tiny(changes: dict[str, Any] | None = None) -> TrainConfig:
     """:data:`TINY` with ``changes`` (nested as in a config file)."""
-    return override(TrainConfig.from_dict(TINY), changes or {}, "").check()
+    return override(TrainConfig.from_dict(TINY), changes or {}, "")
+
+
+def sim_config(config: TrainConfig) -> Any:
+    """The simulator settings of a config's streamed samples."""
+    d = config.data
+    return make_sim_config(config.model, SampleSource.of(d), (("train", d.train_samples), ("test", d.test_samples)))
 
 
 @pytest.fixture(scope="module")
@@ -74,14 +85,14 @@ def _rows(run: Path) -> dict[int, dict[str, str]]:
 
 def _interrupt_at(monkeypatch: pytest.MonkeyPatch, at: int) -> None:
     """Make the next Trainer raise KeyboardInterrupt (as Ctrl-C does) when step ``at`` starts."""
-    tick = Trainer._tick
+    tick = PhaseTimer.tick
 
-    def interrupting(self: Trainer, step: int, phase: str | None) -> None:
+    def interrupting(self: PhaseTimer, step: int, phase: str | None) -> None:
         if phase is None and step == at:
             raise KeyboardInterrupt
         tick(self, step, phase)
 
-    monkeypatch.setattr(Trainer, "_tick", interrupting)
+    monkeypatch.setattr(PhaseTimer, "tick", interrupting)
 
 
 def _assert_same_tensors(a: Any, b: Any, where: str = "") -> None:
@@ -122,7 +133,7 @@ def _batch(config: TrainConfig, root: Path | None, count: int, split: str = "tra
 # ---------------------------------------------------------------------------------------------- learning
 def test_overfits_one_fixed_batch(tmp_path: Path) -> None:
     """The engine, trained on one room of two samples (every batch is the same two), drives the loss far below its
-    start, and the own-view first-hit accuracy of SPEC section 9 on those samples rises well above the untrained
+    start, and the own-view first-hit accuracy of conventions section 9 on those samples rises well above the untrained
     network's."""
     config = tiny({"data": {"train_samples": 2, "samples_per_scene": 2, "frequency_samples": 2},
                    "optim": {"lr": 0.01, "warmup": 5}, "run": {"steps": 100, "batch_size": 2}})
@@ -130,19 +141,19 @@ def test_overfits_one_fixed_batch(tmp_path: Path) -> None:
     grid, classes = config.model.grid, config.model.classes
 
     def accuracy(generator: torch.nn.Module) -> float:
-        acc, _ = evaluate(generator, [(image, labels)], grid, classes, device=torch.device("cpu"), novel=False)
+        acc, _ = evaluate(generator, NO_RULES, [(image, labels)], grid, classes, device=torch.device("cpu"),
+                          novel=False)
         return acc.summary(classes.names)["own_view_accuracy"]
 
     torch.manual_seed(config.run.seed)  # the initialisation the trainer starts from
-    before = accuracy(build_generator(config.model))
+    before = accuracy(config.model.build())
     result = Trainer(config, tmp_path, device="cpu", progress=False, evaluation=False).fit()
     assert result.step == 100 and result.samples == 200
     losses = [float(r["loss/total"]) for r in _rows(tmp_path).values()]
     assert len(losses) == 100
     first, last = np.mean(losses[:3]), np.mean(losses[-3:])
     assert last < 0.3 * first, (first, last)
-    trained, _, _ = load_generator(tmp_path / LATEST)
-    after = accuracy(trained)
+    after = accuracy(load_model(tmp_path / LATEST).network)
     assert after > before + 10.0 and after > 50.0, (before, after)
 
 
@@ -151,7 +162,7 @@ def test_checkpoint_round_trip(tmp_path: Path) -> None:
     """A checkpoint reads back with the same tensors (models, optimiser moments, random states) and config."""
     config = tiny()
     torch.manual_seed(0)
-    gen = build_generator(config.model)
+    gen = config.model.build()
     opt = torch.optim.AdamW(gen.parameters(), lr=1e-3)
     image, labels = torch.rand(2, 3, 32, 32), torch.randint(0, 7, (2, 16, 16, 16), dtype=torch.uint8)
     weights = torch.from_numpy(class_weights(class_frequencies([labels], 7), 0.5))
@@ -168,9 +179,9 @@ def test_checkpoint_round_trip(tmp_path: Path) -> None:
     _assert_same_tensors({k: ck.state[k] for k in state}, state)
     assert ck.state["format"] == FORMAT
     # The generator the checkpoint holds loads for prediction, with the same weights.
-    loaded, model_config, _ = load_generator(path)
-    assert model_config == config.model
-    _assert_same_tensors(loaded.state_dict(), gen.state_dict())
+    loaded = load_model(path)
+    assert loaded.config == config.model and loaded.rules == NO_RULES
+    _assert_same_tensors(loaded.network.state_dict(), gen.state_dict())
 
 
 class _Trap:
@@ -192,7 +203,7 @@ def test_checkpoint_holding_a_pickled_object_is_refused_without_running_it(tmp_p
         read_checkpoint(path)
     assert str(path) in str(e.value) and "weights_only=False" not in str(e.value)
     with pytest.raises(CheckpointError, match="refused"):
-        load_generator(path)
+        load_model(path)
     with pytest.raises(CheckpointError, match="refused"):
         Trainer(None, tmp_path, resume=True, device="cpu")
     assert not marker.exists()
@@ -277,17 +288,17 @@ def _ddp_rank(rank: int, world: int, port: int, config_json: str, batch_file: st
 
     config = TrainConfig.from_json(config_json)
     trainer = Trainer(config, out, device="cpu", progress=False)
-    trainer._build()
-    assert isinstance(trainer.model, DistributedDataParallel) and trainer.dist.world == world
+    state, step = trainer.build()
+    assert isinstance(step.model, DistributedDataParallel) and trainer.dist.world == world
     batch = torch.load(batch_file, weights_only=True)
     per = len(batch["image"]) // world
     half = slice(rank * per, (rank + 1) * per)
     grads = {}
     for mode, objective in _objectives(config, batch["weights"]).items():
-        trainer.generator.train(mode == "train")
-        trainer.generator.zero_grad(set_to_none=True)
-        objective(trainer.model(batch["image"][half]), batch["labels"][half])["total"].backward()
-        grads[mode] = {n: p.grad.clone() for n, p in trainer.generator.named_parameters()}
+        state.network.train(mode == "train")
+        state.network.zero_grad(set_to_none=True)
+        objective(step.model(batch["image"][half]), batch["labels"][half])["total"].backward()
+        grads[mode] = {n: p.grad.clone() for n, p in state.network.named_parameters()}
     torch.save(grads, os.path.join(out, f"grads{rank}.pt"))
     distributed.teardown()
 
@@ -323,7 +334,7 @@ def test_ddp_gradients_match_one_process(tmp_path: Path, shards: Path) -> None:
     ranks = [torch.load(tmp_path / f"grads{r}.pt", weights_only=True) for r in range(2)]
 
     torch.manual_seed(config.run.seed)  # the initialisation every rank starts from
-    gen = build_generator(config.model)
+    gen = config.model.build()
     objectives = _objectives(config, weights)
     expected = {}
     gen.eval()
@@ -420,8 +431,8 @@ def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) ->
     assert TrainConfig.from_json((tmp_path / "config.json").read_text()) == config
     assert result.metrics["samples"] == 4 and 0.0 <= result.metrics["own_view_accuracy"] <= 100.0
     assert set(result.losses) >= {"total", "ce", "iou"}
-    _, model_config, training = load_generator(tmp_path / SHIPPED)
-    assert model_config == config.model and training["step"] == 2
+    shipped = load_model(tmp_path / SHIPPED)
+    assert shipped.config == config.model and shipped.training["step"] == 2 and shipped.rules == NO_RULES
 
 
 def test_fit_restores_the_callers_floating_point_mode_and_threads(tmp_path: Path, shards: Path) -> None:
@@ -436,41 +447,41 @@ def test_fit_restores_the_callers_floating_point_mode_and_threads(tmp_path: Path
 
 def test_run_init_starts_from_a_model_file_and_keeps_new_layers_fresh(tmp_path: Path, shards: Path,
                                                                       capsys: pytest.CaptureFixture[str]) -> None:
-    """Fine-tuning: a model without the surface fusion starts a run of a model with it; every weight the file has
-    is taken, the fusion (which it lacks) starts at its fresh zeros, and a file that does not fit stops the run."""
-    plain = tiny({"model": {"surface_fusion": False}})
+    """Fine-tuning: a model without the detail branch starts a run of a model with it; every weight the file has
+    is taken, the branch (which it lacks) keeps its fresh initialisation, its zero-started last BatchNorm included,
+    and a file that does not fit stops the run."""
+    plain = tiny()
     torch.manual_seed(5)
-    source = build_generator(plain.model)
+    source = plain.model.build()
     with torch.no_grad():
         for p in source.parameters():
             p.add_(torch.randn_like(p))
     path = tmp_path / "plain.safetensors"
-    save_shipped(path, source, plain.model, half=False)
-    data = {"source": "shards", "root": str(shards)}
-    trainer = Trainer(tiny({"data": data, "run": {"init": str(path)}}), tmp_path / "run", device="cpu")
-    trainer._build()
-    got = trainer.generator.state_dict()
-    want = source.state_dict()
-    assert sorted(k for k in got if k not in want) == ["fusion.mix.bias", "fusion.mix.weight", "fusion.mode.weight"]
+    save_model(path, source, plain.model, half=False)
+    detailed = tiny({"model": {"detail_branch": 4}, "run": {"init": str(path)}})
+    state, _ = Trainer(detailed, tmp_path / "run", device="cpu").build()
+    got, want = state.network.state_dict(), source.state_dict()
+    fresh = sorted(k for k in got if k not in want)
+    assert fresh and all(k.startswith("detail_branch.") for k in fresh), fresh
     _assert_same_tensors({k: got[k] for k in want}, want)
-    assert all(not got[k].any() for k in got if k.startswith("fusion."))
-    assert "kept the fresh initialisation of fusion.mix.bias, fusion.mix.weight, fusion.mode.weight" in \
-        capsys.readouterr().err
+    last = f"detail_branch.{len(state.network.detail_branch) - 1}.weight"
+    assert not got[last].any()
+    assert f"kept the fresh initialisation of {', '.join(fresh)}" in capsys.readouterr().err
     # Another grid: the weights do not fit.
     other = tiny({"model": {"grid": {"width": 32, "height": 32, "depth": 32}}})
-    save_shipped(path, build_generator(other.model), other.model)
-    trainer = Trainer(tiny({"data": data, "run": {"init": str(path)}}), tmp_path / "run2", device="cpu")
+    save_model(path, other.model.build(), other.model)
+    trainer = Trainer(tiny({"run": {"init": str(path)}}), tmp_path / "run2", device="cpu")
     with pytest.raises(TrainingError, match=r"plain\.safetensors: run.init does not fit the model config: "
                                             r"parameters \d+ of another shape"):
-        trainer._build()
+        trainer.build()
 
 
-def test_shell_own_view_weight_reaches_the_shell_loss(tmp_path: Path, shards: Path) -> None:
+def test_shell_losses_settings_reach_the_shell_loss(tmp_path: Path, shards: Path) -> None:
     data = {"source": "shards", "root": str(shards)}
-    trainer = Trainer(tiny({"data": data, "loss": {"shell": True, "shell_own_view": 1.5}}), tmp_path, device="cpu")
-    trainer._build()
-    assert trainer.shell is not None and trainer.shell.config.weight_own_view == 1.5
-    assert trainer.shell.config.own_view
+    config = tiny({"data": data, "loss": {"shell": True, "shell_losses": {"weight_own_view": 1.5, "seed": 3}}})
+    state, _ = Trainer(config, tmp_path, device="cpu").build()
+    assert state.shell is not None and state.shell.config == config.loss.shell_losses
+    assert state.shell.config.weight_own_view == 1.5 and state.shell.config.own_view
 
 
 def test_first_hit_term_is_the_own_views_first_hit_cross_entropy() -> None:
@@ -478,14 +489,15 @@ def test_first_hit_term_is_the_own_views_first_hit_cross_entropy() -> None:
     gradient to the logits; it matches the shell-aware losses' own-view term, which gets there through kernels."""
     from fruxel.train.config import ConfigError, LossConfig
     from fruxel.train.losses import ShellLoss, ShellLossConfig
-    from fruxel.train.models.generator import SSZOutput, first_hit_log_probs
+    from fruxel.train.models.registry import ModelOutput
+    from fruxel.train.rules import first_hit_log_probs
 
     config = tiny()
     torch.manual_seed(5)
     labels = (torch.rand(2, 16, 16, 16) < 0.08).to(torch.uint8) * torch.randint(1, 7, (2, 16, 16, 16),
                                                                                 dtype=torch.uint8)
     logits = (torch.randn(2, 7, 16, 16, 16) * 2).requires_grad_()
-    out = SSZOutput(logits=logits, depth_logits=None, surface_logits=None)
+    out = ModelOutput(logits=logits)
     only = LossConfig(ce=0.0, iou=0.0, depth=0.0, surface=0.0, first_hit=2.0)
     terms = SSZObjective(only, torch.ones(7))(out, labels)
     first = (labels != 0).to(torch.uint8).argmax(1, keepdim=True)
@@ -501,23 +513,20 @@ def test_first_hit_term_is_the_own_views_first_hit_cross_entropy() -> None:
     assert "first_hit" not in SSZObjective(dataclasses.replace(only, first_hit=0.0, ce=1.0), torch.ones(7))(out, labels)
     for bad in (-1.0, float("nan")):
         with pytest.raises(ConfigError, match="loss.first_hit"):
-            LossConfig(first_hit=bad).check()
+            LossConfig(first_hit=bad)
 
 
 def test_a_shipped_file_whose_header_length_starts_with_0x80_is_not_taken_for_a_pickle(tmp_path: Path) -> None:
     """A safetensors header of 128 + 256 k bytes starts the file with 0x80, pickle's protocol byte: the shipped
     model of 2026-11-25 had one, and read as "not a fruxel SSZ checkpoint"."""
-    from fruxel.train.export import read_weights
-
     config = tiny().model
-    gen = build_generator(config)
+    gen = config.build()
     path = tmp_path / "m.safetensors"
     for pad in range(300):
-        save_shipped(path, gen, config, {"note": "x" * pad}, half=False)
+        save_model(path, gen, config, training={"note": "x" * pad}, half=False)
         if path.read_bytes()[:1] == b"\x80":
             break
     assert path.read_bytes()[:1] == b"\x80"
-    state, written, training = read_weights(path)
-    assert written == config and training["note"] == "x" * pad and set(state) == set(gen.state_dict())
-    trained, _, _ = load_generator(path)
-    assert not trained.training
+    f = read_model_file(path)
+    assert f.config == config and f.training["note"] == "x" * pad and set(f.state) == set(gen.state_dict())
+    assert not load_model(path).network.training

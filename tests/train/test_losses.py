@@ -13,6 +13,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid
 from fruxel.kernels import available_backends, first_hit, soft_first_hit
 from fruxel.kernels.soft import SoftHits
@@ -202,10 +203,11 @@ def test_own_view_term_is_the_own_columns_first_hit_cross_entropy() -> None:
     ref = -torch.log(expected.gather(1, truth.unsqueeze(1)) + base.eps).mean()
     torch.testing.assert_close(weighted.own_view, ref)
     torch.testing.assert_close(weighted.total, terms.total + 2.5 * ref)
-    # Without the own camera there is nothing to weight.
-    novel_only = ShellLoss(grid, dataclasses.replace(base, own_view=False, weight_own_view=2.5))
-    cams = novel_only.cameras()
-    assert novel_only(logits, labels, cams).own_view is None
+    # Without the own camera there is nothing to weight: the settings refuse the weight.
+    with pytest.raises(ConfigError, match="weight_own_view needs loss.shell_losses.own_view"):
+        dataclasses.replace(base, own_view=False, weight_own_view=2.5)
+    novel_only = ShellLoss(grid, dataclasses.replace(base, own_view=False))
+    assert novel_only(logits, labels, novel_only.cameras()).own_view is None
 
 
 def test_loss_arguments_are_checked() -> None:

@@ -16,8 +16,8 @@ import torch
 import fruxel
 from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128
 from fruxel.train.eval.metrics import first_surface
-from fruxel.train.export import ModelFileError, model_path, read_weights, shipped_model
-from fruxel.train.predict import default_model, load_image, load_predictor, prepare_image, to_tensor
+from fruxel.train.model_files import ModelFileError, model_path, read_model_file, shipped_model
+from fruxel.train.predict import load_image, load_predictor, prepare_image, to_tensor
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -35,7 +35,8 @@ def _make_photo_module():
 
 
 def _own_view(logits: torch.Tensor, labels: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """The own view of a prediction and of its truth, and the first-hit accuracy over the truth's hits (SPEC 9).
+    """The own view of a prediction and of its truth, and the first-hit accuracy over the truth's hits
+    (conventions section 9).
 
     Args:
         logits: ``(C, D, H, W)`` float predicted logits.
@@ -63,10 +64,10 @@ def _refuse_unpickling(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_shipped_weights_are_safetensors() -> None:
     """A safetensors file: an 8-byte header length, a JSON header of tensors and metadata, raw data; nothing that
     unpickling could run."""
-    raw = Path(default_model()).read_bytes()
+    raw = Path(model_path(None)).read_bytes()
     (n,) = struct.unpack("<Q", raw[:8])
     header = json.loads(raw[8:8 + n])
-    assert header["__metadata__"]["format"] == "fruxel-ssz"
+    assert header["__metadata__"]["format"] == "fruxel-model"
     assert all(v["dtype"] in ("F16", "F32", "I64") for k, v in header.items() if k != "__metadata__")
     assert len(raw) <= 16 * 2**20
 
@@ -133,24 +134,24 @@ def test_shipped_models_by_name(name: str, tmp_path: Path, monkeypatch: pytest.M
     folder wins; an unknown name is a missing file."""
     raw = Path(model_path(name)).read_bytes()
     (n,) = struct.unpack("<Q", raw[:8])
-    assert json.loads(raw[8:8 + n])["__metadata__"]["format"] == "fruxel-ssz"
+    assert json.loads(raw[8:8 + n])["__metadata__"]["format"] == "fruxel-model"
     assert len(raw) <= 16 * 2**20
-    assert Path(model_path(name)).parent == Path(default_model()).parent
+    assert Path(model_path(name)).parent == Path(model_path(None)).parent
     assert model_path(Path(name)) == model_path(name)  # fruxel-render's --checkpoint is a Path
     monkeypatch.chdir(tmp_path)
     (tmp_path / name).write_bytes(b"not a model")
     assert model_path(name) == name
     with pytest.raises(ModelFileError, match=r"^ssz32: no such file, nor a shipped model \(ssz64, ssz128\)$"):
-        read_weights("ssz32")
+        read_model_file("ssz32")
     with pytest.raises(ModelFileError, match=r"^missing.safetensors: no such file$"):  # a file name: no hint
-        read_weights("missing.safetensors")
+        read_model_file("missing.safetensors")
 
 
 def test_shipped_128_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:
     _refuse_unpickling(monkeypatch)
     p = load_predictor("ssz128", device="cpu")
     assert p.config.grid.shape == (128, 128, 128) and p.config.image_size == (512, 512)
-    assert p.config.refine and not p.config.refine_frozen
+    assert p.config.refine
     # Its grid is the 64^3 model's frustum, twice as fine.
     coarse = load_predictor(device="cpu").config.grid
     assert (p.config.grid.z_near, p.config.grid.z_far, p.config.grid.hfov) == (coarse.z_near, coarse.z_far, coarse.hfov)

@@ -7,14 +7,14 @@ import pytest
 import torch
 
 from fruxel.train.config import preset
-from fruxel.train.export import build_generator
 from fruxel.train.predict import Predictor
+from fruxel.train.rules import NO_RULES, InferenceRules, predict_logits
 
 
 def _predictor(device: str, graphs: bool, seed: int = 0, **kw: object) -> Predictor:
     torch.manual_seed(seed)
     m = preset("tiny").model
-    return Predictor(build_generator(m), m, device, batch=2, graphs=graphs, **kw)
+    return Predictor(m.build(), m, device, batch=2, graphs=graphs, **kw)
 
 
 def test_cpu_runs_the_eager_pass() -> None:
@@ -22,16 +22,21 @@ def test_cpu_runs_the_eager_pass() -> None:
     assert not p.graphs
     x = torch.rand(2, 3, *p.config.image_size)
     with torch.no_grad():
-        want = p.generator(x).logits.float()
+        want = p.network(x).logits.float()
     got = p.logits(x)
     assert got.shape == (2, p.config.num_classes, *p.config.grid.shape) and got.dtype == torch.float32
-    assert torch.equal(got, want)
+    assert torch.equal(got, want) and p.rules == NO_RULES
+    # The Predictor applies its rules after the network.
+    rules = InferenceRules(fill_columns=True, empty_offset=0.5, first_hit_label=True)
+    ruled = Predictor(p.network, p.config, "cpu", rules=rules)
+    with torch.no_grad():
+        assert torch.equal(ruled.logits(x), predict_logits(p.network, x, rules))
 
 
 def test_cpu_predicts_in_float32_and_run_applies_then() -> None:
     p = _predictor("cpu", graphs=True, compile=True, precision="bfloat16")
     assert p.precision == "float32" and not p.compiled  # both are CUDA options
-    assert next(p.generator.parameters()).dtype == torch.float32
+    assert next(p.network.parameters()).dtype == torch.float32
     x = torch.rand(1, 3, *p.config.image_size)
     logits = p.logits(x)
     labels = p.run(x, then=lambda z: z.argmax(1).to(torch.uint8))
@@ -52,7 +57,7 @@ def test_cuda_graph_of_logits_and_kernels_replays_the_eager_pipeline(compile: bo
     from fruxel import kernels
 
     graphed, eager = _predictor("cuda", graphs=True, compile=compile), _predictor("cuda", graphs=False)
-    assert graphed.precision == "bfloat16" and next(graphed.generator.parameters()).dtype == torch.bfloat16
+    assert graphed.precision == "bfloat16" and next(graphed.network.parameters()).dtype == torch.bfloat16
     grid = graphed.config.grid
 
     def labels_shell(logits: torch.Tensor) -> torch.Tensor:

@@ -146,9 +146,10 @@ class Trainer:
         return self.log.rates
 
     # ------------------------------------------------------------------ set-up
-    def _build(self) -> tuple[TrainingState, Step]:
-        """The state, fresh or as the checkpoint left it but for the models (restored after the class weights),
-        and the step around it."""
+    def build(self) -> tuple[TrainingState, Step]:
+        """The run's state, fresh or as the checkpoint left it but for the models (:meth:`fit` restores those after
+        counting the class weights), and the step around it (the network wrapped as the run trains it: DDP under
+        distribution, compiled with ``run.compile``); :meth:`fit` calls it."""
         c, dev = self.config, self.dist.device
         if dev.type != "cuda" and c.data.workers and "OMP_NUM_THREADS" not in os.environ:
             # The simulator's workers take cores too; more compute threads than free cores made CPU steps many
@@ -265,7 +266,7 @@ class Trainer:
             raise TrainingError(f"run.batch_size {c.run.batch_size} is not divisible by {d.world} ranks")
         if d.main:
             self.folder.claim(resume=self.resumed, overwrite=self._overwrite)
-        self.state, step = self._build()
+        self.state, step = self.build()
         # Batches drawn ahead of their step, each with the data position before it (see checkpoint_state).
         self._prefetched: list[tuple[tuple[int, int], dict[str, torch.Tensor]]] = []
         self._stream = self._batches()

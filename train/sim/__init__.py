@@ -11,7 +11,7 @@
   camera sees of them is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``;
 * data sets: :mod:`.sample` (a sample and its maker), :mod:`.shards` (shard files), :mod:`.manifest` (the data
   set folder), :mod:`.writer` (``generate``), :mod:`.dataset` (reading shards with torch; training streams through
-  :mod:`fruxel.train.engine.data`).
+  :mod:`fruxel.train.samples`).
 
 World frame: right-handed, metres, z up, the floor's top at z = 0 and the room's interior in
 ``[0, Lx] x [0, Ly] x [0, Lz]``. Camera poses are camera-to-world 4x4 matrices with OpenCV camera axes

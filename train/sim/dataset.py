@@ -17,7 +17,7 @@ Own-view truth (the label and depth of each column's first occupied cell) is not
 computes with the other views' truth and returns as ``ShellTargets.own_view`` (see :mod:`.sample`).
 
 Training reads shards, or makes samples on the fly, through one path: the engine's blocks of whole rooms
-(:class:`fruxel.train.engine.data.BlockStream`, batched by :class:`fruxel.train.engine.data.Batches`), which read
+(:class:`fruxel.train.samples.BlockStream`, batched by :class:`fruxel.train.samples.Batches`), which read
 shards with :meth:`ShardDataset.sample` and simulate with :class:`.sample.SampleMaker`; the same config and seed
 give the same samples either way.
 """

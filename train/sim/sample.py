@@ -17,7 +17,7 @@ Own-view truth
     and ``fruxelize`` stages of the simulator's profile in BENCHMARKS.md).
 
 Samples are written to shard files by :mod:`.shards` and :mod:`.writer` and read back by :mod:`.dataset`; training
-streams them, or reads the shards, through :mod:`fruxel.train.engine.data`.
+streams them, or reads the shards, through :mod:`fruxel.train.samples`.
 """
 
 from __future__ import annotations
@@ -60,12 +60,6 @@ class Sample:
     pose: np.ndarray
     """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
     OpenCV camera axes."""
-
-    @property
-    def surface_depth(self) -> None:
-        """Always None: samples carry no rendered depth. Kept only while ``fruxel.train.engine.data.BlockStream``
-        still asks for it (issue 35 removes the engine's side); delete it with that."""
-        return None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays keyed by :data:`FIELDS`."""
