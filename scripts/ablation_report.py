@@ -1,4 +1,4 @@
-"""The loss ablation of the shipped SSZ (docs/model.md): a table and a chart from fruxel-eval reports.
+"""The loss ablation of the shipped SSZ (docs/experiments.md): a table and a chart from fruxel-eval reports.
 
 Each run was trained at the same budget and seed (3000 steps of 32 samples, seed 0, the ``ssz64`` preset) with
 one more loss term than the last, then evaluated on the same held-out samples with ``fruxel-eval``:
