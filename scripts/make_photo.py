@@ -4,15 +4,16 @@ Run ``python scripts/make_photo.py [--out-dir DIR] [--index I]``. The photo is s
 simulator's *test* split (rooms from seeds the training split never uses) with the shipped model's grid (64^3,
 0.5-8 m, 60 degrees) and class table, the training's base seed (0) and samples per room (16), and the seed
 rule of :mod:`fruxel.train.sim.config` (its augmentation included): the room and the robot pose the shipped
-model was evaluated on, its camera image rendered at 512 x 512 instead of the 128 x 128 the model takes (the
-model's input is the photo reduced by area averaging, as for any photo). The truth is the sample's 64^3 labels
+model was evaluated on, its camera image rendered at 512 x 512, larger than the 64^3 model's input (that model reads
+the photo reduced by area averaging, as any photo). The truth is the sample's 64^3 labels
 as a fruxel model file; ``photo_truth128.npz`` holds its 128^3 labels, the truth of the 128^3 model
 (``train/data/ssz128.safetensors``), which reads the photo at its own size.
 
 Sample 43 was chosen because its camera sees every class (wall, floor, window, furniture, door and a sculpture),
 after looking at the own-view class counts of 58 test samples, with the first shipped model, whose own-view
 first-hit accuracy on it was close to its mean over the test split: a typical photo, not the best one
-(docs/experiments.md; what today's model reads on it is the title of ``make demo``'s picture).
+(docs/experiments.md). ``make demo`` gives the shipped model's own-view accuracy on it in its picture's title;
+docs/model.md gives the model's accuracy over the test split.
 
 The labels are exact on any machine (``fruxelize`` is deterministic); the image bytes are those of Mesa's
 llvmpipe (another OpenGL driver can round the shading differently, by about one grey level).
