@@ -275,6 +275,8 @@ def _ufoai(tree: Path) -> list[Candidate]:
     out = []
     for stem, member in sorted(stems.items()):
         key = stem.removeprefix("textures/")
+        if re.search(r"_(nm|sm|gm|rm|hm)$", key):
+            continue  # a normal, specular or glow map of another texture
         cat = next((c for pat, c in UFOAI_RULES if re.fullmatch(pat, key)), None)
         if cat is None and re.fullmatch(UFOAI_PICTURES[0], key):
             cat = UFOAI_PICTURES[1]
