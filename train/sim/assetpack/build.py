@@ -97,15 +97,17 @@ def _mesh(c: Candidate, config: PackConfig) -> _Built | None:
     from .pack import mesh_file_bytes
 
     raw = c.read()
+    # Decimation moves the hull a little: centre the footprint and stand it on z = 0 again, in float32 as stored.
+    v = raw.vertices.astype(np.float32)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    raw.vertices = v - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]], dtype=np.float32)
     ext = raw.vertices.max(axis=0) - raw.vertices.min(axis=0)
     if ext.max() < config.min_mesh_extent_m:
         return None
     data = mesh_file_bytes(raw.vertices, raw.faces, raw.face_parts, raw.part_names, raw.part_colors)
     info = {"faces": len(raw.faces), "vertices": len(raw.vertices), "parts": len(raw.part_names),
             "elevation_m": round(float(raw.elevation_m), 4)}
-    # The stored float32 vertices' extent: what a reader measures.
-    v32 = raw.vertices.astype(np.float32)
-    return _Built(c, {"mesh": data}, tuple(float(x) for x in v32.max(axis=0) - v32.min(axis=0)), info)
+    return _Built(c, {"mesh": data}, tuple(float(x) for x in ext), info)
 
 
 def process(c: Candidate, config: PackConfig) -> _Built | None:

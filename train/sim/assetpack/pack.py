@@ -324,7 +324,7 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tupl
     try:
         with open(path, "rb") as fh, open_archive(fh) as zf:
             a = _mesh_members(zf)
-    except (ArchiveError, zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+    except Exception as e:  # noqa: BLE001 - a damaged archive raises zipfile's, zlib's or struct's errors
         raise AssetPackError(f"{path}: not a valid mesh file ({describe_read_error(e)})") from None
     v, f, fp, names, colors = (a[m] for m in MESH_MEMBERS)
     checks = [
