@@ -42,7 +42,7 @@ def _grid(tiles: list[np.ndarray], cols: int) -> np.ndarray:
     return sheet
 
 
-def texture_sheet(pack, tile: int, per_category: int, committable_only: bool) -> np.ndarray:
+def texture_sheet(pack, tile: int, per_category: int, committable_only: bool, drawn: list) -> np.ndarray:
     from PIL import Image
 
     tiles = []
@@ -50,6 +50,7 @@ def texture_sheet(pack, tile: int, per_category: int, committable_only: bool) ->
         entries = [e for e in pack.select("texture", cat) if e.committable or not committable_only]
         for e in entries[:: max(1, len(entries) // per_category)][:per_category]:
             t = pack.texture(e)
+            drawn.append(e)
             a = np.asarray(Image.fromarray(t.albedo).resize((tile, tile)))
             n = np.asarray(Image.fromarray(np.round((t.normal + 1) * 127.5).astype(np.uint8)).resize((tile, tile)))
             pair = np.concatenate([a, np.full((tile, 2, 3), 255, np.uint8), n], axis=1)
@@ -93,13 +94,14 @@ def _render(mesh, size: int, extent: float) -> np.ndarray:
     return np.asarray(color[..., :3])
 
 
-def mesh_sheet(pack, ids: list[str], size: int, committable_only: bool) -> np.ndarray:
+def mesh_sheet(pack, ids: list[str], size: int, committable_only: bool, drawn: list) -> np.ndarray:
     tiles = []
     for i in ids:
         e = pack.entry(i)
         if committable_only and not e.committable:
             continue
         m = pack.mesh(e)
+        drawn.append(e)
         extent = 2.4 if m.size_m.max() <= 2.2 else float(m.size_m.max()) * 1.1
         x, y, z = m.size_m
         img = _render(m, size, extent)
@@ -117,19 +119,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--committable-only", action="store_true")
     p.add_argument("--tile", type=int, default=72)
     p.add_argument("--per-category", type=int, default=6)
+    p.add_argument("--credits", type=Path, help="write a Markdown table of the drawn assets' licences and credits")
     args = p.parse_args(argv)
 
     from fruxel.render.images import write_image
     from fruxel.train.sim.assetpack import AssetPack
 
     pack = AssetPack(args.pack)
+    drawn: list = []
     if args.textures:
-        write_image(args.textures, texture_sheet(pack, args.tile, args.per_category, args.committable_only))
+        write_image(args.textures, texture_sheet(pack, args.tile, args.per_category, args.committable_only, drawn))
         print(f"wrote {args.textures}")
     if args.meshes:
         ids = args.mesh_ids or [e.id for cat in pack.categories("mesh") for e in pack.select("mesh", cat)[:1]]
-        write_image(args.meshes, mesh_sheet(pack, ids, 200, args.committable_only))
+        write_image(args.meshes, mesh_sheet(pack, ids, 200, args.committable_only, drawn))
         print(f"wrote {args.meshes}")
+    if args.credits:
+        rows = ["| asset | source | licence | credit |", "| --- | --- | --- | --- |"]
+        rows += [f"| {e.id} | {e.source.package} {e.source.version} | {e.licence} | {e.credit} |" for e in drawn]
+        args.credits.write_text("\n".join(rows) + "\n")
+        print(f"wrote {args.credits}")
     return 0
 
 
