@@ -9,7 +9,6 @@ already there is not fetched again.
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -91,10 +90,3 @@ def fetch_all(packages: Iterable[Package], cache: Path, *, offline: bool = False
             raise AssetPackError(f"{dest}: {pkg.name} {pkg.version} is not in the cache (and fetching is off)")
         out.append(fetch(pkg, cache))
     return out
-
-
-def remove_partial(cache: Path) -> None:
-    """Remove what interrupted fetches left in the cache (hidden temporary folders)."""
-    for reg in ("debian", "pypi"):
-        for p in (cache / reg).glob(".*") if (cache / reg).is_dir() else []:
-            shutil.rmtree(p, ignore_errors=True)
