@@ -2,7 +2,8 @@
 #   make demo   the main job on the bundled photo: SSZ predicts its model, which fruxel-render draws beside the
 #               photo and its ground truth, into out/photo_both.png
 #   make test   runs the test suite
-.PHONY: demo test env lint
+#   make assets builds the simulator's asset pack (assets/pack) from Debian and PyPI packages, cached in assets/cache
+.PHONY: demo test env lint assets
 
 export PYOPENGL_PLATFORM ?= egl
 
@@ -17,3 +18,6 @@ test: env
 
 lint: env
 	.venv/bin/ruff check .
+
+assets: env
+	.venv/bin/fruxel-sim assets --sources assets/cache --out assets/pack --replace --workers 2

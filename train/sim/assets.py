@@ -24,7 +24,9 @@ the zip), ``width#N`` / ``depth#N`` / ``height#N`` (centimetres), ``doorOrWindow
 front towards +z; after the rotation the model is scaled to width x height x depth along its x, y, z axes and
 turned into the canonical frame by ``(x, y, z) -> (x, -z, y)``. Doors and windows go to the ``window`` class when
 their name says window, hatch or skylight, else to ``door``; everything else is furniture, except names or
-categories that say statue, sculpture or bust.
+categories that say statue, sculpture or bust. :func:`read_sh3f_catalog` and :func:`sh3d_to_canonical` are the
+two halves of that import, shared with the asset pack's builder (:mod:`fruxel.train.sim.assetpack`), which reads
+the models with their material groups.
 """
 
 from __future__ import annotations
@@ -282,6 +284,102 @@ class _ZipResolver:
         raise OSError("read-only archive")
 
 
+@dataclass(frozen=True)
+class CatalogItem:
+    """One entry ``#N`` of a Sweet Home 3D catalog (``PluginFurnitureCatalog.properties``)."""
+
+    index: int
+    """The entry's number ``N``."""
+    name: str
+    """``name#N`` (the model file's stem when missing)."""
+    category: str
+    """``category#N`` (may be empty)."""
+    member: str
+    """The model's path inside the zip, normalised (checked to be in the archive)."""
+    kind: str
+    """One of :data:`KINDS`, from the name, category and ``doorOrWindow#N``."""
+    rotation: np.ndarray | None
+    """``modelRotation#N``: ``(3, 3)`` float64, row-major, applied to the model's vertices first; None if absent."""
+    size_cm: np.ndarray
+    """``(3,)`` float64: ``width#N``, ``height#N``, ``depth#N`` in centimetres (NaN where missing or not positive),
+    along the model's x, y, z after the rotation."""
+    props: dict[str, str]
+    """Every ``key#N`` of this entry, without the ``#N`` (e.g. ``creator``, ``elevation``)."""
+
+
+def read_sh3f_catalog(zf: zipfile.ZipFile, label: str) -> list[CatalogItem]:
+    """The entries of an open ``.sh3f`` archive's catalog, in index order.
+
+    Args:
+        zf: the open archive.
+        label: what error messages call the archive (its path).
+
+    Raises:
+        AssetError: an archive larger than :data:`MAX_ARCHIVE_BYTES`, no catalog, an entry without a model, a model
+            path missing from the zip or leaving it, an unsupported model type, or a malformed number or rotation;
+            the message names the entry.
+    """
+    if sum(i.file_size for i in zf.infolist()) > MAX_ARCHIVE_BYTES:
+        raise AssetError(f"{label}: archive unpacks to more than {MAX_ARCHIVE_BYTES} bytes")
+    names = zf.namelist()
+    catalog = next((n for n in names if posixpath.basename(n) == CATALOG_NAME), None)
+    if catalog is None:
+        raise AssetError(f"{label}: no {CATALOG_NAME} in the archive")
+    props = parse_properties(zf.read(catalog).decode("utf-8", errors="replace"))
+    indices = sorted({int(m.group(1)) for k in props if (m := re.fullmatch(r"(?:id|model)#(\d+)", k))})
+    members = set(names)
+    out = []
+    for n in indices:
+        item_label = f"{label}: item #{n}"
+        model = props.get(f"model#{n}")
+        if not model:
+            raise AssetError(f"{item_label}: no model#{n}")
+        member = posixpath.normpath(model.replace("\\", "/").lstrip("/"))
+        if member.startswith("..") or member not in members:
+            raise AssetError(f"{item_label}: model {model!r} is not in the archive")
+        if posixpath.splitext(member)[1].lower() not in MESH_SUFFIXES:
+            raise AssetError(f"{item_label}: model {model!r} has an unsupported type")
+        rot = None
+        if props.get(f"modelRotation#{n}"):
+            text = props[f"modelRotation#{n}"]
+            try:
+                rot = np.array([float(x) for x in text.split()], dtype=np.float64).reshape(3, 3)
+            except ValueError:
+                raise AssetError(f"{item_label}: modelRotation#{n} is not nine numbers: {text!r}") from None
+        size = np.array([_number(props, f"{k}#{n}", item_label) or np.nan for k in ("width", "height", "depth")])
+        size[~(size > 0)] = np.nan
+        name = props.get(f"name#{n}", posixpath.splitext(posixpath.basename(member))[0])
+        category = props.get(f"category#{n}", "")
+        dw = props.get(f"doorOrWindow#{n}", "false").strip().lower() == "true"
+        own = {k[: -len(f"#{n}")]: v for k, v in props.items() if k.endswith(f"#{n}")}
+        out.append(CatalogItem(n, name, category, member, _classify(name, category, dw), rot, size, own))
+    return out
+
+
+def sh3d_to_canonical(vertices: Any, item: CatalogItem) -> np.ndarray:
+    """A Sweet Home 3D model's vertices in the canonical frame (see the module docstring): rotated by the item's
+    ``modelRotation``, scaled to its catalog size, turned z up with the front towards -y, then footprint-centred
+    and standing on z = 0 (:func:`canonical_mesh`'s shift).
+
+    Args:
+        vertices: ``(V, 3)`` float, the model file's vertices (Sweet Home 3D frame: y up, front towards +z).
+        item: the model's catalog entry.
+
+    Returns:
+        ``(V, 3)`` float64, metres, canonical frame.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    if item.rotation is not None:
+        v = v @ item.rotation.T
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    ext = np.maximum(hi - lo, 1e-12)
+    # Missing sizes keep the model's own extent, taken to be in centimetres like the catalog's.
+    target = np.where(np.isfinite(item.size_cm), item.size_cm, ext) / 100.0
+    v = ((v - lo) / ext * target) @ _Y_UP_TO_Z_UP.T
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return v - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+
 def load_sh3f(path: str | Path) -> AssetLibrary:
     """Import a Sweet Home 3D furniture library (see the module docstring).
 
@@ -295,46 +393,13 @@ def load_sh3f(path: str | Path) -> AssetLibrary:
     except (OSError, zipfile.BadZipFile) as e:
         raise AssetError(f"{src}: not a readable .sh3f (zip) file: {e}") from None
     with zf:
-        if sum(i.file_size for i in zf.infolist()) > MAX_ARCHIVE_BYTES:
-            raise AssetError(f"{src}: archive unpacks to more than {MAX_ARCHIVE_BYTES} bytes")
-        names = zf.namelist()
-        catalog = next((n for n in names if posixpath.basename(n) == CATALOG_NAME), None)
-        if catalog is None:
-            raise AssetError(f"{src}: no {CATALOG_NAME} in the archive")
-        props = parse_properties(zf.read(catalog).decode("utf-8", errors="replace"))
-        indices = sorted({int(m.group(1)) for k in props if (m := re.fullmatch(r"id#(\d+)", k))}
-                         | {int(m.group(1)) for k in props if (m := re.fullmatch(r"model#(\d+)", k))})
         out = []
-        for n in indices:
-            label = f"{src}: item #{n}"
-            model = props.get(f"model#{n}")
-            if not model:
-                raise AssetError(f"{label}: no model#{n}")
-            member = posixpath.normpath(model.replace("\\", "/").lstrip("/"))
-            if member.startswith("..") or member not in names:
-                raise AssetError(f"{label}: model {model!r} is not in the archive")
-            name = props.get(f"name#{n}", posixpath.splitext(posixpath.basename(member))[0])
-            category = props.get(f"category#{n}", "")
-            suffix = posixpath.splitext(member)[1].lower().lstrip(".")
-            if f".{suffix}" not in MESH_SUFFIXES:
-                raise AssetError(f"{label}: model {model!r} has an unsupported type")
-            resolver = _ZipResolver(zf, posixpath.dirname(member))
-            m = _load_mesh(io.BytesIO(zf.read(member)), file_type=suffix, resolver=resolver, label=f"{label} {model}")
-            v = np.asarray(m.vertices, dtype=np.float64)
-            rot = props.get(f"modelRotation#{n}")
-            if rot:
-                try:
-                    r = np.array([float(x) for x in rot.split()], dtype=np.float64).reshape(3, 3)
-                except ValueError:
-                    raise AssetError(f"{label}: modelRotation#{n} is not nine numbers: {rot!r}") from None
-                v = v @ r.T
-            size = np.array([_number(props, f"{k}#{n}", label) or np.nan for k in ("width", "height", "depth")])
-            ext = np.maximum(v.max(axis=0) - v.min(axis=0), 1e-12)
-            # Missing sizes keep the model's own extent, taken to be in centimetres like the catalog's.
-            target = np.where(np.isfinite(size) & (size > 0), size, ext) / 100.0
-            v = (v - v.min(axis=0)) / ext * target
-            v = v @ _Y_UP_TO_Z_UP.T
-            dw = props.get(f"doorOrWindow#{n}", "false").strip().lower() == "true"
-            kind = _classify(name, category, dw)
-            out.append(Asset(_safe_name(name), kind, canonical_mesh(v, m.faces), category, f"{src}:{member}"))
+        for item in read_sh3f_catalog(zf, str(src)):
+            label = f"{src}: item #{item.index} {item.member}"
+            suffix = posixpath.splitext(item.member)[1].lower().lstrip(".")
+            resolver = _ZipResolver(zf, posixpath.dirname(item.member))
+            m = _load_mesh(io.BytesIO(zf.read(item.member)), file_type=suffix, resolver=resolver, label=label)
+            v = sh3d_to_canonical(m.vertices, item)
+            out.append(Asset(_safe_name(item.name), item.kind, canonical_mesh(v, m.faces), item.category,
+                             f"{src}:{item.member}"))
     return AssetLibrary(tuple(out))
