@@ -232,3 +232,12 @@ def test_every_picture_in_docs_is_used() -> None:
     assert pictures
     unused = [p.name for p in pictures if not any(p.name in t for t in texts)]
     assert not unused, unused
+
+
+def test_conventions_are_in_step_with_the_spec() -> None:
+    """docs/conventions.md is the project's copy of the conventions it was given (the developers' SPEC.md beside
+    the repository); a clone without that file has only the copy, which the code cites."""
+    spec = ROOT.parent / "shared" / "SPEC.md"
+    if not spec.is_file():
+        pytest.skip("no shared/SPEC.md beside this clone")
+    assert (ROOT / "docs" / "conventions.md").read_text(encoding="utf-8") == spec.read_text(encoding="utf-8")

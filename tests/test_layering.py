@@ -74,3 +74,41 @@ def test_importing_the_packages_loads_no_heavy_module() -> None:
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "", f"import fruxel.* loaded {loaded}"
+
+
+def _imports_of(path: Path, package: str) -> set[str]:
+    """Every module ``path`` imports (lazy ones too), relative imports resolved against ``package`` (the file's
+    own package, e.g. ``fruxel.train.eval``)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            out |= {module} | {f"{module}.{a.name}" for a in node.names}
+    return out
+
+
+def test_evaluation_does_not_import_the_training_engine() -> None:
+    """The engine evaluates during training through eval/; eval/ (metrics, reports, calibration) stands without
+    the engine, and both take their samples from the one data module, fruxel.train.samples."""
+    bad = sorted((p.name, m) for p in (ROOT / "train" / "eval").glob("*.py")
+                 for m in _imports_of(p, "fruxel.train.eval") if m.startswith("fruxel.train.engine"))
+    assert not bad, bad
+    # The check itself resolves relative imports: the engine's lazy import of eval/ is seen.
+    engine = {m for p in (ROOT / "train" / "engine").glob("*.py") for m in _imports_of(p, "fruxel.train.engine")}
+    assert "fruxel.train.eval.evaluate" in engine and "fruxel.train.samples" in engine
+
+
+MAX_FUNCTION_LINES = 80
+"""Longest function (or method) allowed in train/ and cli/, lines from ``def`` to its last line."""
+
+
+def test_functions_in_train_and_cli_stay_short() -> None:
+    long = sorted((str(p.relative_to(ROOT)), n.name, n.end_lineno - n.lineno + 1)
+                  for folder in ("train", "cli") for p in (ROOT / folder).rglob("*.py")
+                  for n in ast.walk(ast.parse(p.read_text(), str(p)))
+                  if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+                  and n.end_lineno - n.lineno + 1 > MAX_FUNCTION_LINES)
+    assert not long, long
