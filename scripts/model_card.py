@@ -1,4 +1,5 @@
-"""The generated tables of the model card, ``docs/model.md``, from the stored evaluation reports and the shipped models.
+"""The generated tables of the model card, ``docs/model.md``, and of the README's results, from the stored evaluation
+reports and the shipped models.
 
     python scripts/model_card.py            # rewrite the card's generated tables in place
     python scripts/model_card.py --check    # exit status 1, naming the tables, when the card is out of date
@@ -469,11 +470,29 @@ TABLES: dict[str, Callable[[Sources], list[str]]] = {
     "candidates": table_candidates,
     "level": table_level,
 }
-"""Every generated table by its marker name."""
+"""Every generated table of the card by its marker name."""
+
+
+def table_results(src: Sources) -> list[str]:
+    """The README's short table: each shipped model's headline numbers on its test sets."""
+    rows = []
+    for name, shipped in SHIPPED.items():
+        names = src.report(shipped.pool.reports[0])["classes"]["names"]
+        acc, _ = src.pool(shipped.pool)
+        s = _summary(acc, names)
+        grid = src.report(shipped.pool.reports[0])["model"]["grid"]
+        rows.append([f"`{name}`", f"{grid['width']}x{grid['height']}x{grid['depth']}", f"{acc.samples:,}",
+                     *(_num(s[k], nd) for k, _, nd in METRICS[:4])])
+    return _table(["model", "cells", "test samples", *(t for _, t, _ in METRICS[:4])], rows)
+
+
+README_TABLES: dict[str, Callable[[Sources], list[str]]] = {"results": table_results}
+"""Every generated table of the README by its marker name."""
 
 
 # ---------------------------------------------------------------------------------------------------- the card
-def render(card: str, path: Path, src: Sources) -> tuple[str, list[str]]:
+def render(card: str, path: Path, src: Sources,
+           tables: dict[str, Callable[[Sources], list[str]]] = TABLES) -> tuple[str, list[str]]:
     """The card with every generated table made again.
 
     Args:
@@ -503,8 +522,8 @@ def render(card: str, path: Path, src: Sources) -> tuple[str, list[str]]:
                 raise CardError(f"{path}:{i}: a marker out of place or misspelt: {line!r}")
             continue
         name = m.group(1)
-        if name not in TABLES:
-            raise CardError(f"{path}:{i}: no generated table is called {name!r} (known: {', '.join(TABLES)})")
+        if name not in tables:
+            raise CardError(f"{path}:{i}: no generated table is called {name!r} (known: {', '.join(tables)})")
         if name in seen:
             raise CardError(f"{path}:{i}: the table {name!r} appears twice")
         seen.add(name)
@@ -517,12 +536,12 @@ def render(card: str, path: Path, src: Sources) -> tuple[str, list[str]]:
             raise CardError(f"{path}:{start}: the table {name!r} has no {END} line")
         # A blank line before the end marker ends the table for every Markdown reader (GFM tables run on over
         # lines that are not blank).
-        body = [*TABLES[name](src), ""]
+        body = [*tables[name](src), ""]
         if lines[start:i] != body:
             changed.append(name)
         out += [*body, END]
         i += 1
-    missing = [n for n in TABLES if n not in seen]
+    missing = [n for n in tables if n not in seen]
     if missing:
         raise CardError(f"{path}: has no generated table {', '.join(missing)} (add <!-- generated: NAME --> and "
                         f"{END} lines where it belongs)")
@@ -534,6 +553,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--check", action="store_true",
                    help="write nothing; exit with status 1 and name the tables when the card is out of date")
     p.add_argument("--card", type=Path, default=ROOT / "docs" / "model.md", help="the card (default: docs/model.md)")
+    p.add_argument("--readme", type=Path, default=ROOT / "README.md",
+                   help="the README, whose short results table is generated too (default: README.md)")
     p.add_argument("--reports", type=Path, default=ROOT / "docs" / "eval",
                    help="the folder of the fruxel-eval reports (default: docs/eval)")
     p.add_argument("--models", type=Path, default=ROOT / "train" / "data",
@@ -542,21 +563,26 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    try:
-        card = args.card.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise CardError(f"{args.card}: cannot read the card: {getattr(e, 'strerror', None) or e}") from None
-    text, changed = render(card, args.card, Sources(args.reports, args.models))
+    src = Sources(args.reports, args.models)
+    pages = []
+    for path, tables in ((args.card, TABLES), (args.readme, README_TABLES)):
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise CardError(f"{path}: cannot read it: {getattr(e, 'strerror', None) or e}") from None
+        pages.append((path, *render(text, path, src, tables)))
     if args.check:
-        if changed:
-            print(f"{args.card}: out of date: {', '.join(changed)} (run python scripts/model_card.py)",
-                  file=sys.stderr)
-            return 1
-        print(f"{args.card}: up to date")
-        return 0
-    if changed:
-        write_outputs([(args.card, lambda tmp: tmp.write_text(text, encoding="utf-8"))])
-    print(f"{args.card}: {', '.join(changed) + ' rewritten' if changed else 'up to date'}")
+        stale = [f"{path}: out of date: {', '.join(changed)}" for path, _, changed in pages if changed]
+        for line in stale:
+            print(f"{line} (run python scripts/model_card.py)", file=sys.stderr)
+        for path, _, changed in pages:
+            if not changed:
+                print(f"{path}: up to date")
+        return 1 if stale else 0
+    write_outputs([(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+                   for path, text, changed in pages if changed])
+    for path, _, changed in pages:
+        print(f"{path}: {', '.join(changed) + ' rewritten' if changed else 'up to date'}")
     return 0
 
 

@@ -36,13 +36,15 @@ def copies(tmp_path: Path) -> tuple[Path, Path]:
     """A copy of the card and of the reports folder, to change."""
     card = tmp_path / "model.md"
     shutil.copy(CARD, card)
+    shutil.copy(ROOT / "README.md", tmp_path / "README.md")  # the script rewrites the README's table too
     reports = tmp_path / "eval"
     shutil.copytree(DOCS / "eval", reports)
     return card, reports
 
 
 def _args(card: Path, reports: Path, *more: str) -> list[str]:
-    return ["--card", str(card), "--reports", str(reports), "--models", str(ROOT / "train" / "data"), *more]
+    return ["--card", str(card), "--readme", str(card.parent / "README.md"), "--reports", str(reports),
+            "--models", str(ROOT / "train" / "data"), *more]
 
 
 # ---------------------------------------------------------------------------------------------------- the card
