@@ -122,7 +122,7 @@ def compose(columns: Sequence[Sequence[np.ndarray]], headings: Sequence[str], cl
 class Layout:
     """The frame of a :func:`compose` picture (title, headings, legend strip), drawn once for panels of given
     sizes and then filled with new panels as often as wanted: a video's frames keep their layout, and drawing its
-    text every frame took 7-13 ms of the live robot demo's frame (PIL renders each glyph again).
+    text every frame took a noticeable share of the live robot demo's frame (PIL renders each glyph again).
 
     Args:
         sizes: per column, the ``(height, width)`` of each of its panels, top to bottom.

@@ -29,8 +29,8 @@ from .runtime import Runtime, defines, source
 
 GROUP_LOG = 1
 """log2 of the edge, in cells, of a group of the field: groups of 2 x 2 x 2 cells, whose 8 cells fit the field's
-occupancy mask (the kernels require 1). Groups of 1 cell skip 14 % fewer iterations on the room but cost 8 times
-the building, groups of 4 take 60 % more iterations (benchmarks/PERF_NOTES.md)."""
+occupancy mask (the kernels require 1). Groups of 1 cell skip few more iterations on the room but cost eight
+times the building, groups of 4 take many more iterations (measured in benchmarks/PERF_NOTES.md)."""
 DIST_CAP = 15
 """Largest distance (in groups) the field records: each axis pass looks this far. 0 turns skipping off (every group
 reads 0, every iteration is a plain step), which tests use to check that skipping changes nothing."""
@@ -39,7 +39,7 @@ TILE = 4
 pixels for 16 lanes, 4 x 2 for 8 (:attr:`.runtime.Runtime.lanes`; :file:`walk.h` lays them out for 4)."""
 TILE_LOCAL = (16, 1)
 """Work-group shape of the tile kernels, in tiles along x, y: a row of 16 tiles (64 x 4 pixels) per work-group
-(4 x 4 tiles measured 4 % slower, 2 x 2 8 %)."""
+(square groups measured slower: benchmarks/PERF_NOTES.md)."""
 TRACE_LOCAL = (16, 4)
 """Work-group shape of the per-pixel kernels (soft_first_hit), pixels along x, y: PoCL runs a work-group as one
 loop, so a tile of neighbouring rays shares cache lines of the volume."""

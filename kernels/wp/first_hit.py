@@ -28,7 +28,7 @@ def centre_out(rank: int, h: int) -> int:
 
     The GPU starts blocks in launch order, and a frame takes as long as its slowest warp takes after it starts.
     The rays that walk longest are usually those through the middle of the image, which looks at the grid (on the
-    kernel benchmark's view the longest warp alone runs 85 % of the frame), so they are launched first rather
+    kernel benchmark's view the longest warp alone runs most of the frame), so they are launched first rather
     than when the rows above them are done.
     """
     half = rank >> 1

@@ -74,9 +74,9 @@ class Pointwise3d(nn.Conv3d):
     weight.T`` for a channels-last-3D input, whose output is channels-last-3D too.
 
     On the H100, cuDNN ran the decoder's 1x1x1 convolutions at 64^3 with layout conversions around them
-    (NCDHW <-> NDHWC) and, for their weight gradients, an implicit-GEMM kernel that took 2-4 ms per layer at batch
-    32: a quarter of a training step's kernel time (``benchmarks/profile_ssz.py``). The same product on cuBLAS
-    runs at memory speed, forward and backward, and needs no conversion.
+    (NCDHW <-> NDHWC) and, for their weight gradients, a slow implicit-GEMM kernel: a large share of a training
+    step's kernel time (``benchmarks/profile_ssz.py``, BENCHMARKS.md). The same product on cuBLAS runs at memory
+    speed, forward and backward, and needs no conversion.
 
     Args:
         cin, cout: input and output channels.
@@ -258,10 +258,10 @@ class SurfaceFusion(nn.Module):
 
     What the grid's own camera sees of a column is its first occupied cell; the image-side heads predict exactly
     that (the slice, as a distribution over the D slices plus "no surface", and the class). The decoder receives
-    the depth distribution as a feature (:class:`Lift`) but is free to ignore it: in the first shipped model
-    (64^3, no fusion) the volume's first hit had the true label on 88.1 % of the own-view pixels where the truth
-    has a surface, its surface-class head alone on 92.4 % (128 test samples). This layer gives the heads a
-    direct, learnt say in the logits of every cell, per cell, from four log-probabilities:
+    the depth distribution as a feature (:class:`Lift`) but is free to ignore it: in the first shipped model (no
+    fusion) the surface-class head alone named the own view's first hit more often than the volume did
+    (docs/experiments.md). This layer gives the heads a direct, learnt say in the logits of every cell, per cell,
+    from four log-probabilities:
 
     * ``log P(in front)``: the column's surface lies behind this slice (or there is none): the cell is empty;
     * ``log P(behind)``: the surface lies in front of this slice: the cell is hidden, anything goes;
@@ -326,8 +326,8 @@ class SurfaceFusion(nn.Module):
 
         The mix is linear and ``log P(here, c) = log P(here) + log P(c | surface)``, whose second part is the same
         in every cell of a column; so the term is computed as four per-cell fields weighted per output class plus
-        one per-column term broadcast along depth, never materialising the ``C + 2`` features (the same function;
-        at batch 1 on the H100 the whole term is 0.02 ms of kernels, benchmarks/profile_ssz.py).
+        one per-column term broadcast along depth, never materialising the ``C + 2`` features (the same function,
+        a small share of the network's kernel time: benchmarks/profile_ssz.py).
         """
         front, behind, here, mode, cls = self._fields(depth_logits, surface_logits)
         dtype = self.mix.weight.dtype

@@ -133,8 +133,8 @@ class AssetPack:
 
     Args:
         root: the pack folder.
-        verify: check every file's SHA-256 on opening (about 0.1 s for a full pack); sizes and presence are always
-            checked.
+        verify: check every file's SHA-256 on opening (a fraction of a second for a full pack); sizes and presence
+            are always checked.
 
     Raises:
         AssetPackError: a missing folder or manifest, a malformed manifest, a missing, changed or unlisted file;
