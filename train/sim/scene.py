@@ -56,9 +56,38 @@ class SceneError(FruxelError, ValueError):
 
 
 # ---------------------------------------------------------------------------------------------- data types
+@dataclass(frozen=True)
+class Material:
+    """How a surface looks to a photoreal renderer, drawn independently of the surface's class.
+
+    Textures and images are assets of the asset pack (:mod:`.assetpack`), named by id. A texture tiles the surface
+    at metric scale by a world-space box projection (each face takes the two world axes most parallel to it, so a
+    wall's bricks keep their size whatever the wall's extent); an image is stretched once over the part instead (a
+    painting's canvas, the outdoor view behind a window).
+    """
+
+    color: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    """Linear RGB in [0, 1]: the base colour, multiplied with the texture or image when there is one."""
+    texture: str | None = None
+    """Id of a pack texture (albedo and normal map), or None for the plain colour."""
+    tile_m: float = 1.0
+    """Metres one tile of the texture spans (the pack's ``size_m`` for the texture, times a random scale)."""
+    image: str | None = None
+    """Id of a pack image stretched once over the part (planar projection onto its largest face's plane), or None."""
+    roughness: float = 0.6
+    """Microfacet roughness in [0, 1]."""
+    metallic: float = 0.0
+    """Metalness in [0, 1]."""
+    opacity: float = 1.0
+    """In (0, 1]: below 1 the surface is glass, and a ray goes on through it."""
+    emission: float = 0.0
+    """>= 0: the surface shines with its own colour (times this) besides what it reflects: the outdoor view, a
+    lamp's shade."""
+
+
 @dataclass(frozen=True, eq=False)
 class SceneObject:
-    """One labelled solid of a scene."""
+    """One labelled solid of a scene (or, with ``solid`` False, a surface that is drawn and never labelled)."""
 
     name: str
     """Unique name within the scene, e.g. ``"wall_2"``, ``"window_0_glass"``, ``"chair_3"``."""
@@ -67,11 +96,21 @@ class SceneObject:
     mesh: trimesh.Trimesh
     """Triangle mesh in the world frame, metres; closed with outward normals unless it came from an asset."""
     color: tuple[float, float, float, float]
-    """Base colour RGBA in [0, 1]; alpha < 1 means a transparent material (window glass)."""
+    """Base colour RGBA in [0, 1]; alpha < 1 means a transparent material (window glass). The flat renderer's
+    material; a photoreal renderer uses ``materials`` when there are any."""
     metallic: float
-    """PBR metallic factor in [0, 1]."""
+    """PBR metallic factor in [0, 1] (the flat renderer's)."""
     roughness: float
-    """PBR roughness factor in [0, 1]."""
+    """PBR roughness factor in [0, 1] (the flat renderer's)."""
+    materials: tuple[Material, ...] = ()
+    """The materials of the object's parts for a photoreal renderer (empty: one made from ``color``, ``metallic``
+    and ``roughness``)."""
+    parts: np.ndarray | None = None
+    """``(F,)`` int32, per face of ``mesh``, the index of its material in ``materials`` (None: every face takes
+    material 0)."""
+    solid: bool = True
+    """False for a surface that is drawn but is not a solid of the room (the outdoor view behind a window): never
+    labelled, never in the robot's way."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,14 +118,22 @@ class Light:
     """A light source, in pyrender's conventions."""
 
     kind: str
-    """``"directional"`` or ``"point"``."""
+    """``"directional"``, ``"point"`` or ``"spot"``."""
     color: tuple[float, float, float]
     """RGB in [0, 1]."""
     intensity: float
-    """Directional: lux (W/m^2 in pyrender's units); point: candela."""
+    """Directional: lux (W/m^2 in pyrender's units); point and spot: candela."""
     pose: np.ndarray
-    """``(4, 4)`` float64 light-to-world transform; a directional light shines along its local -z axis, a point
-    light sits at the translation."""
+    """``(4, 4)`` float64 light-to-world transform; a directional or spot light shines along its local -z axis, a
+    point or spot light sits at the translation."""
+    cone: tuple[float, float] = (0.0, math.pi / 4)
+    """A spot light's inner and outer cone half-angles, radians (full intensity inside the inner one, none
+    outside the outer one)."""
+    radius: float = 0.0
+    """Size of the light, metres (a point or spot light's radius; for a directional light, the angular radius of
+    the sun in radians): soft shadows where a photoreal renderer samples it; 0 is a hard point."""
+    shadows: bool = True
+    """Whether the light casts shadows where the renderer draws them."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,9 +233,9 @@ class Scene:
     """The class table the objects' labels index."""
 
     def labelled_meshes(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
-        """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per object, world frame, in priority order:
+        """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per solid object, world frame, in priority order:
         the input of :func:`fruxel.kernels.fruxelize`."""
-        return [(np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces), o.label) for o in self.objects]
+        return [(np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces), o.label) for o in self.objects if o.solid]
 
     def mesh_set(self, backend: str | None = None, device: str | None = None) -> Any:
         """The scene uploaded once for many :func:`fruxel.kernels.fruxelize` calls (a user-held
