@@ -365,6 +365,10 @@ class BlockStream(IterableDataset):
         """``(read, close)``: sample ``i`` of the split (simulated or read from shards), and the closing of what
         reading holds."""
         if self.source == "stream":
+            if self.device is not None and self.device.startswith("cuda:"):
+                # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers
+                # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).
+                os.environ["EGL_DEVICE_ID"] = self.device.split(":", 1)[1]
             from fruxel.train.sim.sample import SampleMaker
 
             maker = SampleMaker(self.sim_config, self.seed, backend="warp", device=self.device)

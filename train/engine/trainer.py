@@ -56,6 +56,9 @@ class TrainResult:
     """Peak bytes allocated on the CUDA device (0 on the CPU)."""
     losses: dict[str, float] = dataclasses.field(default_factory=dict)
     """The last logged training losses (mean over the last ``log_every`` steps): ``total``, ``ce``, ..."""
+    data_seconds: float = 0.0
+    """Seconds this process waited for its batches in this call (host batches, the replay buffer and the copy to
+    the device; what the steps' compute did not hide)."""
 
 
 RESUME_SETTINGS = {"steps": "run", "time_limit": "run", "log_every": "run", "eval_every": "run",
@@ -269,6 +272,7 @@ class Trainer:
         self.state, step = self.build()
         # Batches drawn ahead of their step, each with the data position before it (see checkpoint_state).
         self._prefetched: list[tuple[tuple[int, int], dict[str, torch.Tensor]]] = []
+        self._data_total = 0.0
         self._stream = self._batches()
         try:
             if self.state.class_weights is None:
@@ -294,7 +298,7 @@ class Trainer:
         s = self.state
         return TrainResult(step=s.step, samples=s.samples, seconds=s.elapsed, interrupted=interrupted,
                            metrics=s.summary, timings=dict(self.timer.seconds), peak_memory=int(peak),
-                           losses=s.losses)
+                           losses=s.losses, data_seconds=self._data_total)
 
     def _loop(self, step: Step) -> bool:
         """The steps, then the callbacks' ``on_stop``; returns whether the time limit cut the run short."""
@@ -347,6 +351,7 @@ class Trainer:
             image, labels = to_device(batch, dev, channels_last)
             self.timer.tick(s.step, "data")
             self._data_seconds = time.perf_counter() - t
+            self._data_total += self._data_seconds
             yield image, labels
 
 
