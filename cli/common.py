@@ -50,6 +50,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import os
 import re
 import sys
 import textwrap
@@ -102,25 +103,62 @@ def run(main_impl: Callable[[argparse.Namespace], int | None], parser: argparse.
 
     Returns:
         The exit status: ``main_impl``'s (0 for None), :data:`EXIT_USAGE` (2) after printing
-        ``PROG: error: MESSAGE`` on stderr for a known error, :data:`EXIT_INTERRUPTED` (130) after Ctrl-C.
+        ``PROG: error: MESSAGE`` on stderr for a known error, :data:`EXIT_INTERRUPTED` (130) after Ctrl-C, and
+        :data:`EXIT_OK` (0), quietly, when standard output is a pipe whose reader has gone (``| head``).
 
     Raises:
         SystemExit: from the parser, for ``--help`` (status 0) and usage errors (status 2), as argparse does.
         Exception: anything else ``main_impl`` raises: a bug, shown with its traceback.
     """
-    args = parser.parse_args(argv)
     prog = parser.prog
     try:
+        args = parser.parse_args(argv)
         status = main_impl(args)
+        sys.stdout.flush()  # a closed pipe shows here rather than at the interpreter's exit
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (FruxelError, OSError) as e:
+        if isinstance(e, BrokenPipeError) and _stdout_closed():
+            _silence_stdout()
+            return EXIT_OK
         msg = one_line(e) if isinstance(e, FruxelError) else describe_os_error(e)
         hint = " (see --help)" if isinstance(e, UsageError) else ""
         print(f"{prog}: error: {msg}{hint}", file=sys.stderr)
         return EXIT_USAGE
     return EXIT_OK if status is None else int(status)
+
+
+def _stdout_closed() -> bool:
+    """True when standard output is a pipe or socket whose reader has gone (``| head`` that exited).
+
+    Only such a stdout ends a command quietly: a broken pipe anywhere else (a video encoder that died) stays an
+    error. Where ``poll`` cannot tell (no ``poll``, no file descriptor), a broken pipe is taken for stdout's: fruxel
+    writes its own files through :func:`write_outputs`, which reports their errors itself.
+    """
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        return True
+    if not hasattr(select, "poll"):
+        return True
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    # A pipe without a reader polls as an error (Linux) or as hung up (BSD, macOS).
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+
+
+def _silence_stdout() -> None:
+    """Point standard output at the null device, so that the interpreter's last flush at exit finds no closed pipe
+    (it would print "Exception ignored ... BrokenPipeError")."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -297,8 +335,12 @@ def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: An
     if kind == "bool" and "action" not in kwargs and "type" not in kwargs:
         flags = flags or ((f"--no-{option}",) if default else (f"--{option}",))
         kwargs.setdefault("action", "store_false" if default else "store_true")
-        # The docstring describes the setting; the flag turns it on, or (--no-...) off.
-        help_text += f" (default: {'on; this flag turns it off' if default else 'off'})"
+        # The docstring describes the setting, which the flag turns on, or (on by default) off: a --no-... flag
+        # says so first, lest "--no-legend  Draw the class legend" read as what the flag does.
+        if default:
+            help_text = f"turn off (on by default): {_lower_first(help_text)}"
+        else:
+            help_text += " (default: off)"
     else:
         flags = flags or (f"--{option}",)
         if "type" not in kwargs and "choices" not in kwargs and kind in _SCALARS:
@@ -307,6 +349,12 @@ def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: An
             help_text += f" (default: {kwargs['default']})"
     kwargs.setdefault("help", help_text)
     return parser.add_argument(*flags, **kwargs)
+
+
+def _lower_first(text: str) -> str:
+    """``text`` with its first letter in lower case, unless its first word is an acronym or a name (``SSZ``)."""
+    word = text.split(" ", 1)[0]
+    return text[:1].lower() + text[1:] if word[:1].isupper() and word[1:2].islower() else text
 
 
 def config_values(args: argparse.Namespace, cls: type, **given: Any) -> dict[str, Any]:
