@@ -27,8 +27,8 @@ and refuse wrong dtypes, object arrays, wrong shapes or absurd sizes *before* re
 array's shape with the grid and classes in ``meta``, refuse an array larger than the memory available
 (:func:`check_memory`: a 4 MB file of zeros can declare 4 GB of labels), then read exactly the bytes the header
 announces into the array's own buffer (and refuse NaN or infinite logits). :func:`read_header` reads ``meta``
-alone, for a check before the work a file is for. Every problem raises one :class:`FruxelFileError` naming the file and the
-problem, with no chained traceback.
+alone, for a check before the work a file is for. Every problem raises one :class:`FruxelFileError` naming the
+file and the problem, with no chained traceback.
 
 Shared helpers (numpy and the standard library only):
 
