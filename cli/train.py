@@ -34,7 +34,17 @@ from typing import Any
 
 from fruxel.train.config import PRESETS
 
-from .common import OneLineParser, UsageError, device_name, non_negative_int, positive_int, run
+from .common import (
+    OneLineParser,
+    UsageError,
+    check_output_folder,
+    device_name,
+    non_negative_int,
+    path_name,
+    positive_int,
+    run,
+    torch_device,
+)
 
 PROG = "fruxel-train"
 
@@ -59,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="JSON config: a preset (\"preset\": NAME) with any fields overridden")
     what.add_argument("--preset", choices=PRESETS, help="a named config: tiny (32^3 from 64^2, a CPU), ssz64 "
                       "(64^3 from 128^2), paper (128^3 from 512^2)")
-    p.add_argument("--out", metavar="RUN_DIR",
+    p.add_argument("--out", type=path_name, metavar="RUN_DIR",
                    help="the run folder: checkpoints, shipped model, metrics, curves, examples (created)")
     p.add_argument("--resume", action="store_true",
                    help="continue RUN_DIR/last.pt with the run's own config (--steps, --time-limit and --workers "
@@ -73,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run.batch_size: global batch (divided among the torchrun processes)")
     o.add_argument("--workers", type=non_negative_int, metavar="K",
                    help="data.workers: simulator or reader processes per training process (0: in the process)")
-    o.add_argument("--data", metavar="DIR",
+    o.add_argument("--data", type=path_name, metavar="DIR",
                    help="train on the data set folder DIR (fruxel-sim generate) instead of streaming: sets "
                    "data.source = shards, data.root = DIR")
     o.add_argument("--time-limit", type=_seconds, metavar="S",
@@ -106,7 +116,7 @@ def _changes(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
         if getattr(args, dest) is not None:
             changes.setdefault(part, {})[key] = getattr(args, dest)
     if args.data is not None:
-        changes.setdefault("data", {}).update(source="shards", root=args.data)
+        changes.setdefault("data", {}).update(source="shards", root=str(args.data))
     return changes
 
 
@@ -121,6 +131,25 @@ def _config(args: argparse.Namespace) -> Any:
     else:
         raise UsageError("give --config FILE or --preset NAME for a new run, or --resume to continue one")
     return override(config, _changes(args), "").check()
+
+
+def _check_data(config: Any) -> None:
+    """A data set of shards (``--data``) that the run cannot train on, found before the run folder is made.
+
+    Raises:
+        DatasetError: no data set there, or an incomplete one. UsageError: its grid or image size is not the
+            model's.
+    """
+    d, m = config.data, config.model
+    if d.source != "shards":
+        return
+    from fruxel.train.sim.dataset import ShardDataset
+
+    sc = ShardDataset(d.root, "train", verify=False).config
+    if sc.grid.shape != m.grid.shape or (sc.image_height, sc.image_width) != tuple(m.image_size):
+        raise UsageError(f"--data {d.root}: its samples are {sc.grid.width}x{sc.grid.height}x{sc.grid.depth} cells "
+                         f"from {sc.image_width}x{sc.image_height} images, the model's "
+                         f"{m.grid.width}x{m.grid.height}x{m.grid.depth} from {m.image_size[1]}x{m.image_size[0]}")
 
 
 def _main_rank() -> bool:
@@ -177,7 +206,13 @@ def _main(args: argparse.Namespace) -> int:
     from fruxel.train.engine.checkpoint import LATEST
     from fruxel.train.engine.trainer import Trainer
 
+    # What can be checked is checked before the run folder is made and the model built.
+    if args.device is not None:
+        torch_device(args.device)
     config = None if args.resume else _config(args)
+    if config is not None:
+        _check_data(config)
+    check_output_folder(args.out, "--out")
     show = not args.quiet and _main_rank()
     trainer = None
     try:

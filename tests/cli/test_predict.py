@@ -335,6 +335,55 @@ def test_photos_whose_pixels_have_no_scale_are_refused(kind: str, word: str, shi
     assert not out.exists()
 
 
+@pytest.mark.parametrize(("size", "word"), [((1, 1), "too small"), ((15, 200), "too small"),
+                                            ((4000, 50), "strip"), ((50, 401), "strip")])
+def test_photos_of_no_cameras_size_are_refused(size: tuple[int, int], word: str, shipped_model: Path,
+                                               tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Limits: at least MIN_PHOTO_SIDE pixels on the shorter side, at most MAX_PHOTO_ASPECT times as long as wide;
+    the limits themselves pass."""
+    from fruxel.cli.common import MAX_PHOTO_ASPECT, MIN_PHOTO_SIDE
+
+    bad = photo(tmp_path / "odd.png", *size)
+    out = tmp_path / "out"
+    assert predict_cli.main([str(bad), "--checkpoint", str(shipped_model), "--out", str(out)]) == 2
+    line = error_line(capsys)
+    assert str(bad) in line and f"{size[0]}x{size[1]}" in line and word in line, line
+    assert not out.exists()
+    edge = [photo(tmp_path / "small.png", MIN_PHOTO_SIDE, MIN_PHOTO_SIDE),
+            photo(tmp_path / "long.png", int(MAX_PHOTO_ASPECT * 20), 20)]
+    assert predict_cli.main([*map(str, edge), "--checkpoint", str(shipped_model), "--out", str(out), "-q"]) == 0
+
+
+def test_photos_and_the_output_folder_are_checked_before_the_model_loads(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """With a model file that cannot load, the error is still the photo's or the folder's: they come first."""
+    broken = tmp_path / "broken.safetensors"
+    broken.write_bytes(b"not a model")
+    good, missing = photo(tmp_path / "good.png", 40, 30), tmp_path / "missing.png"
+    tiny = photo(tmp_path / "tiny.png", 4, 4)
+    (tmp_path / "file").write_text("")
+    for argv, word in (([good, missing], str(missing)), ([good, tiny], str(tiny)),
+                       ([good, "--out", tmp_path / "file" / "sub"], "--out")):
+        assert predict_cli.main([*map(str, argv), "--checkpoint", str(broken)]) == 2
+        line = error_line(capsys)
+        assert word in line and "broken" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.safetensors", "file", "good.png", "tiny.png"]
+
+
+def test_an_empty_out_is_refused(shipped_model: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out ""`` (an unset shell variable) would have written into the current folder."""
+    img = photo(tmp_path / "x.png", 40, 30)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    with pytest.raises(SystemExit) as e:
+        predict_cli.main([str(img), "--checkpoint", str(shipped_model), "--out", ""])
+    assert e.value.code == 2
+    assert "--out" in error_line(capsys)
+    assert not any(work.iterdir())
+
+
 def test_help_is_instant_and_imports_nothing_heavy() -> None:
     code = ("import sys\nfrom fruxel.cli.predict import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n"
             "    pass\nheavy = [m for m in ('torch', 'warp', 'pyrender', 'PIL') if m in sys.modules]\nprint(heavy)")
