@@ -702,7 +702,12 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
         images = pictures.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
         keep = [(255, 255, 255), *inp.classes.palette()[1:]]
-        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
+
+        def encode(frames: Any) -> Any:
+            # The frames are drawn; encoding them (a GIF's palette mapping) is the other long part.
+            return tqdm(frames, total=len(images), desc="encode", unit="frame", leave=False, disable=None)
+
+        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep, encode)))
     else:
         image, fmt = pictures.image(camera), image_format(target)
         if empty and photo is None and args.mode != "both":

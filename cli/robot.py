@@ -132,7 +132,13 @@ def _write_video(args: argparse.Namespace, out: Path) -> list[str]:
             yield frame.picture
 
     keep = [(255, 255, 255), *demo.classes.palette()[1:]]
-    write_outputs([(out, lambda tmp: save_video(tmp, pictures(), fps, out.suffix, keep))])
+
+    def encode(frames: Any) -> Any:
+        # An MP4 is encoded as the drive goes (its bar says all); a GIF once it is over, with a bar of its own.
+        return frames if out.suffix.lower() == ".mp4" else tqdm(frames, total=config.frames, desc="encode",
+                                                                 unit="frame", leave=False, disable=None)
+
+    write_outputs([(out, lambda tmp: save_video(tmp, pictures(), fps, out.suffix, keep, encode))])
     return [str(out), _summary_line(timed, demo.predictor.device.type)]
 
 

@@ -660,3 +660,34 @@ def test_a_grid_too_large_for_memory_is_refused_before_it_is_read(tmp_path: Path
     assert "of memory, more than the" in lines[0] and "Traceback" not in result.stderr
     assert not out.exists()
 
+
+def test_orbit_shows_its_progress_on_a_terminal(tmp_path: Path) -> None:
+    """On a terminal, an orbit shows a bar while its frames are drawn and another while the video is encoded (a
+    GIF maps every frame onto its palette once all are drawn)."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    code = "import sys; from fruxel.cli.render import main; sys.exit(main(sys.argv[1:]))"
+    out = tmp_path / "orbit.gif"
+    proc = subprocess.Popen([sys.executable, "-c", code, "--backend", BACKEND, "--size", SIZE, "--orbit", "6",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=follower)
+    os.close(follower)
+    seen = b""
+    while True:
+        try:
+            chunk = os.read(leader, 65536)
+        except OSError:  # the terminal closes with the process
+            break
+        if not chunk:
+            break
+        seen += chunk
+    os.close(leader)
+    assert proc.wait(timeout=120) == 0
+    assert proc.stdout is not None and proc.stdout.read().decode().split() == [str(out)]
+    text = seen.decode(errors="replace")
+    assert "orbit:" in text and "/6 [" in text.split("encode:")[0], text
+    assert "encode:" in text and "/6 [" in text.split("encode:")[1], text
