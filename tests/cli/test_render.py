@@ -691,3 +691,17 @@ def test_orbit_shows_its_progress_on_a_terminal(tmp_path: Path) -> None:
     text = seen.decode(errors="replace")
     assert "orbit:" in text and "/6 [" in text.split("encode:")[0], text
     assert "encode:" in text and "/6 [" in text.split("encode:")[1], text
+
+
+@pytest.mark.skipif("opencl" not in kernels.available_backends(), reason="no OpenCL device")
+def test_a_run_prints_its_files_and_nothing_else(tmp_path: Path) -> None:
+    """Quiet by default: with fresh compiler caches (kernels built from source) and then with warm ones, a run
+    prints the files it wrote and nothing on stderr (no compiler warnings, no notes)."""
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    env.pop("PYOPENCL_COMPILER_OUTPUT", None)
+    for run in ("cold", "warm"):
+        out = tmp_path / run
+        result = subprocess_cli("--backend", "opencl", "--mode", "both", "--size", SIZE, "--out", str(out), env=env)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.split() == [str(out / "sample_room_both.png")]
+        assert error_lines(result.stderr) == [], result.stderr
