@@ -575,16 +575,17 @@ class PhotoError(FruxelError, ValueError):
 
 def check_photo(path: str | Path) -> tuple[int, int]:
     """Check a photo before any slow work, from its header alone (nothing is decoded): it exists, Pillow knows its
-    format, and its size is one a camera gives: at least :data:`MIN_PHOTO_SIDE` pixels on the shorter side, at most
-    :data:`MAX_PHOTO_ASPECT` times as long as it is wide. Damaged pixel data show when the photo is decoded
+    format, its pixels have a known range (not 32-bit integers), and its size is one a camera gives: at least
+    :data:`MIN_PHOTO_SIDE` pixels on the shorter side, at most :data:`MAX_PHOTO_ASPECT` times as long as it is wide.
+    Damaged pixel data and float pixels out of [0, 1] show when the photo is decoded
     (:func:`fruxel.train.predict.load_image`), which names the file too.
 
     Returns:
         ``(width, height)`` in pixels, as stored (before any EXIF rotation).
 
     Raises:
-        PhotoError: a missing file, a folder, a file that is no image Pillow reads, or a size out of those limits;
-            the message names the file.
+        PhotoError: a missing file, a folder, a file that is no image Pillow reads, 32-bit integer pixels, or a
+            size out of those limits; the message names the file.
     """
     from PIL import Image, UnidentifiedImageError
 

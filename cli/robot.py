@@ -20,7 +20,10 @@ mesh, draw, composed picture (:mod:`fruxel.train.live` says exactly what is time
 the camera image stands in for a real camera and is not timed, nor is the ground truth. The last lines printed
 give the FPS and the milliseconds per stage over the frames after the first (whose calls set kernels up).
 
-Errors are one line ``fruxel-robot: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
+``--size`` is a whole multiple of the model grid's width (64 for ``ssz64``, 128 for ``ssz128``): the simulator
+renders the camera image at a whole multiple of the grid. The device, the model's grid and the output file are
+checked before the model is built. Errors are one line ``fruxel-robot: error: ...`` with exit status 2
+(:func:`fruxel.cli.common.run`).
 """
 
 from __future__ import annotations
