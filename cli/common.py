@@ -461,7 +461,7 @@ def check_output_folder(folder: str | Path, flag: str) -> None:
     base = _existing_ancestor(folder)
     if not base.is_dir():
         if base == folder:
-            raise OutputError(f"{flag} {folder} is a file; {flag} is the folder the results go to")
+            raise OutputError(f"{flag} {folder} is a file, not a folder")
         raise OutputError(f"cannot write into {flag} {folder}: {base} is a file, not a folder")
     if not os.access(base, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write into {flag} {folder}: {base} is not writable (permission denied)")

@@ -38,7 +38,9 @@ Outputs go to ``--out`` (default ``out/``): ``NAME_mesh.png``, ``NAME_raycast.pn
 and ray cast side by side) or ``NAME_MODE_orbit.gif|mp4``, written atomically; NAME is the model file's (or the
 photo's) stem.
 Every path written is printed. Errors are one line ``fruxel-render: error: ...`` on stderr with exit status 2
-(:func:`fruxel.cli.common.run`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
+(:func:`fruxel.cli.common.run`); what needs no model is checked before any work (:func:`check_render_inputs`: the
+photo's header, ``--camera``, the output files, and whether a model file's grid can be drawn in the memory
+available, :data:`RENDER_BYTES_PER_CELL`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
 """
 
 from __future__ import annotations

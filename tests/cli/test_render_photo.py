@@ -229,6 +229,22 @@ def test_checks_come_before_the_prediction(case: str, words: tuple[str, ...], tm
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
+def test_a_pickle_or_a_checkpoint_named_safetensors_is_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """torch.load reads any file named .safetensors as safetensors: a traceback, before."""
+    import pickle
+
+    import torch
+
+    pickled, archive = tmp_path / "pickled.safetensors", tmp_path / "last.safetensors"
+    pickled.write_bytes(pickle.dumps({"generator": {"w": 1}}, protocol=2))
+    torch.save({"generator": {"w": torch.zeros(2)}}, archive)
+    for path, word in ((pickled, "Python pickle"), (archive, ".pt name")):
+        _one_error_line(run_cli(PHOTO, "--checkpoint", path, "--out", tmp_path / "out"), capsys.readouterr().err,
+                        str(path), word)
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("option", [("--truth", PHOTO_TRUTH), ("--checkpoint", PHOTO_TRUTH), ("--fit", "pad")])
 def test_photo_options_without_a_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                        option: tuple[object, ...]) -> None:
