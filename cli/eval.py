@@ -211,6 +211,22 @@ def _cache_prior(path: Path, mode: Any, model: Any) -> None:
         pass
 
 
+def _prior_mode(data: Any, model: Any, samples: int, batches: Any) -> Any:
+    """The per-cell prior ``(D, H, W)`` uint8 of ``samples`` training samples: the cached one, else counted over
+    ``batches()`` (``(images, labels)`` batches) and cached."""
+    from fruxel.train.eval.baselines import CellPrior
+
+    cache = prior_cache_path(data, model, samples)
+    counted = _cached_prior(cache, model)
+    if counted is None:
+        prior = CellPrior(model.grid.shape, len(model.classes.names))
+        for _, labels in batches():
+            prior.add(labels)
+        counted = prior.mode()
+        _cache_prior(cache, counted, model)
+    return counted
+
+
 def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Iterator[Any]:
     """``batches`` with a progress bar over samples on stderr (hidden with ``--quiet`` or when stderr is no
     terminal)."""
@@ -233,7 +249,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from fruxel.render.table1 import machine_info
     from fruxel.train.config import INFERENCE_RULES
     from fruxel.train.engine.data import to_device
-    from fruxel.train.eval.baselines import CellPrior, oracle_prediction, prior_prediction
+    from fruxel.train.eval.baselines import oracle_prediction, prior_prediction
     from fruxel.train.eval.evaluate import evaluate_predictions, generator_predict
     from fruxel.train.eval.report import RULES, build_report, markdown_report
     from fruxel.train.eval.samples import EvalData, EvalDataError, batches, data_set_manifest, split_size
@@ -273,14 +289,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
             except EvalDataError:
                 raise EvalDataError(f"{args.data}: the per-cell prior counts the train split, which this data set does "
                                     "not have; give --prior-samples 0 to leave the prior out") from None
-        cache = prior_cache_path(data, mc, n_prior)
-        counted = _cached_prior(cache, mc)
-        if counted is None:
-            prior = CellPrior(grid.shape, len(classes.names))
-            for _, labels in load("train", n_prior, "prior"):
-                prior.add(labels)
-            counted = prior.mode()
-            _cache_prior(cache, counted, mc)
+        counted = _prior_mode(data, mc, n_prior, lambda: load("train", n_prior, "prior"))
         mode = torch.from_numpy(np.array(counted, dtype=np.uint8)).to(device)  # a writable copy: torch warns otherwise
         predictors["prior"] = lambda image, truth: prior_prediction(mode, len(truth))
         prior_info = {"split": "train", "samples": n_prior}
