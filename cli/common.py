@@ -29,11 +29,17 @@ Every command (``fruxel-render``, ``fruxel-sim``, and the training, evaluation a
 
 Argument vocabulary shared by the commands: :func:`positive_int`, :func:`non_negative_int`,
 :func:`unit_fraction`, :func:`positive_float`, :func:`field_of_view` (degrees), :func:`device_name`,
-:func:`image_size` (``WxH``), and the grid options of
+:func:`image_size` (``WxH``), :func:`path_name` (a file or folder name, never empty), and the grid options of
 :func:`add_grid_options`: ``--grid N|WxHxD`` (cells) with ``--z-near``, ``--z-far`` and ``--hfov``.
 
-Outputs: :func:`write_outputs` writes a command's files together (all or none), making their folders and removing
-what killed earlier runs left behind.
+Inputs and outputs are checked before any slow work (loading a model, rendering, simulating):
+:func:`check_output_folder` and :func:`check_output_file` find what would stop an output from being written (a file
+where a folder must be, a folder where the file must be, no permission), without making anything.
+:func:`write_outputs` writes a command's files together (all or none), making their folders and removing what
+killed earlier runs left behind.
+
+A closed standard output (``fruxel-train --print-config | head``) ends a command quietly with status 0, as it
+ends the standard Unix tools.
 
 Defaults are written once, in the config dataclasses: :func:`config_option` adds an option whose default,
 type and help text come from a dataclass field (its docstring), and :func:`config_values` collects the parsed
@@ -50,6 +56,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import os
 import re
 import sys
 import textwrap
@@ -102,25 +109,62 @@ def run(main_impl: Callable[[argparse.Namespace], int | None], parser: argparse.
 
     Returns:
         The exit status: ``main_impl``'s (0 for None), :data:`EXIT_USAGE` (2) after printing
-        ``PROG: error: MESSAGE`` on stderr for a known error, :data:`EXIT_INTERRUPTED` (130) after Ctrl-C.
+        ``PROG: error: MESSAGE`` on stderr for a known error, :data:`EXIT_INTERRUPTED` (130) after Ctrl-C, and
+        :data:`EXIT_OK` (0), quietly, when standard output is a pipe whose reader has gone (``| head``).
 
     Raises:
         SystemExit: from the parser, for ``--help`` (status 0) and usage errors (status 2), as argparse does.
         Exception: anything else ``main_impl`` raises: a bug, shown with its traceback.
     """
-    args = parser.parse_args(argv)
     prog = parser.prog
     try:
+        args = parser.parse_args(argv)
         status = main_impl(args)
+        sys.stdout.flush()  # a closed pipe shows here rather than at the interpreter's exit
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (FruxelError, OSError) as e:
+        if isinstance(e, BrokenPipeError) and _stdout_closed():
+            _silence_stdout()
+            return EXIT_OK
         msg = one_line(e) if isinstance(e, FruxelError) else describe_os_error(e)
         hint = " (see --help)" if isinstance(e, UsageError) else ""
         print(f"{prog}: error: {msg}{hint}", file=sys.stderr)
         return EXIT_USAGE
     return EXIT_OK if status is None else int(status)
+
+
+def _stdout_closed() -> bool:
+    """True when standard output is a pipe or socket whose reader has gone (``| head`` that exited).
+
+    Only such a stdout ends a command quietly: a broken pipe anywhere else (a video encoder that died) stays an
+    error. Where ``poll`` cannot tell (no ``poll``, no file descriptor), a broken pipe is taken for stdout's: fruxel
+    writes its own files through :func:`write_outputs`, which reports their errors itself.
+    """
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        return True
+    if not hasattr(select, "poll"):
+        return True
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    # A pipe without a reader polls as an error (Linux) or as hung up (BSD, macOS).
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+
+
+def _silence_stdout() -> None:
+    """Point standard output at the null device, so that the interpreter's last flush at exit finds no closed pipe
+    (it would print "Exception ignored ... BrokenPipeError")."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    except (AttributeError, OSError, ValueError):
+        pass
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -192,6 +236,14 @@ def image_size(text: str) -> tuple[int, int]:
     if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
         raise argparse.ArgumentTypeError(f"expected WxH with positive integers, e.g. 640x480, got {text!r}")
     return int(m.group(1)), int(m.group(2))
+
+
+def path_name(text: str) -> Path:
+    """argparse type: a file or folder name. An empty or blank one is refused: ``Path("")`` is the current folder,
+    which ``--out ""`` (an unset shell variable) surely did not mean."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
+    return Path(text)
 
 
 def grid_size(text: str) -> tuple[int, int, int]:
@@ -297,8 +349,12 @@ def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: An
     if kind == "bool" and "action" not in kwargs and "type" not in kwargs:
         flags = flags or ((f"--no-{option}",) if default else (f"--{option}",))
         kwargs.setdefault("action", "store_false" if default else "store_true")
-        # The docstring describes the setting; the flag turns it on, or (--no-...) off.
-        help_text += f" (default: {'on; this flag turns it off' if default else 'off'})"
+        # The docstring describes the setting, which the flag turns on, or (on by default) off: a --no-... flag
+        # says so first, lest "--no-legend  Draw the class legend" read as what the flag does.
+        if default:
+            help_text = f"turn off (on by default): {_lower_first(help_text)}"
+        else:
+            help_text += " (default: off)"
     else:
         flags = flags or (f"--{option}",)
         if "type" not in kwargs and "choices" not in kwargs and kind in _SCALARS:
@@ -307,6 +363,12 @@ def config_option(parser: Any, config: Any, name: str, *flags: str, **kwargs: An
             help_text += f" (default: {kwargs['default']})"
     kwargs.setdefault("help", help_text)
     return parser.add_argument(*flags, **kwargs)
+
+
+def _lower_first(text: str) -> str:
+    """``text`` with its first letter in lower case, unless its first word is an acronym or a name (``SSZ``)."""
+    word = text.split(" ", 1)[0]
+    return text[:1].lower() + text[1:] if word[:1].isupper() and word[1:2].islower() else text
 
 
 def config_values(args: argparse.Namespace, cls: type, **given: Any) -> dict[str, Any]:
@@ -373,6 +435,55 @@ def grid_from_args(args: argparse.Namespace, default: FruxelGrid, *, size_defaul
 # ---------------------------------------------------------------------------------------------------- outputs
 class OutputError(FruxelError, OSError):
     """An output file that could not be written; the message names the file (never a temporary name)."""
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """``path`` itself if it exists, else its nearest existing parent (``.`` for a relative name)."""
+    for p in (path, *path.parents):
+        if p.exists():
+            return p
+    return Path(".")
+
+
+def check_output_folder(folder: str | Path, flag: str) -> None:
+    """Check, before any slow work, that files can be written into ``folder`` (made where missing): it is a folder
+    or can be made as one, and the folder that holds it lets this user write. Nothing is made.
+
+    Args:
+        folder: the output folder.
+        flag: the option that names it (``"--out"``), for the message.
+
+    Raises:
+        OutputError: a file where the folder (or one of its parents) must be, or a folder this user may not write
+            in; the message names ``flag`` and the folder.
+    """
+    folder = Path(folder)
+    base = _existing_ancestor(folder)
+    if not base.is_dir():
+        if base == folder:
+            raise OutputError(f"{flag} {folder} is a file, not a folder")
+        raise OutputError(f"cannot write into {flag} {folder}: {base} is a file, not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write into {flag} {folder}: {base} is not writable (permission denied)")
+
+
+def check_output_file(target: str | Path, flag: str) -> None:
+    """Check, before any slow work, that the file ``target`` can be written (its folder made where missing): it is
+    not a folder, and :func:`check_output_folder` passes for its folder. Nothing is made.
+
+    Raises:
+        OutputError: a folder where the file must be, or an unusable folder (:func:`check_output_folder`); the
+            message names ``flag`` and the file.
+    """
+    target = Path(target)
+    if target.is_dir():
+        raise OutputError(f"cannot write {flag} {target}: it is a folder")
+    base = _existing_ancestor(target.parent)
+    if not base.is_dir():
+        raise OutputError(f"cannot write {flag} {target}: {base} is a file, not a folder")
+    # Writes are atomic (a temporary file renamed over the target): the folder's permission is what counts.
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write {flag} {target}: {base} is not writable (permission denied)")
 
 
 def _make_folder(folder: Path, target: Path, made: list[Path]) -> None:
@@ -448,6 +559,58 @@ def write_outputs(outputs: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     return targets
 
 
+# ---------------------------------------------------------------------------------------------------- photos
+MIN_PHOTO_SIDE = 16
+"""Fewest pixels a photo may have on its shorter side: SSZ reads a view of the room, and a thumbnail of a few
+pixels (a 1 x 1 picture, an icon) holds none."""
+MAX_PHOTO_ASPECT = 8.0
+"""Most times a photo may be wider than high, or higher than wide. A camera's view, panoramas included, is within
+4 : 1; a 4000 x 50 strip is not a view of a room: cropped to the model's aspect (``--fit crop``) it would keep a
+sliver of 1 %, padded (``--fit pad``) a line in grey."""
+
+
+class PhotoError(FruxelError, ValueError):
+    """A photo a command cannot read or use; the message names the file."""
+
+
+def check_photo(path: str | Path) -> tuple[int, int]:
+    """Check a photo before any slow work, from its header alone (nothing is decoded): it exists, Pillow knows its
+    format, its pixels have a known range (not 32-bit integers), and its size is one a camera gives: at least
+    :data:`MIN_PHOTO_SIDE` pixels on the shorter side, at most :data:`MAX_PHOTO_ASPECT` times as long as it is wide.
+    Damaged pixel data and float pixels out of [0, 1] show when the photo is decoded
+    (:func:`fruxel.train.predict.load_image`), which names the file too.
+
+    Returns:
+        ``(width, height)`` in pixels, as stored (before any EXIF rotation).
+
+    Raises:
+        PhotoError: a missing file, a folder, a file that is no image Pillow reads, 32-bit integer pixels, or a
+            size out of those limits; the message names the file.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    p = os.fsdecode(path)
+    if not os.path.exists(p):
+        raise PhotoError(f"{p}: no such file")
+    if not os.path.isfile(p):
+        raise PhotoError(f"{p}: not a regular file")
+    try:
+        with Image.open(p) as im:
+            (w, h), mode, kind = im.size, im.mode, im.format
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as e:
+        raise PhotoError(f"{p}: not a readable image ({type(e).__name__}: {one_line(e)})") from None
+    if mode == "I" and kind != "PNG":  # as load_image refuses it (a PNG's "I" is 16-bit grey in old Pillows)
+        raise PhotoError(f"{p}: 32-bit integer pixels have no range to scale them by; save the photo with 8 or 16 "
+                         "bits a channel")
+    if min(w, h) < MIN_PHOTO_SIDE:
+        raise PhotoError(f"{p}: {w}x{h} pixels is too small to show a room (fruxel reads photos of at least "
+                         f"{MIN_PHOTO_SIDE} pixels a side)")
+    if max(w, h) > MAX_PHOTO_ASPECT * min(w, h):
+        raise PhotoError(f"{p}: {w}x{h} pixels is a strip, not a camera's view (fruxel reads photos at most "
+                         f"{MAX_PHOTO_ASPECT:g} times as long as wide)")
+    return w, h
+
+
 # ---------------------------------------------------------------------------------------------------- models
 def add_model_options(parser: Any) -> None:
     """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.
@@ -467,12 +630,17 @@ def torch_device(name: str | None) -> Any:
     """The ``torch.device`` of ``--device`` (:func:`add_model_options`): CUDA when present if None.
 
     Raises:
-        UsageError: a CUDA device asked for on a machine without one.
+        UsageError: a CUDA device asked for on a machine without one (or without that one).
     """
     import torch
 
     if name is None:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise UsageError(f"--device {name}: no CUDA device here")
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise UsageError(f"--device {name}: no CUDA device here")
+        index = int(name.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise UsageError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA devices, "
+                             f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")
     return torch.device(name)

@@ -14,7 +14,11 @@ the model's grid and image size (default 256, ``--seed``). The same samples are 
 
 * the model (argmax of its logits),
 * the **per-cell prior**: each cell's most frequent label over ``--prior-samples`` samples of the training split
-  of the same source (``0`` leaves it out),
+  of the same source (``0`` leaves it out). Counting them takes minutes on a CPU (the streamed samples are
+  simulated), so the prior is kept in a cache (:func:`prior_cache_path`, a fruxel model file under
+  ``$FRUXEL_CACHE_DIR``, default ``~/.cache/fruxel``) keyed by everything that makes it: the source (the
+  simulator's settings and seed, or the data set's manifest), the number of samples, the model's grid and classes,
+  and fruxel's own code; a later evaluation of the same source reads it back,
 * the **visible-surface oracle**: the ground truth's own-view shell alone (a perfect depth and segmentation
   network that completes nothing),
 
@@ -31,7 +35,10 @@ status 2 (:func:`fruxel.cli.common.run`).
 from __future__ import annotations
 
 import argparse
+import hashlib
+import importlib.util
 import json
+import os
 import shlex
 import sys
 import time
@@ -43,7 +50,9 @@ from .common import (
     OneLineParser,
     UsageError,
     add_model_options,
+    check_output_folder,
     non_negative_int,
+    path_name,
     positive_int,
     run,
     torch_device,
@@ -59,6 +68,9 @@ PRIOR_SAMPLES = 1024
 """Training samples of the per-cell prior when ``--prior-samples`` is not given."""
 OUTPUTS = ("report.md", "report.json", "examples.png")
 """Files written into ``--out``."""
+CACHE_ENV = "FRUXEL_CACHE_DIR"
+"""Environment variable naming the folder of fruxel's caches (default ``$XDG_CACHE_HOME/fruxel``, else
+``~/.cache/fruxel``); ``fruxel-eval`` keeps its per-cell priors in ``prior/`` there."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
         "oracle (the true own-view surface alone). Writes report.md, report.json and examples.png.",
     )
     add_model_options(p)
-    p.add_argument("--data", default=None, metavar="DIR",
+    p.add_argument("--data", type=path_name, default=None, metavar="DIR",
                    help="a data set folder made by fruxel-sim generate (default: stream samples from the simulator)")
     p.add_argument("--split", default="test", metavar="NAME", help="the data set's split to evaluate on (default test)")
     p.add_argument("--samples", type=positive_int, default=None, metavar="N",
@@ -83,8 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stream images without appearance augmentation (default: augmented, as in training)")
     p.add_argument("--prior-samples", type=non_negative_int, default=PRIOR_SAMPLES, metavar="N",
                    help="training samples counted for the per-cell prior, from the train split of the same source "
-                   f"(0 leaves the prior out; default {PRIOR_SAMPLES}, at most the data set's train split)")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+                   f"(0 leaves the prior out; default {PRIOR_SAMPLES}, at most the data set's train split); kept in "
+                   f"a cache for later evaluations (${CACHE_ENV}, default ~/.cache/fruxel)")
+    p.add_argument("--out", type=path_name, default=DEFAULT_OUT, metavar="DIR",
                    help=f"output folder (default {DEFAULT_OUT}/): {', '.join(OUTPUTS)}")
     p.add_argument("--batch", type=positive_int, default=8, metavar="B", help="samples per batch (default 8)")
     p.add_argument("--workers", type=non_negative_int, default=0, metavar="K",
@@ -111,10 +124,104 @@ def _check_options(args: argparse.Namespace) -> None:
             raise UsageError(f"{', '.join(given)} {verb} streamed samples; a data set (--data) has its own")
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; --out is the folder for {', '.join(OUTPUTS)}")
+    check_output_folder(args.out, "--out")
+    if args.data is not None and not args.data.is_dir():
+        raise UsageError(f"--data {args.data}: {'no such folder' if not args.data.exists() else 'not a folder'}")
     if args.backend is not None:
         from fruxel.kernels.registry import split_name
 
         split_name(args.backend)
+
+
+# ---------------------------------------------------------------------------------------------------- prior
+def cache_folder() -> Path:
+    """The folder of fruxel's caches: ``$FRUXEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/fruxel``, else
+    ``~/.cache/fruxel``."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fruxel"
+
+
+def _code_digest() -> str:
+    """SHA-256 of the sources that make and count the samples (fruxel's core, kernels and training packages): a
+    cached prior made by other code is not read back."""
+    digest = hashlib.sha256()
+    for name in ("fruxel", "fruxel.kernels", "fruxel.train"):
+        spec = importlib.util.find_spec(name)
+        root = Path(next(iter(spec.submodule_search_locations))) if spec and spec.submodule_search_locations else None
+        if root is None:
+            continue
+        for f in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".cl", ".h") and p.is_file()):
+            rel = f.relative_to(root)
+            if name == "fruxel" and len(rel.parts) > 1 and rel.parts[0] != "data":
+                continue  # the other packages, which an installed wheel nests in fruxel/, are hashed as themselves
+            digest.update(f"{name}/{rel.as_posix()}\0".encode())
+            digest.update(f.read_bytes())
+    return digest.hexdigest()
+
+
+def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
+    """Where the per-cell prior of ``samples`` training samples of ``data`` for ``model`` is cached: a fruxel model
+    file (:func:`fruxel.save`; its labels are the prior) named by a hash of everything that makes it.
+
+    Args:
+        data: the :class:`fruxel.train.samples.SampleSource`.
+        model: the model's config (grid, image size, classes).
+        samples: training samples counted.
+    """
+    from fruxel.train.samples import sim_config
+    from fruxel.train.sim.manifest import MANIFEST
+
+    key: dict[str, Any] = {"samples": samples, "grid": model.grid.to_dict(), "classes": model.classes.to_dict(),
+                           "code": _code_digest()}
+    if data.source == "shards":
+        # A data set's manifest holds its settings and every shard's SHA-256.
+        key["data set"] = hashlib.sha256(Path(data.root, MANIFEST).read_bytes()).hexdigest()
+    else:
+        key["stream"] = sim_config(model, data, (("train", samples),)).to_dict()
+        key["seed"] = data.seed
+    name = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:32]
+    return cache_folder() / "prior" / f"{name}.npz"
+
+
+def _cached_prior(path: Path, model: Any) -> Any:
+    """The prior ``(D, H, W)`` uint8 cached at ``path``, or None (none there, unreadable, another grid)."""
+    import fruxel
+
+    try:
+        m = fruxel.load(path)
+    except fruxel.FruxelFileError:
+        return None
+    return m.labels if m.grid == model.grid and m.classes == model.classes else None
+
+
+def _cache_prior(path: Path, mode: Any, model: Any) -> None:
+    """Keep a prior at ``path`` (atomically); a cache that cannot be written is no error, only slower next time."""
+    import fruxel
+    from fruxel.io import remove_stale_temporaries
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path)
+        fruxel.save(path, fruxel.FruxelModel(mode, model.grid, model.classes))
+    except OSError:
+        pass
+
+
+def _prior_mode(data: Any, model: Any, samples: int, batches: Any) -> Any:
+    """The per-cell prior ``(D, H, W)`` uint8 of ``samples`` training samples: the cached one, else counted over
+    ``batches()`` (``(images, labels)`` batches) and cached."""
+    from fruxel.train.eval.baselines import CellPrior
+
+    cache = prior_cache_path(data, model, samples)
+    counted = _cached_prior(cache, model)
+    if counted is None:
+        prior = CellPrior(model.grid.shape, len(model.classes.names))
+        for _, labels in batches():
+            prior.add(labels)
+        counted = prior.mode()
+        _cache_prior(cache, counted, model)
+    return counted
 
 
 def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Iterator[Any]:
@@ -145,9 +252,10 @@ def _source(args: argparse.Namespace, mc: Any) -> tuple[Any, int]:
 
 def _prior(args: argparse.Namespace, source: Any, mc: Any, load: Any, device: Any) -> tuple[Any, dict[str, Any]]:
     """The per-cell prior's prediction rule and what it counted."""
+    import numpy as np
     import torch
 
-    from fruxel.train.eval.baselines import CellPrior, prior_prediction
+    from fruxel.train.eval.baselines import prior_prediction
     from fruxel.train.samples import DataError, split_size
 
     n_prior = args.prior_samples
@@ -157,11 +265,9 @@ def _prior(args: argparse.Namespace, source: Any, mc: Any, load: Any, device: An
         except DataError:
             raise DataError(f"{args.data}: the per-cell prior counts the train split, which this data set does "
                             "not have; give --prior-samples 0 to leave the prior out") from None
-    prior = CellPrior(mc.grid.shape, mc.num_classes)
-    for _, labels in load("train", n_prior, "prior"):
-        prior.add(labels)
-    mode = torch.from_numpy(prior.mode()).to(device)
-    return (lambda image, truth: prior_prediction(mode, len(truth))), {"split": "train", "samples": prior.samples}
+    counted = _prior_mode(source, mc, n_prior, lambda: load("train", n_prior, "prior"))
+    mode = torch.from_numpy(np.array(counted, dtype=np.uint8)).to(device)  # a writable copy: torch warns otherwise
+    return (lambda image, truth: prior_prediction(mode, len(truth))), {"split": "train", "samples": n_prior}
 
 
 def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:

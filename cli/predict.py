@@ -5,11 +5,13 @@ Usage::
     fruxel-predict IMAGE... [--checkpoint FILE] [--out DIR] [--fit crop|pad] [--hfov DEG] [--batch N] [--logits]
                    [--device cpu|cuda[:N]] [-q]
 
-IMAGE is any PNG, JPEG or other image Pillow reads, of any size. Each is mapped onto the model's own camera
-(:func:`fruxel.train.predict.prepare_image`): with ``--hfov`` (the photo's horizontal field of view) it is cropped
-or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the grid's view
-and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then it is
-resized to the model's image size. Grid columns whose centre ray falls on grey padding are left empty: the photo
+IMAGE is any PNG, JPEG or other image Pillow reads (16-bit grey and 32-bit float grey in [0, 1] included), of any
+size a camera gives: at least 16 pixels on its shorter side and at most 8 times as long as wide
+(:func:`fruxel.cli.common.check_photo`; smaller or thinner pictures are refused). Each is mapped onto the model's
+own camera (:func:`fruxel.train.predict.prepare_image`): with ``--hfov`` (the photo's horizontal field of view) it
+is cropped or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the
+grid's view and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then
+it is resized to the model's image size. Grid columns whose centre ray falls on grey padding are left empty: the photo
 says nothing of them. The model (``--checkpoint``: a shipped ``.safetensors`` file, a training checkpoint ``.pt``
 or a shipped model's name, ``ssz64`` or ``ssz128``; default the model shipped with fruxel, ``ssz64``) predicts the
 images in batches of ``--batch``.
@@ -21,9 +23,10 @@ For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)
   ``(C, D, H, W)`` in float16.
 
 The labels are the argmax of the logits as stored (float16), so both files show the same model; ``fruxel-render``
-reads either. An image's files are written together, atomically; every path written is printed. All images are
-read and checked before the model runs, and two images that would write the same file are refused. Errors are
-one line ``fruxel-predict: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
+reads either. An image's files are written together, atomically; every path written is printed. The output
+folder and each photo's format and size are checked before the model loads, every photo is read before it runs,
+and two images that would write the same file are refused. Errors are one line ``fruxel-predict: error: ...`` with
+exit status 2 (:func:`fruxel.cli.common.run`).
 """
 
 from __future__ import annotations
@@ -38,7 +41,10 @@ from .common import (
     OneLineParser,
     UsageError,
     add_model_options,
+    check_output_folder,
+    check_photo,
     field_of_view,
+    path_name,
     positive_int,
     run,
     torch_device,
@@ -64,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("images", nargs="+", metavar="IMAGE", help="photos: PNG, JPEG or anything Pillow reads, any size")
     add_model_options(p)
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR",
+    p.add_argument("--out", type=path_name, default=DEFAULT_OUT, metavar="DIR",
                    help=f"output folder (default {DEFAULT_OUT}/)")
     p.add_argument("--fit", choices=("crop", "pad"), default="crop",
                    help="without --hfov: match the model's aspect by a centred crop or by grey padding (default crop)")
@@ -127,12 +133,18 @@ def _writers(logits: Any, grid: Any, classes: Any, files: list[Path]) -> list[tu
 
 
 def _main(args: argparse.Namespace) -> int:
+    # Everything that can be checked is checked before the model loads: the output folder, the photos' headers
+    # (format and size), the device.
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; --out is the folder the predictions go to")
     if not args.out.exists() and args.out.suffix.lower() == ".npz":  # a file name meant, not a folder to make
         raise UsageError(f"--out {args.out}: --out is the folder the predictions go to, as NAME.npz for each image; "
                          f"give a folder")
+    check_output_folder(args.out, "--out")
     targets = output_names(args.images, args.out, args.logits)
+    for path in args.images:
+        check_photo(path)
+    device = str(torch_device(args.device))
 
     from fruxel.train.predict import (
         ImageError,
@@ -143,8 +155,7 @@ def _main(args: argparse.Namespace) -> int:
         prepare_image,
     )
 
-    predictor = load_predictor(args.checkpoint, device=str(torch_device(args.device)), batch=args.batch,
-                               compile=args.compile)
+    predictor = load_predictor(args.checkpoint, device=device, batch=args.batch, compile=args.compile)
     config = predictor.config
     # Every image is read and checked before the model runs; what is kept is its small model-sized version.
     prepared, coverage = [], []

@@ -38,7 +38,9 @@ Outputs go to ``--out`` (default ``out/``): ``NAME_mesh.png``, ``NAME_raycast.pn
 and ray cast side by side) or ``NAME_MODE_orbit.gif|mp4``, written atomically; NAME is the model file's (or the
 photo's) stem.
 Every path written is printed. Errors are one line ``fruxel-render: error: ...`` on stderr with exit status 2
-(:func:`fruxel.cli.common.run`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
+(:func:`fruxel.cli.common.run`); what needs no model is checked before any work (:func:`check_render_inputs`: the
+photo's header, ``--camera``, the output files, and whether a model file's grid can be drawn in the memory
+available, :data:`RENDER_BYTES_PER_CELL`). ``--view`` opens pyrender's interactive Viewer instead (it needs a display).
 """
 
 from __future__ import annotations
@@ -57,6 +59,9 @@ from .common import (
     OneLineParser,
     UsageError,
     add_grid_options,
+    check_output_file,
+    check_output_folder,
+    check_photo,
     config_option,
     config_values,
     device_name,
@@ -64,6 +69,7 @@ from .common import (
     grid_options_given,
     image_size,
     one_line,
+    path_name,
     positive_int,
     run,
     unit_fraction,
@@ -137,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_grid_options(p, _default_grid(), size_default=False,
                      what="of a bare logits tensor; with --benchmark, N for an N^3 room",
                      hfov_help="for a photo MODEL, the photo's horizontal field of view (default: the model grid's)")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR|FILE",
+    p.add_argument("--out", type=path_name, default=None, metavar="DIR|FILE",
                    help=f"output folder (default {DEFAULT_OUT}/), or the file itself when it ends in an image or "
                    "video suffix (.png, .jpg, ...; .gif, .mp4 with --orbit)")
     p.add_argument("--orbit", type=positive_int, default=None, metavar="N",
@@ -146,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"orbit format when --out is a folder (default {VIDEO_FORMATS_DEFAULT}; mp4 needs "
                    "imageio-ffmpeg)")
     p.add_argument("--fps", type=positive_int, default=12, help="orbit frames per second (default 12)")
-    p.add_argument("--export", type=Path, default=None, metavar="FILE",
+    p.add_argument("--export", type=path_name, default=None, metavar="FILE",
                    help="also write the mesh to FILE.glb (glTF's frame, +Y up, as glTF viewers expect) or FILE.ply "
                    "(the grid frame: OpenCV axes, y down; with face labels)")
     p.add_argument("--view", action="store_true", help="open pyrender's interactive Viewer (needs a display)")
@@ -503,7 +509,23 @@ def _read_camera_file(text: str) -> str:
 
 
 def viewing_camera(text: str | None, grid: FruxelGrid, size: tuple[int, int] | None) -> Camera:
-    """The camera of ``--camera`` or :func:`fruxel.render.frames.default_camera` at ``size``.
+    """The camera of ``--camera`` (:func:`read_camera`) or :func:`fruxel.render.frames.default_camera` at ``size``.
+
+    Raises:
+        InputError: an unreadable file or an invalid camera, naming ``--camera`` and the file.
+        UsageError: ``size`` given and other than the camera's own image size.
+    """
+    from fruxel.render.frames import DEFAULT_SIZE, default_camera
+
+    cam = read_camera(text, size)
+    if cam is None:
+        w, h = size or DEFAULT_SIZE
+        return default_camera(grid, w, h)
+    return cam
+
+
+def read_camera(text: str | None, size: tuple[int, int] | None) -> Camera | None:
+    """The camera of ``--camera``, None without one: read before any work, as it needs no model.
 
     ``text`` is a :meth:`fruxel.Camera.to_json` text when it starts with ``{``, else the name of a file holding
     one (so that a missing file says so rather than "malformed JSON").
@@ -513,11 +535,9 @@ def viewing_camera(text: str | None, grid: FruxelGrid, size: tuple[int, int] | N
         UsageError: ``size`` given and other than the camera's own image size.
     """
     from fruxel import Camera
-    from fruxel.render.frames import DEFAULT_SIZE, default_camera
 
     if text is None:
-        w, h = size or DEFAULT_SIZE
-        return default_camera(grid, w, h)
+        return None
     if text.lstrip().startswith("{"):
         source = "--camera (JSON text)"
     else:
@@ -578,12 +598,49 @@ def output_path(args: argparse.Namespace, name: str) -> Path:
     return target
 
 
-def run_render(args: argparse.Namespace) -> list[Path]:
-    """Render as asked and write the outputs, all of them or none (:func:`fruxel.cli.common.write_outputs`);
-    returns the files written (none for ``--view``)."""
-    from fruxel.render.frames import FrameRenderer, open_viewer, orbit
-    from fruxel.render.images import image_format, save_image, save_video
+RENDER_BYTES_PER_CELL = 6
+"""Memory a picture takes per cell of the model's grid, bytes (an estimate: the padded labels, the shell and the
+mesh's work arrays; 5.5 measured for the mesh of a 1024 x 1024 x 512 room, 1.6 for its ray cast), on top of the
+volume itself (a logits file's logits and their probabilities)."""
 
+
+def model_name(model: str | None) -> str:
+    """NAME of the output files of MODEL: the file's (or photo's) stem, ``sample_room`` for the sample room."""
+    if model is None:
+        from fruxel.data import SAMPLE_ROOM
+
+        return SAMPLE_ROOM.stem
+    return Path(model).stem
+
+
+def _check_model_memory(model: str | None) -> None:
+    """Refuse a model or logits file whose grid is too large to render in the memory available, from its header,
+    before anything is read (a 4 MB file of zeros can declare billions of cells)."""
+    if model is None or Path(model).suffix.lower() != ".npz" or not Path(model).is_file():
+        return  # the sample room is small; other files are reported by the reader
+    from fruxel.io import MemoryLimitError, check_memory, read_header
+
+    kind, grid, classes = read_header(model)
+    cells = grid.width * grid.height * grid.depth
+    # A logits file's volume: its float logits (up to 4 bytes) and their float32 probabilities, per class.
+    volume = cells * len(classes) * 8 if kind == "logits" else cells
+    try:
+        check_memory(volume + RENDER_BYTES_PER_CELL * cells,
+                     f"its {grid.width}x{grid.height}x{grid.depth} cells ({cells / 1e9:.2g} billion) to render")
+    except MemoryLimitError as e:
+        raise InputError(f"{model}: {e}") from None
+
+
+def check_render_inputs(args: argparse.Namespace) -> tuple[Camera | None, Path | None]:
+    """Every check that needs no model, before any work (no photo predicted, no model read): options that do not
+    go together, the photo's header, ``--camera``, the output files, and whether the model's grid fits in memory.
+
+    Returns:
+        The ``--camera`` camera (None without one) and the image or video file to write (None with ``--view``).
+
+    Raises:
+        UsageError, InputError, PhotoError, OutputError: see :func:`run_render`.
+    """
     if args.export is not None and args.export.suffix.lower() not in (".glb", ".ply"):
         raise UsageError(f"--export writes .glb or .ply, got {str(args.export)!r}")
     if args.view:
@@ -591,6 +648,30 @@ def run_render(args: argparse.Namespace) -> list[Path]:
                                       ("--video", args.video)) if v is not None]
         if given:
             raise UsageError(f"--view shows the model in a window and writes no file: leave out {', '.join(given)}")
+    photo = is_photo(args.model)
+    _check_photo_options(args, photo)
+    if photo:
+        check_photo(args.model)
+    else:
+        _input_grid(args)  # --z-near, --z-far or --hfov without --grid, an impossible grid
+        _check_model_memory(args.model)
+    camera = read_camera(args.camera, args.size)
+    target = None
+    if not args.view:
+        target = output_path(args, model_name(args.model))
+        check_output_file(target, "--out")
+    if args.export is not None:
+        check_output_file(args.export, "--export")
+    return camera, target
+
+
+def run_render(args: argparse.Namespace) -> list[Path]:
+    """Render as asked and write the outputs, all of them or none (:func:`fruxel.cli.common.write_outputs`);
+    returns the files written (none for ``--view``)."""
+    from fruxel.render.frames import FrameRenderer, open_viewer, orbit
+    from fruxel.render.images import image_format, save_image, save_video
+
+    given_camera, target = check_render_inputs(args)
     inp, photo = load_source(args)
     opts = _render_options(args)
     frames = FrameRenderer(inp, opts)
@@ -600,24 +681,21 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         rule = f" at --threshold {opts.threshold:g}" if inp.is_scores and opts.threshold is not None else ""
         print(f"{PROG}: note: {inp.name}: every cell is empty{rule}; the picture shows no model", file=sys.stderr)
     pictures: Any = frames
+    from fruxel.render.frames import DEFAULT_SIZE, default_camera
+
     if photo is None:
-        camera = viewing_camera(args.camera, inp.grid, args.size)
+        camera = given_camera or default_camera(inp.grid, *(args.size or DEFAULT_SIZE))
     else:
         from fruxel.render.compare import PhotoComparison
-        from fruxel.render.frames import default_camera
 
         truth = FrameRenderer(photo.truth, opts) if photo.truth is not None else None
         pictures = PhotoComparison(photo.framed, frames, truth, title=photo.title,
                                    headings=("photo, in the model's view", "SSZ prediction", "ground truth"))
-        if args.camera is not None:
-            camera = viewing_camera(args.camera, inp.grid, args.size)
-        else:
-            # Fitted to what the models hold: the grid's far end is mostly empty.
-            camera = default_camera(inp.grid, *(args.size or PHOTO_SIZE), points=pictures.model_points())
-    if args.view:
+        # Fitted to what the models hold: the grid's far end is mostly empty.
+        camera = given_camera or default_camera(inp.grid, *(args.size or PHOTO_SIZE), points=pictures.model_points())
+    if target is None:
         open_viewer(inp, opts, camera)
         return []
-    target = output_path(args, inp.name)
     outputs: list[tuple[Path, Any]] = []
     if args.orbit is not None:
         from tqdm import tqdm
@@ -626,7 +704,12 @@ def run_render(args: argparse.Namespace) -> list[Path]:
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
         images = pictures.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
         keep = [(255, 255, 255), *inp.classes.palette()[1:]]
-        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep)))
+
+        def encode(frames: Any) -> Any:
+            # The frames are drawn; encoding them (a GIF's palette mapping) is the other long part.
+            return tqdm(frames, total=len(images), desc="encode", unit="frame", leave=False, disable=None)
+
+        outputs.append((target, lambda tmp: save_video(tmp, images, args.fps, target.suffix, keep, encode)))
     else:
         image, fmt = pictures.image(camera), image_format(target)
         if empty and photo is None and args.mode != "both":
@@ -687,6 +770,15 @@ def _benchmark(args: argparse.Namespace) -> list[Path]:
     from fruxel.render.table1 import format_table, machine_tag, markdown_section, record, run, verdicts
 
     cfg = config_from_args(args)
+    from fruxel.render.images import IMAGE_FORMATS, VIDEO_FORMATS
+
+    out = args.out if args.out is not None else DEFAULT_OUT
+    if out.suffix.lower() in (*IMAGE_FORMATS, *VIDEO_FORMATS):
+        raise UsageError(f"--benchmark writes several files (table1.json, table1.png, table1.md): --out {out} must "
+                         "be a folder")
+    check_output_folder(out, "--out")
+    if is_photo(args.model):
+        check_photo(args.model)
     model = None
     if args.model is not None:
         # Scores are turned into labels once, before timing.
@@ -698,12 +790,6 @@ def _benchmark(args: argparse.Namespace) -> list[Path]:
     print(format_table(result))
     for v in verdicts(result):
         print(f"  {v}")
-    from fruxel.render.images import IMAGE_FORMATS, VIDEO_FORMATS
-
-    out = args.out if args.out is not None else DEFAULT_OUT
-    if out.suffix.lower() in (*IMAGE_FORMATS, *VIDEO_FORMATS):
-        raise UsageError(f"--benchmark writes several files (table1.json, table1.png, table1.md): --out {out} must "
-                         "be a folder")
     written = record(result, out, None)
     md = out / "table1.md"
     with atomic_write(md, "w") as f:

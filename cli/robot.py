@@ -20,7 +20,10 @@ mesh, draw, composed picture (:mod:`fruxel.train.live` says exactly what is time
 the camera image stands in for a real camera and is not timed, nor is the ground truth. The last lines printed
 give the FPS and the milliseconds per stage over the frames after the first (whose calls set kernels up).
 
-Errors are one line ``fruxel-robot: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
+``--size`` is a whole multiple of the model grid's width (64 for ``ssz64``, 128 for ``ssz128``): the simulator
+renders the camera image at a whole multiple of the grid. The device, the model's grid and the output file are
+checked before the model is built. Errors are one line ``fruxel-robot: error: ...`` with exit status 2
+(:func:`fruxel.cli.common.run`).
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from typing import Any
 from .common import (
     OneLineParser,
     UsageError,
+    check_output_file,
     config_option,
     config_values,
     device_name,
     non_negative_int,
+    path_name,
     positive_float,
     positive_int,
     run,
+    torch_device,
     write_outputs,
 )
 
@@ -78,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     config_option(p, RobotDemoConfig, "threads", type=positive_int, metavar="N")
     config_option(p, RobotDemoConfig, "compile")
     config_option(p, RobotDemoConfig, "flip_average")
-    p.add_argument("--out", type=Path, default=None, metavar="FILE",
+    p.add_argument("--out", type=path_name, default=None, metavar="FILE",
                    help=f"write the video here (.mp4 or .gif) instead of showing the viewer (default without a "
                    f"display: {DEFAULT_OUT})")
     p.add_argument("--fps", type=positive_float, default=None, metavar="F",
@@ -129,7 +135,13 @@ def _write_video(args: argparse.Namespace, out: Path) -> list[str]:
             yield frame.picture
 
     keep = [(255, 255, 255), *demo.classes.palette()[1:]]
-    write_outputs([(out, lambda tmp: save_video(tmp, pictures(), fps, out.suffix, keep))])
+
+    def encode(frames: Any) -> Any:
+        # An MP4 is encoded as the drive goes (its bar says all); a GIF once it is over, with a bar of its own.
+        return frames if out.suffix.lower() == ".mp4" else tqdm(frames, total=config.frames, desc="encode",
+                                                                 unit="frame", leave=False, disable=None)
+
+    write_outputs([(out, lambda tmp: save_video(tmp, pictures(), fps, out.suffix, keep, encode))])
     return [str(out), _summary_line(timed, demo.predictor.device.type)]
 
 
@@ -303,21 +315,43 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------------------- entry
+def _check_model(config: Any) -> None:
+    """The device and the model's grid against ``--size``, before the model is built or the simulator started.
+
+    Raises:
+        UsageError: a CUDA device on a machine without one; a ``--size`` that is not a whole multiple of the
+            model grid's width (the simulator renders the camera image at a whole multiple of the grid's size).
+        ModelFileError: an unusable ``--checkpoint``.
+    """
+    from fruxel.train.model_files import model_path, read_model_file
+
+    torch_device(config.device)
+    path = model_path(config.checkpoint)
+    grid = read_model_file(path).config.grid
+    if config.size % grid.width:
+        below = max(grid.width, config.size - config.size % grid.width)
+        raise UsageError(f"--size {config.size}: the camera image must be a whole multiple of the model grid's width "
+                         f"({grid.width} columns, {os.path.basename(path)}), e.g. {below} or {below + grid.width}")
+
+
 def _main(args: argparse.Namespace) -> int:
     from fruxel.render.frames import has_display
     from fruxel.render.images import check_video_writer
 
-    _config(args).check()
+    config = _config(args)
+    config.check()
     if args.view and args.out is not None:
         raise UsageError("--view shows the drive in a window and writes no file: leave out --out")
-    if args.view or (args.out is None and has_display()):
+    viewer = args.view or (args.out is None and has_display())
+    if viewer:
         if args.fps is not None:
             raise UsageError("--fps is the playback rate of a video (--out)")
-        lines = _show_viewer(args)
     else:
         out = args.out if args.out is not None else DEFAULT_OUT
         check_video_writer(out)
-        lines = _write_video(args, out)
+        check_output_file(out, "--out")
+    _check_model(config)
+    lines = _show_viewer(args) if viewer else _write_video(args, out)
     for line in lines:
         print(line)
     return 0

@@ -34,10 +34,13 @@ from .common import (
     OneLineParser,
     UsageError,
     add_grid_options,
+    check_output_file,
+    check_output_folder,
     config_option,
     config_values,
     grid_from_args,
     non_negative_int,
+    path_name,
     positive_int,
     run,
     write_outputs,
@@ -69,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="write a data set: compressed shards plus manifest.json",
                        description="Write a data set folder: shards {split}-NNNNN.npz and manifest.json. "
                        "Deterministic per seed; an interrupted run resumes in the same folder.")
-    g.add_argument("--out", required=True, metavar="DIR", help="data set folder (created if missing)")
+    g.add_argument("--out", required=True, type=path_name, metavar="DIR", help="data set folder (created if missing)")
     g.add_argument("--samples", type=positive_int, metavar="N",
                    help="total samples, divided 15:1 into train and test (default: the --split sizes)")
     g.add_argument("--split", default=None, metavar="NAME=N,...",
@@ -83,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("preview", help="write a contact sheet image of a few samples",
                        description="Contact sheet: camera image | own-view ground-truth labels | ray-cast render of "
                        "the ground truth from a second pose, with a class legend.")
-    v.add_argument("--out", required=True, type=Path, metavar="IMAGE",
+    v.add_argument("--out", required=True, type=path_name, metavar="IMAGE",
                    help="the image to write; its suffix picks the format (.png, .jpg, ...)")
     v.add_argument("--split", default="train", help="split name (seeds differ per split; default train)")
     v.add_argument("--index", type=non_negative_int, default=0, help="first sample index (default 0)")
@@ -128,8 +131,9 @@ def _generate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--samples {args.samples} does not match --split {args.split!r} "
                               f"({sum(n for _, n in splits)} samples); give one of them")
     config = _config(args, splits)
-    manifest = generate(args.out, config, args.seed, workers=args.workers, backend=args.backend, device=args.device,
-                        progress=not args.quiet)
+    check_output_folder(args.out, "--out")
+    manifest = generate(str(args.out), config, args.seed, workers=args.workers, backend=args.backend,
+                        device=args.device, progress=not args.quiet)
     if not args.quiet:
         sizes = ", ".join(f"{name} {n}" for name, n in config.splits)
         print(f"{PROG}: {args.out}: {sizes} samples in {len(manifest.hashes)} shards "
@@ -153,6 +157,7 @@ def _preview(args: argparse.Namespace) -> int:
 
     # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
     fmt = image_format(args.out)
+    check_output_file(args.out, "--out")
     config = _config(args, ((args.split, args.index + args.count),))
     classes = config.classes
     palette = classes.palette()

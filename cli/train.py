@@ -34,7 +34,17 @@ from typing import Any
 
 from fruxel.train.config import PRESETS
 
-from .common import OneLineParser, UsageError, device_name, non_negative_int, positive_int, run
+from .common import (
+    OneLineParser,
+    UsageError,
+    check_output_folder,
+    device_name,
+    non_negative_int,
+    path_name,
+    positive_int,
+    run,
+    torch_device,
+)
 
 PROG = "fruxel-train"
 
@@ -70,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument("--preset", type=_preset_name, metavar="{" + ",".join(PRESETS) + "}",
                       help="a named config: tiny (32^3 from 64^2, a CPU), ssz64 and ssz128 (the shipped models' "
                       "architectures: 64^3 from 256^2, 128^3 from 512^2, the latter fine-tuned from ssz64)")
-    p.add_argument("--out", metavar="RUN_DIR",
+    p.add_argument("--out", type=path_name, metavar="RUN_DIR",
                    help="the run folder: checkpoints, shipped model, metrics, curves, examples (created)")
     p.add_argument("--overwrite", action="store_true",
                    help="a new run may replace the run RUN_DIR holds (without it, that is refused)")
@@ -86,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run.batch_size: global batch (divided among the torchrun processes)")
     o.add_argument("--workers", type=non_negative_int, metavar="K",
                    help="data.workers: simulator or reader processes per training process (0: in the process)")
-    o.add_argument("--data", metavar="DIR",
+    o.add_argument("--data", type=path_name, metavar="DIR",
                    help="train on the data set folder DIR (fruxel-sim generate) instead of streaming: sets "
                    "data.source = shards, data.root = DIR")
     o.add_argument("--time-limit", type=_seconds, metavar="S",
@@ -119,7 +129,7 @@ def _changes(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
         if getattr(args, dest) is not None:
             changes.setdefault(part, {})[key] = getattr(args, dest)
     if args.data is not None:
-        changes.setdefault("data", {}).update(source="shards", root=args.data)
+        changes.setdefault("data", {}).update(source="shards", root=str(args.data))
     return changes
 
 
@@ -191,7 +201,11 @@ def _main(args: argparse.Namespace) -> int:
     from fruxel.train.engine.checkpoint import LATEST
     from fruxel.train.engine.trainer import Trainer
 
+    # What can be checked is checked before the run folder is made and the model built.
+    if args.device is not None:
+        torch_device(args.device)
     config = None if args.resume else _config(args)
+    check_output_folder(args.out, "--out")
     show = not args.quiet and _main_rank()
     trainer = None
     try:

@@ -24,9 +24,11 @@ the old file or the new one, never a half-written file under the target's name.
 :func:`load` and :func:`load_logits` never unpickle and never trust a size before checking it: they open the
 archive with :mod:`zipfile`, check the member names, parse each member's npy header (:func:`open_npy_member`)
 and refuse wrong dtypes, object arrays, wrong shapes or absurd sizes *before* reading any data, cross-check the
-array's shape with the grid and classes in ``meta``, then read exactly the bytes the header announces (and
-refuse NaN or infinite logits). Every problem raises one :class:`FruxelFileError` naming the file and the
-problem, with no chained traceback.
+array's shape with the grid and classes in ``meta``, refuse an array larger than the memory available
+(:func:`check_memory`: a 4 MB file of zeros can declare 4 GB of labels), then read exactly the bytes the header
+announces into the array's own buffer (and refuse NaN or infinite logits). :func:`read_header` reads ``meta``
+alone, for a check before the work a file is for. Every problem raises one :class:`FruxelFileError` naming the
+file and the problem, with no chained traceback.
 
 Shared helpers (numpy and the standard library only):
 
@@ -84,6 +86,9 @@ MAX_LOGITS_BYTES = 1 << 36
 
 MAX_META_CHARS = 1 << 20
 """Longest ``meta`` JSON accepted, in characters: far above any real grid plus 256 class names."""
+
+READ_CHUNK = 1 << 24
+"""Bytes read at a time into an array's own buffer (:meth:`NpyMember.read_array`)."""
 
 T = TypeVar("T")
 
@@ -481,10 +486,30 @@ class NpyMember:
         return data
 
     def read_array(self) -> np.ndarray:
-        """The array: :meth:`read`'s bytes as a read-only array of :attr:`shape` and :attr:`dtype`, in the
-        member's memory order. Not for item size 0 (e.g. ``<U0``), which numpy cannot view a buffer as."""
+        """The array of :attr:`shape` and :attr:`dtype` in the member's memory order: new and writable, read into
+        its own buffer :data:`READ_CHUNK` bytes at a time, so that memory holds the data once (not the bytes and
+        then the array). The checks are :meth:`read`'s. Not for item size 0 (e.g. ``<U0``).
+
+        Raises:
+            ArchiveError: as :meth:`read`.
+        """
+        key, nbytes = self.key, self.nbytes
+        if self._info.file_size != self.header_len + nbytes:
+            raise ArchiveError(f"member {key!r} holds {self._info.file_size} bytes but its header announces "
+                               f"{self.header_len + nbytes} (truncated or inconsistent)")
+        buf = np.empty(nbytes, dtype=np.uint8)
+        view = memoryview(buf)
+        got = 0
+        while got < nbytes:
+            n = self._file.readinto(view[got:got + READ_CHUNK])
+            if not n:
+                raise ArchiveError(f"member {key!r} is truncated: {got} of {nbytes} data bytes")
+            got += n
+        # The end of the member: zipfile verifies its CRC here.
+        if self._file.read(1):
+            raise ArchiveError(f"member {key!r} has trailing data after its {nbytes} data bytes")
         order = "F" if self.fortran_order else "C"
-        return np.frombuffer(self.read(), dtype=self.dtype).reshape(self.shape, order=order)
+        return buf.view(self.dtype).reshape(self.shape, order=order)
 
     def close(self) -> None:
         """Close the member's stream (idempotent)."""
@@ -538,7 +563,95 @@ def read_npy_member(zf: zipfile.ZipFile, name: str, dtype: np.dtype | type, shap
         if m.dtype != dtype or m.shape != tuple(shape) or m.fortran_order:
             raise ArchiveError(f"member {m.key!r} is {m.shape} {m.dtype}{' (Fortran order)' if m.fortran_order else ''}"
                                f", expected {tuple(shape)} {dtype}")
-        return m.read_array().copy()
+        return m.read_array()
+
+
+# ---------------------------------------------------------------------------------------------------- memory
+def _meminfo_available() -> int | None:
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _read_number(path: str) -> int | None:
+    try:
+        with open(path, encoding="ascii") as f:
+            text = f.read().strip()
+        return int(text) if text.isdigit() else None  # "max": no limit
+    except (OSError, ValueError):
+        return None
+
+
+def _cgroup_available() -> int | None:
+    """Memory left under this process's control group limit (cgroup v2, else v1), None without a limit."""
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        limit, usage = _read_number(limit_file), _read_number(usage_file)
+        if limit is not None and usage is not None and limit < 1 << 60:
+            return max(0, limit - usage)
+    return None
+
+
+def _address_space_available() -> int | None:
+    """Address space left under this process's ``RLIMIT_AS`` (``ulimit -v``), None without a limit."""
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if limit == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/statm", encoding="ascii") as f:
+            used = int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        return max(0, limit - used)
+    except (ImportError, OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process can still allocate: the system's estimate of available memory (Linux's
+    ``MemAvailable``: free memory plus the caches it can drop), within this process's control group limit and
+    address-space limit (``ulimit -v``) where they are set. None where nothing is known (then nothing is refused
+    for memory)."""
+    known = [m for m in (_meminfo_available(), _cgroup_available(), _address_space_available()) if m is not None]
+    return min(known) if known else None
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes in words, e.g. ``"4.3 GB"`` (decimal units)."""
+    for unit in ("bytes", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
+
+
+def check_memory(need: int, what: str) -> None:
+    """Refuse work that needs more memory than :func:`available_memory` before anything is allocated.
+
+    Args:
+        need: bytes the work needs.
+        what: the work, in words, e.g. ``"its (1024, 2048, 2048) labels"``; the message reads "WHAT need(s) ...".
+
+    Raises:
+        MemoryLimitError: ``need`` exceeds the memory available.
+    """
+    have = available_memory()
+    if have is not None and need > have:
+        raise MemoryLimitError(f"{what} need {format_bytes(need)} of memory, more than the {format_bytes(have)} "
+                               "available")
+
+
+class MemoryLimitError(FruxelError, MemoryError):
+    """Work refused because it needs more memory than this machine has available (:func:`check_memory`)."""
 
 
 # ---------------------------------------------------------------------------------------------------- save
@@ -655,11 +768,24 @@ def _read_labels(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> 
                                f"limit {MAX_CELLS}")
         if shape != grid.shape:
             raise ArchiveError(f"member 'labels' has shape {shape} but the grid in meta has (D, H, W) = {grid.shape}")
+        # Read into a buffer, then copied by FruxelModel: twice the labels at once.
+        _check_memory(2 * cells, f"its {grid.width}x{grid.height}x{grid.depth} grid's labels")
         labels = m.read_array()
     top = int(labels.max()) if labels.size else 0
     if top >= len(classes):
         raise ArchiveError(f"label value {top} is out of range for the {len(classes)} classes in meta")
     return labels
+
+
+def _check_memory(need: int, what: str) -> None:
+    """:func:`check_memory` as an :class:`ArchiveError` (the reader names the file)."""
+    try:
+        check_memory(need, what)
+    except MemoryLimitError as e:
+        problem = str(e)
+    else:
+        return
+    raise ArchiveError(problem)
 
 
 def _open_file(path: str) -> IO[bytes]:
@@ -702,6 +828,24 @@ def file_kind(path: str | os.PathLike[str]) -> str | None:
     except Exception:  # noqa: BLE001 - any file that cannot be opened as an archive is neither kind
         return None
     return {tuple(sorted(_MEMBERS)): "model", tuple(sorted(_LOGITS_MEMBERS)): "logits"}.get(tuple(names))
+
+
+def read_header(path: str | os.PathLike[str]) -> tuple[str, FruxelGrid, ClassTable]:
+    """What a model or logits file holds, from its meta alone (the labels or logits are not read): to check a
+    file before the work it is for.
+
+    Returns:
+        ``(kind, grid, classes)``, kind ``"model"`` or ``"logits"`` (:func:`file_kind`).
+
+    Raises:
+        FruxelFileError: neither kind of file, or bad meta; the message names the file.
+    """
+    name = os.fsdecode(path)
+    kind = file_kind(name) or "model"
+    label = "fruxel model" if kind == "model" else "logits file"
+    members, format_name = (_MEMBERS, FORMAT_NAME) if kind == "model" else (_LOGITS_MEMBERS, LOGITS_FORMAT_NAME)
+    grid, classes = _read_strictly(name, label, members, format_name, lambda zf, g, c: (g, c))
+    return kind, grid, classes
 
 
 def _read_strictly(path: str | os.PathLike[str], kind: str, members: tuple[str, ...], format_name: str,
@@ -827,6 +971,7 @@ def _read_logits(zf: zipfile.ZipFile, grid: FruxelGrid, classes: ClassTable) -> 
         if shape != want:
             raise ArchiveError(f"member 'logits' has shape {shape} but meta's {len(classes)} classes and grid "
                                f"(D, H, W) = {grid.shape} need {want}")
+        _check_memory(m.nbytes, f"its {grid.width}x{grid.height}x{grid.depth} grid's {len(classes)} logits a cell")
         logits = m.read_array()
     if not np.all(np.isfinite(logits)):
         raise ArchiveError("the logits contain NaN or infinite values")

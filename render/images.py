@@ -9,7 +9,7 @@ of one and a failure leaves any earlier file as it was.
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -82,23 +82,26 @@ def check_video_writer(path: str | Path) -> None:
 
 
 def save_video(file: str | Path, frames: Iterable[np.ndarray], fps: float, suffix: str,
-               colours: Sequence[Sequence[int]] = ()) -> None:
+               colours: Sequence[Sequence[int]] = (),
+               progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None) -> None:
     """Write frames (each ``(h, w, 3)`` uint8, one size) to ``file`` (as it is, not atomically) as a looping GIF or
     an MP4 by ``suffix`` (``file`` must end in it too: imageio picks its writer by the name).
 
     ``frames`` may be a generator: an MP4 is encoded as the frames come (memory holds one frame), a GIF once all
     have come. A GIF has one palette for all frames (:func:`gif_palette`) holding ``colours`` exactly (RGB uint8:
-    the background, the class colours of flat faces and legend swatches).
+    the background, the class colours of flat faces and legend swatches). ``progress`` (e.g. a ``tqdm`` bar) wraps
+    the frames as they are encoded: an MP4's as they come, a GIF's as each is mapped onto the palette.
 
     Raises:
         RenderError: no frames.
     """
+    track = progress or (lambda it: it)
     if suffix.lower() == ".mp4":
         import imageio.v2 as imageio
 
         writer = None
         try:
-            for f in frames:
+            for f in track(frames):
                 if writer is None:
                     writer = imageio.get_writer(file, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
                 # libx264 with yuv420p needs even sizes; pad by one row / column where needed.
@@ -116,7 +119,7 @@ def save_video(file: str | Path, frames: Iterable[np.ndarray], fps: float, suffi
         if not rgb:
             raise RenderError("no frames to write")
         palette = gif_palette(rgb, colours)
-        ims = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.FLOYDSTEINBERG) for f in rgb]
+        ims = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.FLOYDSTEINBERG) for f in track(rgb)]
         ims[0].save(file, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps), loop=0)
 
 

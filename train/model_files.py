@@ -197,6 +197,11 @@ def read_model_file(path: str | os.PathLike[str] | None) -> ModelFile:
     # header of 128 + 256 k bytes), so the JSON's opening brace is checked before the pickle and zip magics.
     safetensors = head[8:9] == b"{" and int.from_bytes(head[:8], "little") < os.path.getsize(path)
     if not safetensors and (head[:2] == b"PK" or head[:1] == b"\x80"):
+        if path.lower().endswith(".safetensors"):
+            # torch.load reads any file named .safetensors as one, whatever it holds.
+            raise ModelFileError(path, "named .safetensors but is a torch.save archive (zip), as a training "
+                                       "checkpoint is: give a checkpoint its .pt name" if head[:2] == b"PK" else
+                                 "named .safetensors but is a Python pickle, which fruxel never loads")
         from .engine.checkpoint import read_checkpoint
 
         ckpt = read_checkpoint(path)
@@ -209,11 +214,21 @@ def load_model(path: str | os.PathLike[str] | None = None, device: str | torch.d
     name, or None for the default), built by its architecture's name, in eval mode, float32.
 
     Raises:
-        ModelFileError: a missing, unreadable or foreign file, or weights that do not fit the config.
+        ModelFileError: a missing, unreadable or foreign file, weights that do not fit the config, integer weights
+            where the network has floating ones, or NaN or infinite weights.
     """
     path = model_path(path)
     f = read_model_file(path)
     network = f.config.build()
+    own = network.state_dict()
+    for k, v in f.state.items():
+        # load_state_dict would cast integer weights (a quantised file) silently, and NaN would show only as NaN
+        # logits much later.
+        if k in own and own[k].is_floating_point() and not v.is_floating_point():
+            raise ModelFileError(path, f"weight {k} is {str(v.dtype).removeprefix('torch.')}; fruxel reads float16, "
+                                       "bfloat16 or float32 weights (not a quantised model)")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            raise ModelFileError(path, f"weight {k} holds NaN or infinite values (a diverged training run?)")
     try:
         network.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in f.state.items()})
     except RuntimeError as e:

@@ -46,10 +46,12 @@ class ImageError(FruxelError, ValueError):
 
 def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     """A PNG, JPEG or other Pillow-readable photo as ``(h, w, 3)`` uint8 RGB, turned upright by its EXIF
-    orientation; grey and alpha images become RGB (alpha over white would invent colours: it is dropped).
+    orientation; grey and alpha images become RGB (alpha over white would invent colours: it is dropped). Grey of
+    16 bits (PNG, TIFF) is scaled to 8 (``v / 257``), 32-bit float grey (TIFF) in [0, 1] by 255.
 
     Raises:
-        ImageError: a missing or unreadable file, or one over :data:`MAX_IMAGE_PIXELS`.
+        ImageError: a missing or unreadable file, one over :data:`MAX_IMAGE_PIXELS`, or one whose pixels have no
+            range to scale by (32-bit integers, floats outside [0, 1] or not finite).
     """
     from PIL import Image, ImageOps, UnidentifiedImageError
 
@@ -63,7 +65,7 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
             if im.width * im.height > MAX_IMAGE_PIXELS:
                 raise ImageError(f"{p}: {im.width}x{im.height} pixels is more than {MAX_IMAGE_PIXELS}")
             im = ImageOps.exif_transpose(im)
-            rgb = np.asarray(im.convert("RGB"), dtype=np.uint8)
+            rgb = _as_rgb(im, p)
     except ImageError:
         raise
     except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as e:
@@ -71,6 +73,28 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     if rgb.ndim != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
         raise ImageError(f"{p}: empty image")
     return np.ascontiguousarray(rgb)
+
+
+def _as_rgb(im: Any, p: str) -> np.ndarray:
+    """A Pillow image as ``(h, w, 3)`` uint8 RGB. Pillow's own conversion clips wide grey to 8 bits, which turns a
+    16-bit PNG white and a float TIFF black; those are scaled here instead."""
+    mode = im.mode
+    # Pillow before 10 opened 16-bit grey PNGs as 32-bit "I"; a TIFF's "I" is a true 32-bit integer.
+    if mode.startswith("I;16") or (mode == "I" and im.format == "PNG"):
+        grey = np.rint(np.asarray(im, dtype=np.float32) / 257.0)
+    elif mode == "F":
+        v = np.asarray(im, dtype=np.float32)
+        lo, hi = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo and hi <= 1.0):
+            raise ImageError(f"{p}: 32-bit float pixels from {lo:g} to {hi:g}; fruxel reads float photos in [0, 1] "
+                             "(or save it with 8 or 16 bits a channel)")
+        grey = np.rint(v * 255.0)
+    elif mode.startswith("I"):
+        raise ImageError(f"{p}: 32-bit integer pixels have no range to scale them by; save the photo with 8 or 16 "
+                         "bits a channel")
+    else:
+        return np.asarray(im.convert("RGB"), dtype=np.uint8)
+    return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
 
 
 def frame_image(img: np.ndarray, grid: FruxelGrid, size: tuple[int, int], hfov: float | None = None,

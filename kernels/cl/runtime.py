@@ -22,13 +22,23 @@ result of a previous call is ever reused: the pool holds storage only.
 
 Thread safety: every operation holds :attr:`Runtime.lock` for its whole call (kernel objects and pooled
 buffers are shared state).
+
+Builds are quiet (:func:`quiet_build`): a compiler that warns about a kernel (PoCL's clang writes "N warnings
+generated." to the terminal itself, and pyopencl adds a two-line ``CompilerWarning`` on every later run, from its
+cache) says nothing to the users of fruxel's commands. ``PYOPENCL_COMPILER_OUTPUT=1``, pyopencl's own switch, shows
+the compilers' output again, for work on the kernels. A build that fails still raises with the compiler's message.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import sys
+import tempfile
 import threading
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -139,6 +149,34 @@ def _platform_devices() -> tuple[tuple[Any, ...], str]:
     return tuple(rank(devs)), "" if devs else "the OpenCL platforms have no CPU or GPU device"
 
 
+@contextlib.contextmanager
+def quiet_build() -> Iterator[None]:
+    """Around an OpenCL build: no ``pyopencl.CompilerWarning``, and what the compiler writes to the process's
+    standard error itself (clang's "N warnings generated.") is dropped, unless ``PYOPENCL_COMPILER_OUTPUT`` asks for
+    it. Standard error is redirected at the file descriptor for the build's time (other threads' writes to it
+    are dropped as well; builds take a moment, once per program and process)."""
+    if os.environ.get("PYOPENCL_COMPILER_OUTPUT", "").strip().lower() not in ("", "0", "false", "no", "off"):
+        yield
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (AttributeError, OSError, ValueError):
+            saved = -1
+        if saved < 0:
+            yield
+            return
+        try:
+            with tempfile.TemporaryFile() as sink:
+                os.dup2(sink.fileno(), 2)
+                yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def _one_line(message: str, limit: int = 400) -> str:
     """A compiler's or driver's message as one line: its error lines (else all of it), joined, shortened."""
     lines = [ln.strip() for ln in message.splitlines() if ln.strip()]
@@ -154,7 +192,8 @@ def _probe(device: Any) -> str | None:
         rt = _runtime_for(device)
         out = np.zeros(4, np.float32)
         buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        prg = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS))
+        with quiet_build():
+            prg = cl.Program(rt.context, PROBE_SOURCE).build(options=list(BUILD_OPTIONS))
         kernel = prg.probe_kernel
         kernel(rt.queue, (4,), None, buf)
         lanes = np.zeros(1, np.int32)
@@ -335,7 +374,8 @@ class Runtime:
         key = (source, tuple(options))
         prg = self._programs.get(key)
         if prg is None:
-            prg = cl.Program(self.context, source).build(options=list(BUILD_OPTIONS + tuple(options)))
+            with quiet_build():
+                prg = cl.Program(self.context, source).build(options=list(BUILD_OPTIONS + tuple(options)))
             self._programs[key] = prg
         kkey = (id(prg), name)
         k = self._kernels.get(kkey)

@@ -60,3 +60,12 @@ def checkpoint_model(small_generator: Any, tmp_path_factory: pytest.TempPathFact
     save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()},
                     TrainConfig(name="small", model=config))
     return path
+
+
+@pytest.fixture(autouse=True)
+def cache_folder(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A cache folder of each test's own (``FRUXEL_CACHE_DIR``): no test reads what another cached, and nothing is
+    written into the user's ~/.cache."""
+    folder = tmp_path_factory.mktemp("cache")
+    monkeypatch.setenv("FRUXEL_CACHE_DIR", str(folder))
+    return folder

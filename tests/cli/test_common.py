@@ -6,7 +6,10 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -79,6 +82,39 @@ def test_bugs_keep_their_traceback(bug: Exception) -> None:
 
     with pytest.raises(type(bug)):
         run(work, _parser(), [])
+
+
+def _closed_pipe_run(code: str) -> subprocess.CompletedProcess[bytes]:
+    """Run ``code`` in a fresh interpreter whose standard output is a pipe nobody reads (its reader already gone, as
+    after ``| head`` exits)."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        return subprocess.run([sys.executable, "-c", code], stdout=write_end, stderr=subprocess.PIPE, timeout=120)
+    finally:
+        os.close(write_end)
+
+
+@pytest.mark.parametrize("command", [
+    "from fruxel.cli.train import main; sys.exit(main(['--preset', 'tiny', '--print-config']))",
+    "from fruxel.cli.render import main; sys.exit(main(['--help']))",
+    # Lines printed one by one (the written paths of a command), the last at the interpreter's exit.
+    "from fruxel.cli.common import OneLineParser, run\n"
+    "sys.exit(run(lambda a: [print(i) for i in range(20000)] and None, OneLineParser(prog='x'), []))",
+])
+def test_a_closed_standard_output_ends_quietly_with_status_0(command: str) -> None:
+    """Like the standard Unix tools: ``fruxel-train --print-config | head`` is no error."""
+    out = _closed_pipe_run("import sys\n" + command)
+    assert out.returncode == 0 and out.stderr == b"", out.stderr.decode()
+
+
+def test_a_broken_pipe_elsewhere_is_an_error() -> None:
+    """A pipe that breaks other than standard output (an encoder that died) stays an error line."""
+    code = ("import sys\nfrom fruxel.cli.common import OneLineParser, run\n"
+            "def work(args):\n    raise BrokenPipeError(32, 'Broken pipe')\n"
+            "sys.exit(run(work, OneLineParser(prog='fruxel-x'), []))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == EXIT_USAGE and out.stderr == "fruxel-x: error: Broken pipe\n"
 
 
 def test_usage_errors_of_the_parser_are_one_line(capsys: pytest.CaptureFixture[str]) -> None:
@@ -181,7 +217,8 @@ def test_config_options_take_defaults_types_and_help_from_the_dataclass(capsys: 
     text = " ".join(capsys.readouterr().out.split())
     assert "Optimiser steps to take, >= 1 (see fruxel.FruxelGrid, load). (default: 100)" in text
     assert "None picks one (100% sure)" in text
-    assert "--no-legend Draw the legend. (default: on; this flag turns it off)" in text
+    # A --no-... flag says first that it turns the setting off, lest its help read as what the flag does.
+    assert "--no-legend turn off (on by default): draw the legend." in text
     assert "--fog Depth fog. (default: off)" in text
     assert "How to run. (default: slow)" in text
 
@@ -191,6 +228,39 @@ def _grid_parser(size_default: bool) -> argparse.ArgumentParser:
     p = OneLineParser(prog="x")
     add_grid_options(p, GRID, size_default=size_default)
     return p
+
+
+def _negated_flags(help_text: str) -> dict[str, str]:
+    """The --no-... options of a --help text, each with its help on one line."""
+    lines = help_text.splitlines()
+    found = {}
+    for i, line in enumerate(lines):
+        m = re.match(r"^  (--no-[-\w]+)(.*)$", line)
+        if m:
+            parts = [m.group(2)]
+            for more in lines[i + 1:]:
+                if not more.startswith(" " * 8) or more.strip().startswith("-"):
+                    break
+                parts.append(more)
+            found[m.group(1)] = " ".join(" ".join(parts).split())
+    return found
+
+
+def test_flags_that_turn_a_setting_off_say_so_first(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--no-legend  Draw the class legend`` read as what the flag does: every --no-... flag's help says first that
+    it turns the setting off (or says "without")."""
+    from fruxel.cli import eval as eval_cli
+    from fruxel.cli import predict, render, robot, sim, train
+
+    found = []
+    for main, argv in ((eval_cli.main, []), (predict.main, []), (render.main, []), (robot.main, []),
+                       (train.main, []), (sim.main, ["generate"]), (sim.main, ["preview"])):
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        for flag, text in _negated_flags(capsys.readouterr().out).items():
+            found.append(flag)
+            assert text.startswith("turn off (on by default): ") or " without " in f" {text}", (main, flag, text)
+    assert {"--no-legend", "--no-flip-average", "--no-augment"} <= set(found)
 
 
 def test_grid_options_default_to_the_given_grid() -> None:

@@ -122,6 +122,45 @@ def test_streamed_samples_end_to_end(shipped_model: Path, tmp_path: Path, capsys
     assert report["results"]["model"]["confusion"] != report["results"]["oracle"]["confusion"]
 
 
+def test_the_prior_is_cached_by_what_makes_it(shipped_model: Path, tmp_path: Path, cache_folder: Path) -> None:
+    """The per-cell prior (minutes of simulation on a CPU) is kept in the cache, keyed by what makes it, and read
+    back: an entry changed by hand shows in the next report, other samples or seeds get entries of their own, and
+    a damaged entry is counted again and replaced."""
+    import fruxel
+
+    def evaluate(name: str, *extra: str) -> dict[str, Any]:
+        argv = ["--checkpoint", str(shipped_model), "--samples", "2", "--prior-samples", "3", "--batch", str(BATCH),
+                "--examples", "0", "--device", "cpu", "--out", str(tmp_path / name), "-q", *extra]
+        assert eval_cli.main(argv) == 0
+        return json.loads((tmp_path / name / "report.json").read_text())
+
+    def entries() -> list[Path]:
+        return sorted(cache_folder.rglob("*.npz"))
+
+    first = evaluate("first")
+    (entry,) = entries()
+    cached = fruxel.load(entry)
+    config = load_model(shipped_model).config
+    train = np.stack([s.labels for s in streamed("train", 3)])
+    mode = (train[..., None] == np.arange(len(config.classes.names))).sum(0).argmax(-1)
+    np.testing.assert_array_equal(cached.labels, mode)
+    assert cached.grid == config.grid and cached.classes == config.classes
+    # Read back, not counted again: a prior of walls everywhere predicts class 1 in every cell.
+    fruxel.save(entry, fruxel.FruxelModel(np.ones_like(mode, dtype=np.uint8), config.grid, config.classes))
+    conf = np.array(evaluate("walls")["results"]["prior"]["confusion"])
+    assert conf[:, 1].sum() == conf.sum() > 0
+    assert evaluate("walls-again")["results"]["model"] == first["results"]["model"]
+    # Another number of samples, another seed: other priors, other entries.
+    evaluate("four", "--prior-samples", "4")
+    evaluate("seed", "--seed", "1")
+    assert len(entries()) == 3
+    # A damaged entry is no error: the prior is counted again and the entry replaced.
+    entry.write_bytes(b"damaged")
+    assert evaluate("again")["results"]["prior"] == first["results"]["prior"]
+    np.testing.assert_array_equal(fruxel.load(entry).labels, mode)
+    assert [p.name for p in entry.parent.iterdir() if p.suffix != ".npz"] == [], "temporary files left behind"
+
+
 @pytest.fixture(scope="module")
 def data_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("data") / "small"
@@ -211,6 +250,29 @@ def test_data_sets_that_do_not_fit_are_refused(shipped_model: Path, data_set: Pa
     # With no prior the data set without a train split is evaluated.
     assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(no_train), "--prior-samples", "0",
                           "--examples", "1", "--out", str(tmp_path / "ok"), "-q"]) == 0
+
+
+def test_inputs_and_outputs_are_checked_before_the_model_loads(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """With a model file that cannot load, the error is still the folder's: they are checked first."""
+    broken = tmp_path / "broken.safetensors"
+    broken.write_bytes(b"not a model")
+    (tmp_path / "file").write_text("")
+    for argv, word in ((["--data", str(tmp_path / "nowhere")], "nowhere"),
+                       (["--out", str(tmp_path / "file" / "sub")], "--out")):
+        line = eval_cli_line(broken, argv, capsys)
+        assert word in line and "broken" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.safetensors", "file"]
+
+
+@pytest.mark.parametrize("option", ["--out", "--data"])
+def test_an_empty_folder_name_is_refused(option: str, shipped_model: Path, tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        eval_cli.main(["--checkpoint", str(shipped_model), "--samples", "1", option, ""])
+    assert e.value.code == 2 and option in error_line(capsys, "fruxel-eval")
+    assert not any(tmp_path.iterdir())
 
 
 def eval_cli_line(model: Path, argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:

@@ -27,7 +27,7 @@ def photo(path: Path, width: int, height: int, seed: int = 0) -> Path:
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width]
     img = np.stack([x * 255 // max(1, width - 1), y * 255 // max(1, height - 1), np.full_like(x, 90)], -1)
-    x0, y0 = int(rng.integers(0, width // 2)), int(rng.integers(0, height // 2))
+    x0, y0 = int(rng.integers(0, max(1, width // 2))), int(rng.integers(0, max(1, height // 2)))
     img[y0:y0 + height // 3, x0:x0 + width // 3] = (230, 210, 40)
     Image.fromarray(img.astype(np.uint8)).save(path)
     return path
@@ -244,11 +244,40 @@ def bad_model_file(kind: str, tmp_path: Path, shipped_model: Path) -> tuple[Path
     elif kind == "plain-dict-checkpoint":
         torch.save({"step": 1}, path)
         return path, "not a fruxel SSZ checkpoint"
+    elif kind == "pickle-named-safetensors":
+        # torch.load reads a file named .safetensors as safetensors whatever it holds.
+        path = tmp_path / "model.safetensors"
+        path.write_bytes(pickle.dumps({"generator": CreatesFile(marker)}, protocol=2))
+        return path, "Python pickle"
+    elif kind == "checkpoint-named-safetensors":
+        from fruxel.train.config import TrainConfig
+        from fruxel.train.engine.checkpoint import save_checkpoint
+
+        loaded = load_model(shipped_model)
+        gen, config = loaded.network, loaded.config
+        path = tmp_path / "last.safetensors"
+        save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()}, TrainConfig(model=config))
+        return path, ".pt name"
+    elif kind in ("int8-weights", "nan-weights"):
+        from safetensors import safe_open
+        from safetensors.torch import save_file
+
+        with safe_open(str(shipped_model), framework="pt") as f:
+            meta = f.metadata()
+            state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open has no items()
+        if kind == "int8-weights":
+            state = {k: (v * 100).clamp(-127, 127).to(torch.int8) if v.is_floating_point() else v
+                     for k, v in state.items()}
+        else:
+            state["head.weight"].view(-1)[3] = float("nan")
+        save_file(state, str(path), metadata=meta)
+        return path, "int8" if kind == "int8-weights" else "NaN"
     return path, "not a readable"
 
 
 BAD_MODELS = ["missing", "folder", "garbage", "empty", "truncated", "pickled-zip", "pickled-raw",
-              "foreign-safetensors", "wrong-shapes", "plain-dict-checkpoint"]
+              "foreign-safetensors", "wrong-shapes", "plain-dict-checkpoint", "pickle-named-safetensors",
+              "checkpoint-named-safetensors", "int8-weights", "nan-weights"]
 
 
 @pytest.mark.parametrize("kind", BAD_MODELS)
@@ -262,6 +291,99 @@ def test_bad_model_files_give_one_line_and_run_nothing(kind: str, shipped_model:
     assert str(path) in line and word in line, line
     assert not (tmp_path / "ran").exists(), "a pickled object in the file was run"
     assert not out.exists()
+
+
+def grey_photos(tmp_path: Path) -> tuple[np.ndarray, dict[str, Path]]:
+    """An 8-bit grey picture and the same picture as a 16-bit grey PNG, a 32-bit float TIFF in [0, 1] and a plain
+    8-bit grey PNG (the reference)."""
+    v8 = np.asarray(Image.open(photo(tmp_path / "src.png", 80, 60)).convert("L"))
+    files = {"grey8": tmp_path / "grey8.png", "grey16": tmp_path / "grey16.png", "float": tmp_path / "float.tif"}
+    Image.fromarray(v8).save(files["grey8"])
+    Image.fromarray(v8.astype(np.uint16) * 257).save(files["grey16"])
+    Image.fromarray(v8.astype(np.float32) / 255.0).save(files["float"])
+    return v8, files
+
+
+def test_wide_grey_photos_are_read_as_the_same_picture(shipped_model: Path, tmp_path: Path) -> None:
+    """A 16-bit grey PNG and a float TIFF hold the 8-bit picture scaled: they give its prediction (Pillow's own
+    conversion read the first as white and the second as black)."""
+    v8, files = grey_photos(tmp_path)
+    assert Image.open(files["grey16"]).mode.startswith("I;16") and Image.open(files["float"]).mode == "F"
+    for f in files.values():
+        np.testing.assert_array_equal(load_image(f), np.repeat(v8[..., None], 3, axis=2))
+    out = tmp_path / "out"
+    assert predict_cli.main([*map(str, files.values()), "--checkpoint", str(shipped_model), "--out", str(out),
+                             "--logits", "-q"]) == 0
+    want = fruxel.load_logits(out / "grey8.logits.npz").logits
+    for name in ("grey16", "float"):
+        np.testing.assert_array_equal(fruxel.load_logits(out / f"{name}.logits.npz").logits, want)
+
+
+@pytest.mark.parametrize(("kind", "word"), [("int32", "32-bit integer"), ("float-range", "from -1 to 2"),
+                                            ("float-nan", "nan")])
+def test_photos_whose_pixels_have_no_scale_are_refused(kind: str, word: str, shipped_model: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / f"{kind}.tif"
+    ramp = np.linspace(-1.0, 2.0, 40 * 30).reshape(30, 40)
+    if kind == "int32":
+        Image.fromarray((ramp * 1e6).astype(np.int32)).save(bad)
+    else:
+        values = ramp.astype(np.float32) if kind == "float-range" else np.full((30, 40), np.nan, np.float32)
+        Image.fromarray(values).save(bad)
+    out = tmp_path / "out"
+    assert predict_cli.main([str(bad), "--checkpoint", str(shipped_model), "--out", str(out)]) == 2
+    line = error_line(capsys)
+    assert str(bad) in line and word in line, line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("size", "word"), [((1, 1), "too small"), ((15, 200), "too small"),
+                                            ((4000, 50), "strip"), ((50, 401), "strip")])
+def test_photos_of_no_cameras_size_are_refused(size: tuple[int, int], word: str, shipped_model: Path,
+                                               tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Limits: at least MIN_PHOTO_SIDE pixels on the shorter side, at most MAX_PHOTO_ASPECT times as long as wide;
+    the limits themselves pass."""
+    from fruxel.cli.common import MAX_PHOTO_ASPECT, MIN_PHOTO_SIDE
+
+    bad = photo(tmp_path / "odd.png", *size)
+    out = tmp_path / "out"
+    assert predict_cli.main([str(bad), "--checkpoint", str(shipped_model), "--out", str(out)]) == 2
+    line = error_line(capsys)
+    assert str(bad) in line and f"{size[0]}x{size[1]}" in line and word in line, line
+    assert not out.exists()
+    edge = [photo(tmp_path / "small.png", MIN_PHOTO_SIDE, MIN_PHOTO_SIDE),
+            photo(tmp_path / "long.png", int(MAX_PHOTO_ASPECT * 20), 20)]
+    assert predict_cli.main([*map(str, edge), "--checkpoint", str(shipped_model), "--out", str(out), "-q"]) == 0
+
+
+def test_photos_and_the_output_folder_are_checked_before_the_model_loads(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """With a model file that cannot load, the error is still the photo's or the folder's: they come first."""
+    broken = tmp_path / "broken.safetensors"
+    broken.write_bytes(b"not a model")
+    good, missing = photo(tmp_path / "good.png", 40, 30), tmp_path / "missing.png"
+    tiny = photo(tmp_path / "tiny.png", 4, 4)
+    (tmp_path / "file").write_text("")
+    for argv, word in (([good, missing], str(missing)), ([good, tiny], str(tiny)),
+                       ([good, "--out", tmp_path / "file" / "sub"], "--out")):
+        assert predict_cli.main([*map(str, argv), "--checkpoint", str(broken)]) == 2
+        line = error_line(capsys)
+        assert word in line and "broken" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.safetensors", "file", "good.png", "tiny.png"]
+
+
+def test_an_empty_out_is_refused(shipped_model: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out ""`` (an unset shell variable) would have written into the current folder."""
+    img = photo(tmp_path / "x.png", 40, 30)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    with pytest.raises(SystemExit) as e:
+        predict_cli.main([str(img), "--checkpoint", str(shipped_model), "--out", ""])
+    assert e.value.code == 2
+    assert "--out" in error_line(capsys)
+    assert not any(work.iterdir())
 
 
 def test_help_is_instant_and_imports_nothing_heavy() -> None:

@@ -608,3 +608,100 @@ def test_view_shell_frames_shade_each_new_mesh_once(monkeypatch: pytest.MonkeyPa
     for cam, img in zip(cams, images, strict=True):
         np.testing.assert_array_equal(img, fr.FrameRenderer(inp, opts).mesh_image(cam)[0])
     assert not np.array_equal(images[0], images[1])
+
+
+# ---------------------------------------------------------------------------------------------------- limits
+@pytest.mark.parametrize("option", ["--out", "--export"])
+def test_an_empty_file_or_folder_name_is_refused(option: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out ""`` (an unset shell variable) wrote into the current folder."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        run_cli("--backend", BACKEND, "--size", SIZE, option, "")
+    assert e.value.code == 2
+    lines = error_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and lines[0].startswith("fruxel-render: error: ") and option in lines[0]
+    assert not any(tmp_path.iterdir())
+
+
+def huge_model_file(path: Path, width: int, height: int, depth: int) -> Path:
+    """A small model file (a few hundred kB of compressed zeros) that declares a large grid."""
+    grid = fruxel.FruxelGrid(width=width, height=height, depth=depth, z_near=0.5, z_far=8.0, hfov=60.0)
+    meta = json.dumps({"format": "fruxel", "version": 1, "grid": grid.to_dict(),
+                       "classes": fruxel.DEFAULT_CLASSES.to_dict()})
+    # Zeros never touched are never allocated: np.zeros costs no memory until written.
+    np.savez_compressed(path, labels=np.zeros((depth, height, width), np.uint8), meta=np.array(meta, dtype=np.str_))
+    return path
+
+
+def limited_memory_cli(limit: int, *argv: str) -> subprocess.CompletedProcess[str]:
+    """The command in a process whose address space is limited to ``limit`` bytes (``ulimit -v``)."""
+    import resource
+
+    def limit_memory() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    code = "import sys; from fruxel.cli.render import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
+                          preexec_fn=limit_memory)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux's address-space limit")
+def test_a_grid_too_large_for_memory_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    """A file of compressed zeros declaring 268 million cells, in a process limited to 600 MB: refused in one line
+    naming the file and the memory, from its header, before the labels are decompressed (and nothing written)."""
+    huge = huge_model_file(tmp_path / "huge.npz", 1024, 1024, 256)
+    assert huge.stat().st_size < 2_000_000
+    out = tmp_path / "out"
+    result = limited_memory_cli(600 << 20, str(huge), "--backend", BACKEND, "--size", SIZE, "--out", str(out))
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"fruxel-render: error: {huge}: ") and "1024x1024x256" in lines[0]
+    assert "of memory, more than the" in lines[0] and "Traceback" not in result.stderr
+    assert not out.exists()
+
+
+def test_orbit_shows_its_progress_on_a_terminal(tmp_path: Path) -> None:
+    """On a terminal, an orbit shows a bar while its frames are drawn and another while the video is encoded (a
+    GIF maps every frame onto its palette once all are drawn)."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    code = "import sys; from fruxel.cli.render import main; sys.exit(main(sys.argv[1:]))"
+    out = tmp_path / "orbit.gif"
+    proc = subprocess.Popen([sys.executable, "-c", code, "--backend", BACKEND, "--size", SIZE, "--orbit", "6",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=follower)
+    os.close(follower)
+    seen = b""
+    while True:
+        try:
+            chunk = os.read(leader, 65536)
+        except OSError:  # the terminal closes with the process
+            break
+        if not chunk:
+            break
+        seen += chunk
+    os.close(leader)
+    assert proc.wait(timeout=120) == 0
+    assert proc.stdout is not None and proc.stdout.read().decode().split() == [str(out)]
+    text = seen.decode(errors="replace")
+    assert "orbit:" in text and "/6 [" in text.split("encode:")[0], text
+    assert "encode:" in text and "/6 [" in text.split("encode:")[1], text
+
+
+@pytest.mark.skipif("opencl" not in kernels.available_backends(), reason="no OpenCL device")
+def test_a_run_prints_its_files_and_nothing_else(tmp_path: Path) -> None:
+    """Quiet by default: with fresh compiler caches (kernels built from source) and then with warm ones, a run
+    prints the files it wrote and nothing on stderr (no compiler warnings, no notes)."""
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    env.pop("PYOPENCL_COMPILER_OUTPUT", None)
+    for run in ("cold", "warm"):
+        out = tmp_path / run
+        result = subprocess_cli("--backend", "opencl", "--mode", "both", "--size", SIZE, "--out", str(out), env=env)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.split() == [str(out / "sample_room_both.png")]
+        assert error_lines(result.stderr) == [], result.stderr

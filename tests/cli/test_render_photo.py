@@ -197,6 +197,54 @@ def test_options_that_do_not_fit_the_photo(tmp_path: Path, capsys: pytest.Captur
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(("case", "words"), [
+    ("tiny photo", ("tiny.png", "4x4")),
+    ("strip photo", ("strip.png", "4000x50")),
+    ("out under a file", ("--out", "file is a file")),
+    ("image for an orbit", ("--orbit", "x.png")),
+    ("missing camera", ("--camera", "missing.json")),
+    ("export under a file", ("--export", "file is a file")),
+])
+def test_checks_come_before_the_prediction(case: str, words: tuple[str, ...], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """With a model file that cannot load, the error is still the photo's, the camera's or the output's: every
+    check that needs no model comes before it is loaded (and before the photo is predicted)."""
+    broken = tmp_path / "broken.safetensors"
+    broken.write_bytes(b"not a model")
+    (tmp_path / "file").write_text("")
+    tiny, strip = tmp_path / "tiny.png", tmp_path / "strip.png"
+    Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tiny)
+    Image.fromarray(np.zeros((50, 4000, 3), np.uint8)).save(strip)
+    out = tmp_path / "out"
+    argv = {"tiny photo": (tiny, "--out", out), "strip photo": (strip, "--out", out),
+            "out under a file": (PHOTO, "--out", tmp_path / "file" / "x.png"),
+            "image for an orbit": (PHOTO, "--orbit", "3", "--out", tmp_path / "x.png"),
+            "missing camera": (PHOTO, "--camera", tmp_path / "missing.json", "--out", out),
+            "export under a file": (PHOTO, "--export", tmp_path / "file" / "x.glb", "--out", out)}[case]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    rc = run_cli(*argv, "--checkpoint", broken)
+    err = capsys.readouterr().err
+    _one_error_line(rc, err, *words)
+    assert "broken" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_a_pickle_or_a_checkpoint_named_safetensors_is_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """torch.load reads any file named .safetensors as safetensors: a traceback, before."""
+    import pickle
+
+    import torch
+
+    pickled, archive = tmp_path / "pickled.safetensors", tmp_path / "last.safetensors"
+    pickled.write_bytes(pickle.dumps({"generator": {"w": 1}}, protocol=2))
+    torch.save({"generator": {"w": torch.zeros(2)}}, archive)
+    for path, word in ((pickled, "Python pickle"), (archive, ".pt name")):
+        _one_error_line(run_cli(PHOTO, "--checkpoint", path, "--out", tmp_path / "out"), capsys.readouterr().err,
+                        str(path), word)
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("option", [("--truth", PHOTO_TRUTH), ("--checkpoint", PHOTO_TRUTH), ("--fit", "pad")])
 def test_photo_options_without_a_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                        option: tuple[object, ...]) -> None:

@@ -212,11 +212,36 @@ def test_viewer_without_a_reachable_display_is_one_line(tmp_path: Path) -> None:
     (["--view", "--out", "x.mp4"], ("--view", "--out")),
     (["--checkpoint", "missing.safetensors", "--out", "x.mp4"], ("missing.safetensors", "no such file")),
     (["--size", "5000", "--out", "x.mp4"], ("size", "2048")),
+    # The simulator renders the camera image at a whole multiple of the model grid (64 columns for ssz64).
+    *[(["--size", size, "--out", "x.mp4"], (f"--size {size}", "64")) for size in ("1", "32", "100", "200", "240")],
+    (["--size", "192", "--checkpoint", "ssz128", "--out", "x.mp4"], ("--size 192", "128")),
+    (["--out", "file/x.mp4"], ("--out", "file is a file")),
+    (["--out", "folder.mp4"], ("--out", "folder")),
 ])
 def test_bad_input_is_one_line(tmp_path: Path, no_display: None, monkeypatch: pytest.MonkeyPatch,
                                capsys: pytest.CaptureFixture[str], argv: list[str], words: tuple[str, ...]) -> None:
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("")
+    (tmp_path / "folder.mp4").mkdir()
     _one_error_line(main(argv), capsys.readouterr().err, *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "folder.mp4"]
+    assert not any((tmp_path / "folder.mp4").iterdir())
+
+
+@pytest.mark.skipif(pytest.importorskip("torch").cuda.is_available(), reason="this machine has a CUDA device")
+def test_cuda_on_a_machine_without_one(tmp_path: Path, no_display: None, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "drive.mp4"
+    _one_error_line(main(["--device", "cuda", "--frames", "2", "--size", str(SIZE), "--out", str(out)]),
+                    capsys.readouterr().err, "--device cuda", "no CUDA device")
+    assert not any(tmp_path.iterdir())
+
+
+def test_an_empty_out_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["--out", "", "--frames", "2"])
+    _one_error_line(e.value.code, capsys.readouterr().err, "--out")
     assert not any(tmp_path.iterdir())
 
 

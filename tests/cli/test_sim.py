@@ -87,6 +87,30 @@ def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys: pytest.Capture
     assert "not a folder" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv", [["generate", "--samples", "2"], ["preview"]])
+def test_an_empty_out_is_refused(argv: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out ""`` would have been the current folder."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--out", ""])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and err[0].startswith("fruxel-sim") and "--out" in err[0]
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command", ["generate", "preview"])
+def test_an_output_under_a_file_is_refused_before_any_sample(command: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "file").write_text("x")
+    out = tmp_path / "file" / ("data" if command == "generate" else "sheet.png")
+    extra = ["--samples", "2", "-q", *TINY] if command == "generate" else ["--image", "32", "--grid", "16"]
+    assert main([command, "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out" in err[0] and "is a file, not a folder" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 def test_preview_writes_a_contact_sheet(tmp_path: Path) -> None:
     png = tmp_path / "sheet.png"
     assert main(["preview", "--out", str(png), "--seed", "1", "--count", "2", "--image", "64", "--grid", "32"]) == 0

@@ -110,6 +110,48 @@ def test_option_errors_give_one_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert words in _error_line(capsys)
 
 
+@pytest.mark.parametrize("case", ["not-a-data-set", "missing", "other-grid", "out-under-a-file", "cuda"])
+def test_runs_that_cannot_start_leave_nothing_behind(case: str, tmp_path: Path, data: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Checked before the run folder is made: a run folder (with its config.json) was left by a --data that is no
+    data set."""
+    import torch
+
+    wrong = tmp_path / "photos"
+    wrong.mkdir()
+    (wrong / "readme.txt").write_text("not a data set\n")
+    (tmp_path / "file").write_text("")
+    run = tmp_path / "run"
+    argv, words = {
+        "not-a-data-set": (["--data", str(wrong)], (str(wrong), "manifest")),
+        "missing": (["--data", str(tmp_path / "none")], ("none",)),
+        # The tiny preset is 32^3 from 64^2 images, the data set 16^3 from 32^2.
+        "other-grid": (["--data", str(data)], (f"--data {data}", "16x16x16", "32x32x32")),
+        "out-under-a-file": (["--out", str(tmp_path / "file" / "run")], ("--out", "file is a file")),
+        "cuda": (["--device", "cuda"], ("--device cuda", "no CUDA device")),
+    }[case]
+    if case == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["--preset", "tiny", "--steps", "1", "--out", str(run), *argv]) == 2
+    line = _error_line(capsys)
+    assert all(w in line for w in words), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == before and not run.exists()
+    assert sorted(p.name for p in wrong.iterdir()) == ["readme.txt"]
+
+
+@pytest.mark.parametrize("option", ["--out", "--data"])
+def test_an_empty_folder_name_is_refused(option: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out ""`` would have trained into the current folder."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["--preset", "tiny", "--steps", "1", "--out", "run", option, ""]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2 and option in _error_line(capsys)
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("argv", [["--preset", "small"], ["--preset", "tiny", "--steps", "0"],
                                   ["--preset", "tiny", "--device", "gpu"], ["--preset", "tiny", "--time-limit", "-1"],
                                   ["--preset", "tiny", "--config", "x.json"]])

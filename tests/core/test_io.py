@@ -448,6 +448,71 @@ def test_absurd_headers_are_refused_before_allocating(tmp_path: Path, case: str)
     assert peak < 16 * 2**20, f"loading a {case!r} file allocated {peak} bytes"
 
 
+def _zeros_file(path: Path, grid: FruxelGrid, logits: bool = False) -> Path:
+    """A valid model (or logits) file of zeros on ``grid``: a few hundred kB declaring a large volume (zeros never
+    written cost no memory until they are)."""
+    meta = json.dumps({"format": "fruxel-logits" if logits else "fruxel", "version": 1, "grid": grid.to_dict(),
+                       "classes": DEFAULT_CLASSES.to_dict()})
+    volume = {"logits": np.zeros((len(DEFAULT_CLASSES), *grid.shape), np.float16)} if logits else \
+        {"labels": np.zeros(grid.shape, np.uint8)}
+    # Compressed (save_logits stores logits as they are): the file stays small.
+    np.savez_compressed(path, **volume, meta=np.array(meta, dtype=np.str_))
+    return path
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or not os.path.exists("/proc/self/statm"),
+                    reason="needs Linux's address-space limit")
+@pytest.mark.parametrize("logits", [False, True], ids=["model", "logits"])
+def test_a_volume_larger_than_the_memory_left_is_refused_before_reading(tmp_path: Path, logits: bool) -> None:
+    """In a process limited to 500 MB (``ulimit -v``), 268 million cells of labels (two copies while loading) or
+    of float16 logits are refused with one error naming the file and the memory, having allocated almost nothing;
+    a volume that fits loads."""
+    import subprocess
+    import sys
+
+    big = FruxelGrid(width=1024, height=1024, depth=256 if not logits else 32, z_near=0.5, z_far=8.0, hfov=60.0)
+    path = _zeros_file(tmp_path / "big.npz", big, logits)
+    small = _zeros_file(tmp_path / "small.npz", GRID, logits)
+    reader = "load_logits" if logits else "load"
+    code = (f"import resource, sys, tracemalloc\nresource.setrlimit(resource.RLIMIT_AS, ({500 << 20}, {500 << 20}))\n"
+            f"import fruxel, fruxel.io as fio\nfio.{reader}(sys.argv[2])\ntracemalloc.start()\n"
+            f"try:\n    fio.{reader}(sys.argv[1])\nexcept fruxel.FruxelFileError as e:\n"
+            "    print(tracemalloc.get_traced_memory()[1]); print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code, str(path), str(small)], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and out.stderr == "", out.stderr
+    peak, message = out.stdout.splitlines()
+    assert int(peak) < 16 * 2**20, f"allocated {peak} bytes before refusing"
+    assert str(path) in message and "1024x1024" in message and "of memory, more than the" in message, message
+
+
+def test_read_header_reads_meta_alone(tmp_path: Path) -> None:
+    """The kind, grid and classes of a file without reading its volume: a file declaring 4 billion cells costs
+    nothing to ask."""
+    save(tmp_path / "m.npz", _model())
+    fio.save_logits(tmp_path / "l.npz", np.zeros((7, *GRID.shape), np.float32), GRID, DEFAULT_CLASSES)
+    assert fio.read_header(tmp_path / "m.npz") == ("model", GRID, DEFAULT_CLASSES)
+    assert fio.read_header(tmp_path / "l.npz") == ("logits", GRID, DEFAULT_CLASSES)
+    huge = FruxelGrid(width=2048, height=2048, depth=1024, z_near=0.5, z_far=8.0, hfov=60.0)
+    path = MALFORMED["garbage bytes"][0](tmp_path / "g.npz")
+    with pytest.raises(FruxelFileError, match="g.npz"):
+        fio.read_header(path)
+    # A model file whose labels member claims 4 billion cells: only meta is read.
+    meta = json.dumps({"format": "fruxel", "version": 1, "grid": huge.to_dict(), "classes": DEFAULT_CLASSES.to_dict()})
+    with zipfile.ZipFile(tmp_path / "h.npz", "w") as zf:
+        header = io.BytesIO()
+        npy_format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": huge.shape})
+        zf.writestr("labels.npy", header.getvalue())
+        zf.writestr("meta.npy", _npy(np.array(meta, dtype=np.str_)))
+    tracemalloc.start()
+    try:
+        assert fio.read_header(tmp_path / "h.npz") == ("model", huge, DEFAULT_CLASSES)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20
+
+
 def test_every_corpus_file_is_refused_by_the_public_name(tmp_path: Path) -> None:
     # fruxel.load is the documented entry point; it must be the same function with the same error type.
     assert fruxel.load is load and fruxel.save is save and fruxel.FruxelFileError is FruxelFileError

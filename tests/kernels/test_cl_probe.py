@@ -165,3 +165,28 @@ def test_the_environment_can_pick_the_device(fresh: pytest.MonkeyPatch) -> None:
     assert not cl.is_available()
     with pytest.raises(BackendUnavailable, match=f"{runtime.DEVICE_ENV}='no such device' matches none"):
         get_backend("opencl")
+
+
+WARNS = '#warning "fruxel test: the compiler warns"\n__kernel void k(__global float* o) { o[0] = 1.0f; }\n'
+"""A kernel the compiler builds with a warning."""
+
+
+def test_builds_say_nothing_unless_pyopencl_is_asked(capfd: pytest.CaptureFixture[str],
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A compiler's warnings are not the users': PoCL's clang writes "1 warning generated." to the terminal and
+    pyopencl warns (CompilerWarning) on every later run. PYOPENCL_COMPILER_OUTPUT=1 shows them, for kernel work."""
+    rt = runtime.get_runtime(None)
+    monkeypatch.delenv("PYOPENCL_COMPILER_OUTPUT", raising=False)
+    for text in (WARNS, WARNS + "// built again, from the caches\n"):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            runtime.forget_devices()
+            rt = runtime.get_runtime(None)
+            assert rt.kernel(text, "k") is not None
+        assert [str(w.message) for w in caught] == []
+        assert capfd.readouterr().err == ""
+    monkeypatch.setenv("PYOPENCL_COMPILER_OUTPUT", "1")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rt.kernel(WARNS + "// asked for\n", "k")
+    assert any(issubclass(w.category, pyopencl.CompilerWarning) and "fruxel test" in str(w.message) for w in caught)
