@@ -196,46 +196,35 @@ def _stop_camera(camera: Any, frames_queue: Any, stop: Any) -> None:
     frames_queue.close()
 
 
-def _show_viewer(args: argparse.Namespace) -> list[str]:
-    import math
-    import multiprocessing
-    import queue as queues
-    import threading
-    import time
-
-    import numpy as np
-
+def _viewer_pyrender() -> Any:
+    """pyrender on the window system's OpenGL, or one RenderError saying why not."""
+    from fruxel.render import RenderError
+    from fruxel.render.compat import import_pyrender
     from fruxel.render.frames import has_display
 
     if not has_display():
-        from fruxel.render import RenderError
-
         raise RenderError("the live viewer needs a display (DISPLAY is not set); write a video with --out FILE.mp4")
     if os.environ.get("PYOPENGL_PLATFORM") == "egl":
         # EGL is headless; the viewer needs the window system's OpenGL. Only this process is affected.
         del os.environ["PYOPENGL_PLATFORM"]
     # A headless pyglet opens no window (the viewer's thread would die at once).
     os.environ.pop("PYGLET_HEADLESS", None)
-    from fruxel.render.compat import import_pyrender
-    from fruxel.render.scene import MeshStyle, clip_range, frustum_lines, pyrender_mesh
-    from fruxel.train.live import STAGES, LiveFrame, RobotDemo
-
     try:
-        pyrender = import_pyrender(headless=False)
+        return import_pyrender(headless=False)
     except Exception as e:  # noqa: BLE001 - PyOpenGL / pyglet raise many types when the window system is missing
-        from fruxel.render import RenderError
-
         raise RenderError(f"cannot use the window system's OpenGL ({type(e).__name__}: {e}); write a video with "
                           "--out FILE.mp4") from None
-    config = _config(args)
-    demo = RobotDemo(config)
+
+
+def _viewer_scene(pyrender: Any, demo: Any) -> tuple[Any, dict[str, Any]]:
+    """The viewer's scene (the grid's frustum, the chase camera) and its caption."""
+    import math
+
+    import numpy as np
+
+    from fruxel.render.scene import clip_range, frustum_lines
+
     grid, cam = demo.grid, demo.chase
-    ctx = multiprocessing.get_context("spawn")
-    frames_queue, stop = ctx.Queue(maxsize=QUEUE_FRAMES), ctx.Event()
-    camera = ctx.Process(target=camera_process, daemon=True,
-                         args=(demo.sim.to_dict(), config.seed, demo.split, config.scene * config.frames,
-                               config.frames, frames_queue, stop))
-    camera.start()
     scene = pyrender.Scene(bg_color=[1.0, 1.0, 1.0, 1.0], ambient_light=[0.3, 0.3, 0.3])
     scene.add(frustum_lines(grid))
     znear, zfar = clip_range(cam, grid)
@@ -243,7 +232,27 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
                                          zfar=zfar * 4.0, aspectRatio=cam.width / cam.height), pose=cam.opengl_pose())
     caption = {"text": "waiting for the camera...", "location": pyrender.constants.TextAlign.TOP_LEFT,
                "font_name": "OpenSans-Regular", "font_pt": 16, "color": np.array([0.1, 0.1, 0.1, 1.0]), "scale": 1.0}
-    device = demo.predictor.device.type
+    return scene, caption
+
+
+def _show_viewer(args: argparse.Namespace) -> list[str]:
+    import multiprocessing
+    import threading
+
+    from fruxel.render import RenderError
+    from fruxel.train.live import RobotDemo
+
+    pyrender = _viewer_pyrender()
+    config = _config(args)
+    demo = RobotDemo(config)
+    cam = demo.chase
+    ctx = multiprocessing.get_context("spawn")
+    frames_queue, stop = ctx.Queue(maxsize=QUEUE_FRAMES), ctx.Event()
+    camera = ctx.Process(target=camera_process, daemon=True,
+                         args=(demo.sim.to_dict(), config.seed, demo.split, config.scene * config.frames,
+                               config.frames, frames_queue, stop))
+    camera.start()
+    scene, caption = _viewer_scene(pyrender, demo)
     failures: list[BaseException] = []
     hook = threading.excepthook
 
@@ -259,9 +268,29 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
     except Exception as e:  # noqa: BLE001 - pyglet / OpenGL raise many types when no window can be opened
         threading.excepthook = hook
         _stop_camera(camera, frames_queue, stop)
-        from fruxel.render import RenderError
-
         raise RenderError(f"cannot open the viewer window: {type(e).__name__}: {e}") from None
+    try:
+        timed = _drive_viewer(viewer, scene, caption, demo, frames_queue, failures)
+    finally:
+        threading.excepthook = hook
+        _stop_camera(camera, frames_queue, stop)
+    return [_summary_line(timed, demo.predictor.device.type)]
+
+
+def _drive_viewer(viewer: Any, scene: Any, caption: dict[str, Any], demo: Any, frames_queue: Any,
+                  failures: list[BaseException]) -> list[Any]:
+    """Show the prediction of each camera image the camera process sends, until the drive ends or the window
+    closes; then leave the window open (for :data:`LINGER` seconds when set). Returns the frames' timings."""
+    import queue as queues
+    import time
+
+    import numpy as np
+
+    from fruxel.render import RenderError
+    from fruxel.render.scene import MeshStyle, pyrender_mesh
+    from fruxel.train.live import STAGES, LiveFrame
+
+    config, device = demo.config, demo.predictor.device.type
     timed: list[Any] = []
     node = None
     recent: list[float] = []
@@ -272,46 +301,39 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
         thread = getattr(viewer, "_thread", None)
         return viewer.is_active and (thread is None or thread.is_alive())
 
-    try:
-        while alive():
-            try:
-                item = frames_queue.get(timeout=0.5)
-            except queues.Empty:
-                continue
-            if item is None:
-                break
-            image, _ = item
-            times: dict[str, float] = {}
-            t0 = time.perf_counter()
-            mesh = demo.prediction.mesh_of(demo.predict(image, times), times)
-            pm = pyrender_mesh(mesh, MeshStyle(shading="pbr"))
-            fps = f"{len(recent) / sum(recent):.1f} FPS" if recent else "-- FPS"
-            with viewer.render_lock:
-                if node is not None:
-                    scene.remove_node(node)
-                node = scene.add(pm) if pm is not None else None
-                caption["text"] = f"frame {len(timed) + 1}/{config.frames}: {fps} end to end ({device})"
-            seconds = time.perf_counter() - t0
-            times["draw"] = times.get("draw", 0.0) + seconds - sum(times.values())
-            recent = (recent + [seconds])[-10:]
-            timed.append(LiveFrame(len(timed), np.empty(0, np.uint8), seconds, {s: times.get(s, 0.0) for s in STAGES}))
-        if not alive() and viewer.is_active:
-            from fruxel.render import RenderError
-
-            why = f"{type(failures[0]).__name__}: {failures[0]}" if failures else "its thread ended"
-            raise RenderError(f"the viewer's window failed ({why}); write a video with --out FILE.mp4")
+    while alive():
+        try:
+            item = frames_queue.get(timeout=0.5)
+        except queues.Empty:
+            continue
+        if item is None:
+            break
+        image, _ = item
+        times: dict[str, float] = {}
+        t0 = time.perf_counter()
+        pm = pyrender_mesh(demo.prediction.mesh_of(demo.predict(image, times), times), MeshStyle(shading="pbr"))
+        fps = f"{len(recent) / sum(recent):.1f} FPS" if recent else "-- FPS"
+        with viewer.render_lock:
+            if node is not None:
+                scene.remove_node(node)
+            node = scene.add(pm) if pm is not None else None
+            caption["text"] = f"frame {len(timed) + 1}/{config.frames}: {fps} end to end ({device})"
+        seconds = time.perf_counter() - t0
+        times["draw"] = times.get("draw", 0.0) + seconds - sum(times.values())
+        recent = (recent + [seconds])[-10:]
+        timed.append(LiveFrame(len(timed), np.empty(0, np.uint8), seconds, {s: times.get(s, 0.0) for s in STAGES}))
+    if not alive() and viewer.is_active:
+        why = f"{type(failures[0]).__name__}: {failures[0]}" if failures else "its thread ended"
+        raise RenderError(f"the viewer's window failed ({why}); write a video with --out FILE.mp4")
+    if alive():
+        with viewer.render_lock:
+            caption["text"] = f"drive over: {caption['text'].split(': ', 1)[-1]}; close the window to quit"
+        end = None if LINGER is None else time.monotonic() + LINGER
+        while alive() and (end is None or time.monotonic() < end):
+            time.sleep(0.2)
         if alive():
-            with viewer.render_lock:
-                caption["text"] = f"drive over: {caption['text'].split(': ', 1)[-1]}; close the window to quit"
-            end = None if LINGER is None else time.monotonic() + LINGER
-            while alive() and (end is None or time.monotonic() < end):
-                time.sleep(0.2)
-            if alive():
-                viewer.close_external()
-    finally:
-        threading.excepthook = hook
-        _stop_camera(camera, frames_queue, stop)
-    return [_summary_line(timed, device)]
+            viewer.close_external()
+    return timed
 
 
 # ---------------------------------------------------------------------------------------------------- entry

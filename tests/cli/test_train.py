@@ -126,7 +126,7 @@ def test_runs_that_cannot_start_leave_nothing_behind(case: str, tmp_path: Path, 
         "not-a-data-set": (["--data", str(wrong)], (str(wrong), "manifest")),
         "missing": (["--data", str(tmp_path / "none")], ("none",)),
         # The tiny preset is 32^3 from 64^2 images, the data set 16^3 from 32^2.
-        "other-grid": (["--data", str(data)], (f"--data {data}", "16x16x16", "32x32x32")),
+        "other-grid": (["--data", str(data)], (str(data), "16x16x16", "32x32x32")),
         "out-under-a-file": (["--out", str(tmp_path / "file" / "run")], ("--out", "file is a file")),
         "cuda": (["--device", "cuda"], ("--device cuda", "no CUDA device")),
     }[case]
