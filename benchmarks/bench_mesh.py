@@ -41,7 +41,7 @@ SHELL_GREEDY_TARGET_MS = 20.0
 
 
 def own_view_shell(labels: np.ndarray) -> np.ndarray:
-    """The VMS shell from the grid's own camera: the first occupied cell of each column (SPEC section 4).
+    """The VMS shell from the grid's own camera: the first occupied cell of each column (conventions section 4).
 
     Args:
         labels: ``(D, H, W)`` uint8 labels.

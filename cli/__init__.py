@@ -1,4 +1,4 @@
-"""fruxel.cli: the application layer, fruxel's command-line programs (SPEC section 6).
+"""fruxel.cli: the application layer, fruxel's command-line programs (conventions section 6).
 
 * :mod:`fruxel.cli.common` — what every command shares: the runner (errors and exit codes), argparse types,
   options made from config dataclasses, the ``--grid`` options.

@@ -396,7 +396,7 @@ def _describe_grid(g: FruxelGrid) -> str:
 
 
 def _own_view_accuracy(pred: Any, truth: Any) -> float | None:
-    """Own-view first-hit accuracy (SPEC section 9), percent: ``(1, C, D, H, W)`` logits against ``(D, H, W)``
+    """Own-view first-hit accuracy (conventions section 9), percent: ``(1, C, D, H, W)`` logits against ``(D, H, W)``
     labels; None when the truth's own view hits nothing."""
     import numpy as np
     import torch

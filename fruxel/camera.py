@@ -1,4 +1,4 @@
-"""Viewing cameras (SPEC section 3): pinhole intrinsics, image size and a camera-to-grid pose.
+"""Viewing cameras (conventions section 3): pinhole intrinsics, image size and a camera-to-grid pose.
 
 Axes are OpenCV's: x right, y down, z forward, in the camera frame and in the grid frame alike. The ray of
 pixel ``(x, y)`` (column x, row y) has direction ``((x + 0.5 - cx) / fx, (y + 0.5 - cy) / fy, 1)`` in camera

@@ -1,4 +1,4 @@
-"""Semantic classes: names and display colours of the labels of a fruxel model (SPEC section 2).
+"""Semantic classes: names and display colours of the labels of a fruxel model (conventions section 2).
 
 Label ``c`` of a model means class ``names[c]``; class 0 is always ``"empty"``. Labels are uint8 on disk, so a
 table holds at most 256 classes. A table is stored with every model and data set, so users may define their
@@ -45,7 +45,7 @@ EMPTY = "empty"
 Colour = tuple[int, int, int]
 
 DEFAULT_NAMES: tuple[str, ...] = ("empty", "wall", "floor", "window", "furniture", "door", "sculpture")
-"""The default class names, in label order (SPEC section 2)."""
+"""The default class names, in label order (conventions section 2)."""
 
 DEFAULT_COLOURS: tuple[Colour, ...] = (
     (0, 0, 0),

@@ -1,4 +1,4 @@
-"""The fruxel grid: a W x H x D label grid aligned with a camera frustum (SPEC section 1).
+"""The fruxel grid: a W x H x D label grid aligned with a camera frustum (conventions section 1).
 
 Frame: the grid camera's frame, OpenCV axes (x right, y down, z forward), origin at the optical centre,
 metres. A cell ``(k, j, i)`` is the truncated pyramid
@@ -10,7 +10,7 @@ with ``u_i = -tu + i * 2 tu / W``, ``v_j = -tv + j * 2 tv / H``, ``z_k = z_near 
 
 The *centre* of a cell is the point at the middle of its three parameter ranges,
 ``(u_c z_c, v_c z_c, z_c)`` with ``u_c = (u_i + u_{i+1}) / 2`` and so on. It lies on the centre ray of its
-column, which is what SPEC section 1 asks; it is not the cell's centroid (the centroid of a frustum piece
+column, which is what conventions section 1 asks; it is not the cell's centroid (the centroid of a frustum piece
 sits slightly deeper), and the field's froxel code uses the same parametric centre.
 
 Corner ``c`` (0..7) of a cell is at ``(u_{i + (c & 1)}, v_{j + ((c >> 1) & 1)}, z_{k + (c >> 2)})``.
@@ -61,7 +61,7 @@ def _as_float(name: str, value: Any) -> float:
 
 @dataclass(frozen=True)
 class FruxelGrid:
-    """Geometry of a fruxel grid (SPEC section 1). Immutable and hashable; validated on construction.
+    """Geometry of a fruxel grid (conventions section 1). Immutable and hashable; validated on construction.
 
     Raises:
         GridError: a non-positive or non-integer size, ``z_near <= 0``, ``z_far <= z_near``, a field of view
@@ -162,7 +162,7 @@ class FruxelGrid:
         return out[0], out[1], out[2]
 
     def flat_index(self, k: Any, j: Any, i: Any) -> np.ndarray:
-        """Flat cell index ``(k * H + j) * W + i`` (SPEC section 2), int64, the indices' broadcast shape."""
+        """Flat cell index ``(k * H + j) * W + i`` (conventions section 2), int64, the indices' broadcast shape."""
         k, j, i = self.check_index(k, j, i)
         return (k * self.height + j) * self.width + i
 

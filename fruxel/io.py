@@ -1,5 +1,5 @@
-"""Model files (SPEC section 5) and logits files (SPEC section 8): ``.npz`` archives read and written without
-pickle; and the package's atomic writes and strict npy-member reading, which the simulator's shards, mesh export
+"""Model files (conventions section 5) and logits files (conventions section 8): ``.npz`` archives read and written
+without pickle; and the package's atomic writes and strict npy-member reading, which the simulator's shards, mesh export
 and the renderer share.
 
 Model file layout, format version 1:

@@ -1,4 +1,4 @@
-"""Trapezoid meshing of fruxel label volumes (SPEC section 6): full, face-culled and greedy triangle meshes.
+"""Trapezoid meshing of fruxel label volumes (conventions section 6): full, face-culled and greedy triangle meshes.
 
 All three modes build the mesh from the grid's lattice points (:meth:`FruxelGrid.corner_points`), so a vertex
 at boundary indices ``(kb, jb, ib)`` has the same float32 coordinates in every mesh and every mode. Every

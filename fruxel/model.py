@@ -1,8 +1,8 @@
 """The fruxel model container: a semantic label volume on a :class:`FruxelGrid` with its :class:`ClassTable`.
 
-Labels are a ``(D, H, W)`` uint8 array indexed ``[k, j, i]`` (slice, row, column; SPEC sections 1 and 2),
+Labels are a ``(D, H, W)`` uint8 array indexed ``[k, j, i]`` (slice, row, column; conventions sections 1 and 2),
 0 meaning empty. Float network outputs become labels through :func:`labels_from_scores`, which applies
-SPEC section 2's occupancy rule and is shared with the rest of the project.
+conventions section 2's occupancy rule and is shared with the rest of the project.
 
 Cartesian label grids (:meth:`FruxelModel.to_cartesian`, :meth:`FruxelModel.from_cartesian`) live in the grid
 frame (OpenCV axes, metres) and are indexed ``[z, y, x]``, shape ``(Z, Y, X)``. ``origin`` is the *minimum
@@ -42,7 +42,7 @@ def _check_threshold(threshold: Any) -> float | None:
 
 
 def labels_from_scores(scores: Any, threshold: float | None = None, probs: bool = False, axis: int = 0) -> np.ndarray:
-    """Labels from per-class scores, by SPEC section 2's occupancy rule.
+    """Labels from per-class scores, by conventions section 2's occupancy rule.
 
     A cell is occupied when its argmax class is not 0 or, where ``threshold`` is given, when
     ``1 - p(empty) >= threshold``. The label of an occupied cell is the argmax over the non-empty classes

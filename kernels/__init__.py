@@ -1,6 +1,6 @@
 """fruxel.kernels: ray traversal through fruxel grids, on NVIDIA Warp (CUDA or CPU) and OpenCL.
 
-Operations (SPEC section 4), one contract for every backend:
+Operations (conventions section 4), one contract for every backend:
 
 * :func:`first_hit` — per pixel of a viewing camera, the first occupied cell along its ray (exact DDA over the
   three plane families);
@@ -53,7 +53,7 @@ def first_hit(
     threshold: float | None = None,
     probs: bool = False,
 ) -> Hits:
-    """First occupied cell along each pixel's ray (SPEC section 4).
+    """First occupied cell along each pixel's ray (conventions section 4).
 
     Args:
         volume: labels ``(D, H, W)`` / ``(B, D, H, W)`` (integer, 0 = empty) or float scores
@@ -88,7 +88,7 @@ def shell(
     threshold: float | None = None,
     probs: bool = False,
 ) -> Any:
-    """The VMS shell: the volume with every cell that is no pixel's first hit set to empty (SPEC section 4).
+    """The VMS shell: the volume with every cell that is no pixel's first hit set to empty (conventions section 4).
 
     Args:
         volume: as for :func:`first_hit`.

@@ -1,4 +1,4 @@
-"""Ground truth from labelled solids: ``fruxelize`` (SPEC section 4).
+"""Ground truth from labelled solids: ``fruxelize`` (conventions section 4).
 
 Frames
     Meshes are given in the world frame (any right-handed frame in metres; the simulator's is z up). ``pose`` is

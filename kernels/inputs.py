@@ -84,7 +84,7 @@ def _all_finite(volume: Any) -> bool:
 
 
 def inspect_volume(volume: Any, grid: FruxelGrid, threshold: float | None = None, probs: bool = False) -> VolumeSpec:
-    """Validate a kernel input volume against a grid (SPEC section 2).
+    """Validate a kernel input volume against a grid (conventions section 2).
 
     Accepted:
         * integer or bool labels ``(D, H, W)`` or ``(B, D, H, W)``, values in [0, 255], 0 = empty;
@@ -188,7 +188,7 @@ def check_camera(camera: Any) -> Camera:
 
 @dataclass(frozen=True)
 class Hits:
-    """Per-pixel result of ``first_hit`` (SPEC section 4), in the caller's kind of array and on its device.
+    """Per-pixel result of ``first_hit`` (conventions section 4), in the caller's kind of array and on its device.
 
     Leading axes are ``(B,)`` when the volume had a batch axis, none otherwise; ``h, w`` are the camera's image
     height and width.

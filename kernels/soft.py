@@ -219,7 +219,7 @@ def soft_first_hit(
     device: str | None = None,
     probs: bool = False,
 ) -> SoftHits:
-    """Differentiable expected first hit of every pixel of every camera (SPEC section 4), batched over B and N.
+    """Differentiable expected first hit of every pixel of every camera (conventions section 4), batched over B and N.
 
     The occupancy is ``1 - p(empty)`` and the class probabilities are the non-empty classes renormalised; the ray
     stops at cell m with probability ``w_m = o_m prod_{l<m} (1 - o_l)`` (see the module docstring).

@@ -1,4 +1,4 @@
-"""The package layering of SPEC section 6, checked on the source and on what imports actually load.
+"""The package layering of conventions section 6, checked on the source and on what imports actually load.
 
 Libraries form one chain, ``fruxel -> kernels -> render -> train``: each imports only the layers before it. The
 application layer (``cli/``, installed as ``fruxel.cli``) sits on top and may import any library; no library

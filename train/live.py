@@ -93,8 +93,8 @@ def chase_camera(mount: CameraMount, width: int, height: int, view: ChaseView = 
 
 def to_labels(volume: Any) -> np.ndarray:
     """``(D, H, W)`` uint8 numpy labels of a volume: labels ``(D, H, W)`` as they are, logits ``(1, C, D, H, W)``
-    (numpy or torch, on any device) by their argmax (SPEC section 2; on the GPU for CUDA tensors, so that only the
-    labels cross to the host)."""
+    (numpy or torch, on any device) by their argmax (conventions section 2; on the GPU for CUDA tensors, so that only
+    the labels cross to the host)."""
     if hasattr(volume, "detach"):
         import torch
 

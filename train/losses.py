@@ -11,7 +11,7 @@ Every loss takes the network's output as plain tensors, so any training loop can
 * :class:`ShellLoss`: the three together from the grid's own view plus K random novel poses per batch, with the
   ground-truth side (``first_hit``, ``shell``, no gradient) computed on the fly.
 
-Frames: volumes are NCDHW in the grid frame (SPEC sections 1-2); images are ``(B, N, h, w)`` per camera; depths
+Frames: volumes are NCDHW in the grid frame (conventions sections 1-2); images are ``(B, N, h, w)`` per camera; depths
 are metres along each viewing camera's z.
 
 Ground truth has one source, the label volume: what any camera sees of it, the grid's own camera included, is

@@ -1,6 +1,6 @@
 """Prediction: any photo -> the image SSZ expects -> logits of a fruxel model.
 
-SSZ sees the grid's own camera (SPEC section 8): an image of ``2^k W x 2^k H`` pixels whose horizontal field of
+SSZ sees the grid's own camera (conventions section 8): an image of ``2^k W x 2^k H`` pixels whose horizontal field of
 view is the grid's. A photo of another size and field of view is mapped onto it geometrically, about the
 optical centre (the photo's centre):
 

@@ -1,4 +1,4 @@
-"""OpenCL ``first_hit``: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
+"""OpenCL ``first_hit``: the first occupied cell along each pixel's ray (conventions section 4, kernels/traversal.py).
 
 One work-item per tile of 4 x 4 pixels and batch item runs :file:`first_hit.cl`'s walk over the uint8 labels, one
 ray per vector lane, with the field of :mod:`.occupancy` for empty-space skipping.

@@ -1,5 +1,5 @@
 /*
- * Occupancy: float scores -> uint8 label volumes (SPEC section 2), and the distance field that the first-hit walk
+ * Occupancy: float scores -> uint8 label volumes (conventions section 2), and the distance field that the first-hit walk
  * (walk.h) uses for empty-space skipping.
  *
  * Build options (-D):

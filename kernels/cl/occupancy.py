@@ -1,7 +1,7 @@
 """Occupancy on the OpenCL device: the uint8 label volume the traversal reads, its field, and the
 traversal's build options and arguments that depend on them.
 
-Float scores are turned into labels once per call by :file:`occupancy.cl` (SPEC section 2's rule), so the
+Float scores are turned into labels once per call by :file:`occupancy.cl` (conventions section 2's rule), so the
 traversal's inner loop only ever tests a byte. The field (per group of ``GROUP^3`` cells, the chessboard
 distance to the nearest group holding an occupied cell, capped at :data:`DIST_CAP`, and which of the group's cells
 are occupied) is rebuilt on every call from the labels: it is cheap next to the traversal, and no index cache

@@ -1,5 +1,5 @@
 /*
- * VMS shell (SPEC section 4): mark every cell that is the first hit of some pixel of some camera, then build the
+ * VMS shell (conventions section 4): mark every cell that is the first hit of some pixel of some camera, then build the
  * output volume. The first hits come from walk.h's trace_tile(), as first_hit.cl's do.
  *
  * Build options (-D, from kernels/cl/occupancy.py): those of walk.h and ray.h.

@@ -1,4 +1,4 @@
-"""OpenCL ``shell``: the VMS simplification (SPEC section 4) of a label or score volume.
+"""OpenCL ``shell``: the VMS simplification (conventions section 4) of a label or score volume.
 
 Per call: labels (and their field) on the device (:mod:`.occupancy`), a zeroed uint8 mask, one traversal
 launch per camera marking each pixel's first-hit cell (:file:`shell.cl`'s ``mark_shell_kernel``; the grid's own

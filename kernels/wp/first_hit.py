@@ -1,4 +1,4 @@
-"""``first_hit`` on Warp: the first occupied cell along each pixel's ray (SPEC section 4, kernels/traversal.py).
+"""``first_hit`` on Warp: the first occupied cell along each pixel's ray (conventions section 4, kernels/traversal.py).
 
 One call: labels from the volume (one launch for scores, none for uint8 labels), the coarse pyramid (one launch),
 then one thread per pixel and batch item walks its ray (:func:`~fruxel.kernels.wp.traverse.trace_ray`).

@@ -1,4 +1,4 @@
-"""Occupancy on the device: float scores to uint8 labels (SPEC section 2), and the coarse pyramid for empty-space
+"""Occupancy on the device: float scores to uint8 labels (conventions section 2), and the coarse pyramid for empty-space
 skipping.
 
 The traversal reads only uint8 labels ``(B, D * H * W)`` (flat cell index ``(k * H + j) * W + i``, 0 = empty) and

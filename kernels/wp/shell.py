@@ -1,4 +1,4 @@
-"""``shell`` on Warp: the voxel model simplification (SPEC section 4), keeping only cells that are some pixel's
+"""``shell`` on Warp: the voxel model simplification (conventions section 4), keeping only cells that are some pixel's
 first hit.
 
 General path: labels and pyramid (see :mod:`.occupancy`), a zeroed uint8 mask ``(B, N)``, one launch per camera

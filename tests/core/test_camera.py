@@ -1,4 +1,4 @@
-"""Viewing cameras (SPEC section 3): look_at, intrinsics, rays, projection, OpenGL pose, validation, JSON."""
+"""Viewing cameras (conventions section 3): look_at, intrinsics, rays, projection, OpenGL pose, validation, JSON."""
 
 from __future__ import annotations
 

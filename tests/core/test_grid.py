@@ -1,4 +1,4 @@
-"""FruxelGrid geometry (SPEC section 1): planes, cells, centres, corners, volumes, validation, JSON."""
+"""FruxelGrid geometry (conventions section 1): planes, cells, centres, corners, volumes, validation, JSON."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Model files (SPEC section 5): round trips, atomic writes, and a corpus of malformed files."""
+"""Model files (conventions section 5): round trips, atomic writes, and a corpus of malformed files."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Logits files (SPEC section 8, fruxel.io.save_logits / load_logits): round trips, and malformed files refused
+"""Logits files (conventions section 8, fruxel.io.save_logits / load_logits): round trips, and malformed files refused
 with one error naming the file, as for model files."""
 
 from __future__ import annotations

@@ -74,7 +74,7 @@ def area_by_group(mesh: TriMesh) -> dict[tuple[int, int, int], float]:
 
 
 def own_view_shell(labels: np.ndarray) -> np.ndarray:
-    """The VMS shell from the grid's own camera (SPEC section 4): the first occupied cell of each column."""
+    """The VMS shell from the grid's own camera (conventions section 4): the first occupied cell of each column."""
     occ = labels != 0
     k = occ.argmax(axis=0)
     jj, ii = np.nonzero(occ.any(axis=0))

@@ -1,4 +1,4 @@
-"""ClassTable, FruxelModel and the occupancy rule (SPEC section 2)."""
+"""ClassTable, FruxelModel and the occupancy rule (conventions section 2)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
 
 
 def _rule_per_cell(column: np.ndarray, threshold: float | None, probs: bool) -> int | None:
-    # The SPEC's rule spelled out for one cell with plain Python, as the reference; None where 1 - p(empty) is
+    # The conventions' rule spelled out for one cell with plain Python, as the reference; None where 1 - p(empty) is
     # within rounding of the threshold and either answer is right.
     values = [float(v) for v in column]
     best = max(range(1, len(values)), key=lambda c: (values[c], -c))

@@ -280,7 +280,7 @@ def ref_own_view_shell(labels: Any) -> np.ndarray:
 
 
 def ref_labels_from_scores(scores: Any, threshold: float | None = None, probs: bool = False) -> np.ndarray:
-    """Labels of float scores by SPEC section 2, computed in float64.
+    """Labels of float scores by conventions section 2, computed in float64.
 
     Args:
         scores: ``(..., C, D, H, W)`` logits or probabilities, channel 0 = empty (numpy or torch CPU).

@@ -1,5 +1,5 @@
 """first_hit on every backend: agreement with the float64 reference, hard viewpoints, watertightness, batches,
-scores and array kinds (SPEC sections 2-4)."""
+scores and array kinds (conventions sections 2-4)."""
 
 from __future__ import annotations
 

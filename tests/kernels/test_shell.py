@@ -1,5 +1,5 @@
 """shell (VMS) on every backend: a subset of the volume that keeps every camera's first hits, the own-view column
-rule, scores, batches, array kinds, and the orbit poses it is built from (SPEC section 4)."""
+rule, scores, batches, array kinds, and the orbit poses it is built from (conventions section 4)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """soft_first_hit on every backend: exact gradients (gradcheck in float64), the own view against a pure-torch
 cumprod reference, backends against each other, occupancies of exactly 0 and 1, the hard limit ``first_hit``,
-bfloat16 / no_grad, camera groups and input errors (SPEC section 4)."""
+bfloat16 / no_grad, camera groups and input errors (conventions section 4)."""
 
 from __future__ import annotations
 

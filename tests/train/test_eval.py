@@ -1,5 +1,5 @@
-"""Evaluation: the metrics of SPEC section 9 on small hand-computed cases, the two baselines on hand-made volumes,
-one pass of several prediction rules, and the report built from their counts."""
+"""Evaluation: the metrics of conventions section 9 on small hand-computed cases, the two baselines on hand-made
+volumes, one pass of several prediction rules, and the report built from their counts."""
 
 from __future__ import annotations
 

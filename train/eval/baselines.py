@@ -1,4 +1,4 @@
-"""The two baselines of SPEC section 9, evaluated as predictions on the same samples as a model.
+"""The two baselines of conventions section 9, evaluated as predictions on the same samples as a model.
 
 * **Per-cell prior**: every cell gets its most frequent label over training samples (:class:`CellPrior`): the
   best one can do knowing where things usually are, without looking at the image.

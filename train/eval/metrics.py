@@ -1,4 +1,4 @@
-"""Evaluation metrics of SPEC section 9 as pure functions of predicted and ground-truth label volumes.
+"""Evaluation metrics of conventions section 9 as pure functions of predicted and ground-truth label volumes.
 
 Counts are accumulated over every cell (or pixel) of every sample together, never averaged per sample: an
 :class:`Accumulator` adds batches up and :meth:`Accumulator.summary` turns the counts into the metrics.
@@ -50,7 +50,7 @@ def completion_iou(conf: np.ndarray) -> float:
 
 def first_surface(labels: torch.Tensor) -> torch.Tensor:
     """Label of each column's first occupied cell (0 for an empty column): the first hits of the grid's own
-    camera at native resolution (SPEC section 4).
+    camera at native resolution (conventions section 4).
 
     Args:
         labels: ``(B, D, H, W)`` integer labels.
@@ -65,7 +65,7 @@ def first_surface(labels: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class Accumulator:
-    """Running counts of every metric of SPEC section 9 over batches.
+    """Running counts of every metric of conventions section 9 over batches.
 
     Args:
         classes: C.

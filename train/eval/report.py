@@ -1,4 +1,5 @@
-"""The evaluation report of ``fruxel-eval``: a model against the two baselines of SPEC section 9 on the same samples.
+"""The evaluation report of ``fruxel-eval``: a model against the two baselines of conventions section 9 on the same
+samples.
 
 :func:`build_report` gathers the counts of each prediction rule (:class:`~.metrics.Accumulator`) and what was
 evaluated into one JSON-able dict (``report.json``); :func:`markdown_report` writes that dict as Markdown

@@ -1,7 +1,7 @@
 """Building blocks of SSZ: 2D inverted residual blocks (MobileNetV2), their volumetric counterparts, and the
 2D-to-3D lift that puts image features into the depth slices of a fruxel volume.
 
-Tensors are NCHW (2D) and NCDHW (3D, SPEC section 2); a 3D block keeps its input's memory format, so a
+Tensors are NCHW (2D) and NCDHW (3D, conventions section 2); a 3D block keeps its input's memory format, so a
 channels-last-3D input stays channels-last-3D.
 """
 
@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 LEAK = 0.1
-"""Negative slope of the decoder's LeakyReLUs (SPEC section 8)."""
+"""Negative slope of the decoder's LeakyReLUs (conventions section 8)."""
 
 
 def act2d() -> nn.Module:
@@ -22,7 +22,7 @@ def act2d() -> nn.Module:
 
 
 def act3d() -> nn.Module:
-    """The 3D decoder's activation (LeakyReLU, SPEC section 8)."""
+    """The 3D decoder's activation (LeakyReLU, conventions section 8)."""
     return nn.LeakyReLU(LEAK, inplace=True)
 
 
@@ -50,7 +50,7 @@ class InvertedResidual2d(nn.Module):
 
 class Down2d(nn.Module):
     """Halves the resolution with a depthwise 3x3 stride-2 convolution, then changes the width with a pointwise
-    one (SPEC section 8: "downscaled by depthwise and pointwise convolutions").
+    one (conventions section 8: "downscaled by depthwise and pointwise convolutions").
 
     Args:
         cin, cout: input and output channels.

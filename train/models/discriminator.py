@@ -1,4 +1,4 @@
-"""The SSZ discriminator: a conditional 3D PatchGAN (SPEC section 8).
+"""The SSZ discriminator: a conditional 3D PatchGAN (conventions section 8).
 
 It sees class probabilities of a fruxel volume (the generator's softmax, or the one-hot ground truth) together
 with the image, resampled to the grid's rows and columns and copied along depth, and judges overlapping patches

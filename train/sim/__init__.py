@@ -5,7 +5,7 @@
 * :mod:`.assets` — optional real meshes: a folder per class, and Sweet Home 3D ``.sh3f`` libraries;
 * :mod:`.assetpack` — the asset pack built by ``fruxel-sim assets`` (textures with normal maps, meshes with parts,
   pictures; licence manifest, train/test split) and :class:`~.assetpack.AssetPack`, its checked reader;
-* :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
+* :mod:`.robot` — the mobile robot of conventions section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
 * :mod:`.renderer` — what draws the camera images: the renderer protocol and the registry of renderers by name
   (:class:`.images.SceneRenderer`, pyrender, is the default), chosen by ``SimConfig.renderer``;

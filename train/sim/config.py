@@ -4,7 +4,7 @@ Everything that decides a sample's *content* lives in :class:`SimConfig` (grid, 
 robot trajectories, scenes per trajectory, class table, renderer) together with the split sizes and the shard size; the
 base seed is given separately. A data set's manifest records ``SimConfig.to_dict()`` and the seed, and a
 generator asked to resume refuses a folder made with anything else. How samples are computed (``backend``,
-``device``, number of workers) is not part of it: every backend gives the same labels (SPEC section 4).
+``device``, number of workers) is not part of it: every backend gives the same labels (conventions section 4).
 
 Image and grid
     The image is taken by the robot camera with the grid's horizontal field of view: ``S`` pixels wide and
@@ -141,7 +141,7 @@ class TrajectoryConfig:
     """How the robot drives through a room: the arguments of :func:`fruxel.train.sim.robot.random_trajectory`."""
 
     robot: RobotParams = field(default_factory=RobotParams)
-    """Robot dynamics (SPEC section 7)."""
+    """Robot dynamics (conventions section 7)."""
     mount: CameraMount = field(default_factory=CameraMount)
     """Where the camera rides on the robot; its ``hfov`` is set to the grid's by :class:`SimConfig`."""
     radius: float = 0.25

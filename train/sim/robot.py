@@ -1,4 +1,4 @@
-"""The paper's mobile robot (SPEC section 7): wheel commands in, one camera pose per frame out.
+"""The paper's mobile robot (conventions section 7): wheel commands in, one camera pose per frame out.
 
 Dynamics
     Longitudinal motion ``X' = A X + B u`` with ``X = (x1, x2)`` (displacement along the path, speed),
@@ -53,7 +53,7 @@ class RobotParams:
     u_max: float = 100.0
     """Wheel command limit: each command is clipped to ``[-u_max, u_max]``."""
     heading_gain: float = 2.0 * math.pi / 50.0
-    """Heading rate per unit of ``u_r - u_l``, rad/s (SPEC: ``2 pi / 50``)."""
+    """Heading rate per unit of ``u_r - u_l``, rad/s (conventions section 7: ``2 pi / 50``)."""
 
     def __post_init__(self) -> None:
         if not (self.mass > 0 and self.b_friction >= 0 and self.dt > 0 and self.u_max > 0):
