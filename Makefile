@@ -1,9 +1,10 @@
 # The two commands of the README. Both create .venv and install the pinned dependencies when needed.
 #   make demo   the main job on the bundled photo: SSZ predicts its model, which fruxel-render draws beside the
 #               photo and its ground truth, into out/photo_both.png
-#   make test   runs the test suite
-#   make assets builds the simulator's asset pack (assets/pack) from Debian and PyPI packages, cached in assets/cache
-.PHONY: demo test env lint assets
+#   make test   runs the test suite's fast tier (minutes on 2 cores)
+# Also: make test-slow (the tests marked slow: training runs, DDP, the robot drives; CI runs both tiers), make lint,
+# make assets (the simulator's asset pack, assets/pack, from Debian and PyPI packages cached in assets/cache).
+.PHONY: demo test test-slow env lint assets
 
 export PYOPENGL_PLATFORM ?= egl
 
@@ -14,7 +15,10 @@ demo: env
 	.venv/bin/fruxel-render fruxel/data/photo.png --truth fruxel/data/photo_truth.npz --mode both --out out
 
 test: env
-	.venv/bin/python -m pytest
+	.venv/bin/python -m pytest -m "not slow"
+
+test-slow: env
+	.venv/bin/python -m pytest -m slow
 
 lint: env
 	.venv/bin/ruff check .

@@ -19,6 +19,7 @@ from fruxel.train.sim.writer import generate  # noqa: E402
 from .conftest import small_model_config  # noqa: E402
 
 
+@pytest.mark.slow
 def test_calibrate_writes_the_chosen_rules(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = small_model_config()
     data = tmp_path / "data"

@@ -103,6 +103,7 @@ def check_report(out: Path, accs: dict[str, Accumulator], samples: int, examples
     return report
 
 
+@pytest.mark.slow
 def test_streamed_samples_end_to_end(shipped_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "report"
     argv = ["--checkpoint", str(shipped_model), "--samples", "5", "--prior-samples", "6", "--batch", str(BATCH),

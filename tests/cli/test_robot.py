@@ -56,6 +56,7 @@ def test_console_script_is_installed() -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- video
+@pytest.mark.slow
 def test_short_drive_writes_a_video(tmp_path: Path, no_display: None, monkeypatch: pytest.MonkeyPatch,
                                     capsys: pytest.CaptureFixture[str]) -> None:
     """Without a display and --out, the drive goes to out/robot.mp4: three panels a frame, one frame per step."""
@@ -73,6 +74,7 @@ def test_short_drive_writes_a_video(tmp_path: Path, no_display: None, monkeypatc
     assert not np.array_equal(frames[0], frames[2])
 
 
+@pytest.mark.slow
 def test_no_flip_average_runs_ssz_once_a_frame(tmp_path: Path, no_display: None) -> None:
     """The shipped model averages each image with its mirror image; --no-flip-average drives with one pass."""
     from fruxel.cli.robot import _config, build_parser
@@ -89,6 +91,7 @@ def test_no_flip_average_runs_ssz_once_a_frame(tmp_path: Path, no_display: None)
     assert passes(["--no-flip-average"]) == [1, 1]
 
 
+@pytest.mark.slow
 def test_gif_output(tmp_path: Path, no_display: None) -> None:
     assert main(["--frames", "2", "--size", str(SIZE), "--out", str(tmp_path / "drive.gif"), "--fps", "5"]) == 0
     with Image.open(tmp_path / "drive.gif") as gif:
@@ -101,6 +104,7 @@ def drive() -> tuple[RobotDemo, list]:
     return demo, list(demo.frames())
 
 
+@pytest.mark.slow
 def test_frames_show_the_camera_the_prediction_and_the_truth(drive: tuple[RobotDemo, list]) -> None:
     demo, frames = drive
     samples = list(demo.camera_frames())
@@ -120,6 +124,7 @@ def test_frames_show_the_camera_the_prediction_and_the_truth(drive: tuple[RobotD
     assert not np.array_equal(frames[0].picture, frames[-1].picture)
 
 
+@pytest.mark.slow
 def test_frame_times_are_the_sum_of_their_stages(drive: tuple[RobotDemo, list]) -> None:
     _, frames = drive
     for f in frames:

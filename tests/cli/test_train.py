@@ -176,6 +176,7 @@ def test_print_config_gives_a_file_to_start_from(tmp_path: Path, capsys: pytest.
     assert capsys.readouterr().out == text
 
 
+@pytest.mark.slow
 def test_ctrl_c_writes_a_checkpoint_and_resume_continues(tmp_path: Path, data: Path,
                                                          capsys: pytest.CaptureFixture[str],
                                                          monkeypatch: pytest.MonkeyPatch,
@@ -234,6 +235,7 @@ def test_a_checkpoint_holding_an_object_is_refused_on_resume(tmp_path: Path,
     assert not (tmp_path / "pwned").exists()
 
 
+@pytest.mark.slow
 def test_torchrun_with_two_processes(tmp_path: Path, data: Path) -> None:
     """``torchrun --nproc_per_node 2 -m fruxel.cli.train`` on the CPU (gloo): both processes train their half of
     each batch (each with a spawned data worker, which imports the command's module again: the main guard), rank
@@ -252,3 +254,101 @@ def test_torchrun_with_two_processes(tmp_path: Path, data: Path) -> None:
     st = read_checkpoint(run / LATEST).state
     assert st["step"] == 4 and st["samples"] == 16
     assert "Traceback" not in done.stderr and "killed by signal" not in done.stderr
+
+
+# ---------------------------------------------------------------------------------------------- the run folder
+def _train(config: Path, data: Path, run: Path, *more: str) -> int:
+    return main(["--config", str(config), "--data", str(data), "--out", str(run), "--device", "cpu", "-q", *more])
+
+
+@pytest.mark.slow
+def test_a_new_run_never_replaces_a_run_by_accident(tmp_path: Path, data: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder that holds a run takes --resume or --overwrite; a plain new run is refused in one line and the
+    earlier run's files stay byte for byte; --overwrite replaces them."""
+    from fruxel.train.engine.checkpoint import LATEST, read_checkpoint
+
+    config = _write(tmp_path / "c.json", CONFIG)
+    run = tmp_path / "run"
+    assert _train(config, data, run) == 0
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    assert _train(config, data, run, "--steps", "2") == 2
+    line = _error_line(capsys)
+    assert str(run) in line and "holds a run" in line and "--resume" in line and "--overwrite" in line
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert _train(config, data, run, "--steps", "2", "--overwrite") == 0
+    assert read_checkpoint(run / LATEST).state["step"] == 2
+    assert main(["--resume", "--out", str(run), "--overwrite"]) == 2
+    assert "--overwrite cannot be given with --resume" in _error_line(capsys)
+
+
+@pytest.mark.slow
+def test_two_runs_in_one_folder_at_once_are_refused(tmp_path: Path, data: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """A second fruxel-train into a folder where one is training gets one line naming the holder; the first goes
+    on undisturbed and finishes."""
+    from fruxel.train.engine.checkpoint import LATEST, read_checkpoint
+
+    long = {**CONFIG, "run": {**CONFIG["run"], "steps": 400, "log_every": 50}}
+    config = _write(tmp_path / "c.json", long)
+    run = tmp_path / "run"
+    first = subprocess.Popen([sys.executable, "-m", "fruxel.cli.train", "--config", str(config), "--data", str(data),
+                              "--out", str(run), "--device", "cpu", "-q"], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / ".lock").exists() or not (run / ".lock").read_text().strip():
+            assert first.poll() is None and time.monotonic() < deadline, "the first run did not start"
+            time.sleep(0.2)
+        assert main(["--config", str(config), "--data", str(data), "--out", str(run), "--device", "cpu",
+                     "--overwrite"]) == 2
+        line = _error_line(capsys)
+        assert "another run is training here" in line and f"process {first.pid}" in line
+    finally:
+        _, err = first.communicate(timeout=600)
+    assert first.returncode == 0, err
+    assert read_checkpoint(run / LATEST).state["step"] == 400
+
+
+@pytest.mark.slow
+def test_a_full_disk_at_a_checkpoint_is_one_line_and_the_logs_keep_to_the_checkpoint(tmp_path: Path,
+                                                                                    data: Path) -> None:
+    """The checkpoint cannot be written (files are limited below its size, as on a full disk): one line naming
+    it, exit 2, no temporary file left, and metrics.csv holds no row past the checkpoint the folder has (none)."""
+    import resource
+    import signal
+
+    config = _write(tmp_path / "c.json", {**CONFIG, "run": {**CONFIG["run"], "checkpoint_every": 2}})
+    run = tmp_path / "run"
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG) instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (256 * 1024, 256 * 1024))
+
+    out = subprocess.run([sys.executable, "-m", "fruxel.cli.train", "--config", str(config), "--data", str(data),
+                          "--out", str(run), "--device", "cpu", "-q"], capture_output=True, text=True,
+                         preexec_fn=limit, timeout=600)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
+    assert f"{run / 'last.pt'}: could not write the checkpoint of step 2" in lines[0]
+    names = sorted(p.name for p in run.iterdir())
+    assert "last.pt" not in names and not [n for n in names if ".tmp" in n], names
+    rows = (run / "metrics.csv").read_text().strip().splitlines()
+    assert rows[0].startswith("step") and len(rows) == 1, rows  # the header alone: no step was checkpointed
+    assert "curves.png" not in names and "examples.png" not in names
+
+
+@pytest.mark.slow
+def test_what_killed_writers_left_is_cleaned_up(tmp_path: Path, data: Path) -> None:
+    """A run killed while it wrote its checkpoint leaves a hidden temporary file beside last.pt: the next run in
+    the folder (a resume or an overwrite) removes it."""
+
+    config = _write(tmp_path / "c.json", {**CONFIG, "run": {**CONFIG["run"], "steps": 2}})
+    run = tmp_path / "run"
+    assert _train(config, data, run) == 0
+    # The name the checkpoint writer gives its temporary file (fruxel.io.atomic_path: ".NAME.XXXXXXXXXXXX.tmpSUFFIX"),
+    # as a SIGKILL during the write leaves it.
+    (run / ".last.pt.0123456789ab.tmp.pt").write_bytes(b"half a checkpoint")
+    left = sorted(p.name for p in run.iterdir() if ".tmp" in p.name)
+    assert left and left[0].startswith(".last.pt.")
+    assert main(["--resume", "--out", str(run), "--device", "cpu", "--steps", "3", "-q"]) == 0
+    assert not [p.name for p in run.iterdir() if ".tmp" in p.name]

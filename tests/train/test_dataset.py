@@ -342,6 +342,7 @@ def test_streamed_blocks_are_the_shards_bytes(reference: Path) -> None:
     _assert_blocks_equal(list(_stream(BlockPlan(lo, hi, 3, None), stop_block=1)), shards[1:])
 
 
+@pytest.mark.slow
 def test_batches_from_two_spawned_workers_equal_one_process(reference: Path) -> None:
     """Batches of the simulator's stream are the same bytes, in the same order, whether one process or two
     spawned DataLoader workers (each with its own renderer and meshes, blocks dealt round-robin) make them."""

@@ -131,6 +131,7 @@ def _batch(config: TrainConfig, root: Path | None, count: int, split: str = "tra
 
 
 # ---------------------------------------------------------------------------------------------- learning
+@pytest.mark.slow
 def test_overfits_one_fixed_batch(tmp_path: Path) -> None:
     """The engine, trained on one room of two samples (every batch is the same two), drives the loss far below its
     start, and the own-view first-hit accuracy of conventions section 9 on those samples rises well above the untrained
@@ -210,6 +211,7 @@ def test_checkpoint_holding_a_pickled_object_is_refused_without_running_it(tmp_p
 
 
 # ---------------------------------------------------------------------------------------------- resume
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["shards", "stream"])
 def test_resume_equals_an_uninterrupted_run(tmp_path: Path, shards: Path, monkeypatch: pytest.MonkeyPatch,
                                             source: str) -> None:
@@ -249,6 +251,7 @@ def test_resume_equals_an_uninterrupted_run(tmp_path: Path, shards: Path, monkey
         _assert_same_tensors(sa[key], sb[key], key)
 
 
+@pytest.mark.slow
 def test_ctrl_c_before_the_loop_and_resuming_a_finished_run(tmp_path: Path, shards: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """Ctrl-C at step 0 still leaves a checkpoint (the class weights it needs included); a run resumed at its
@@ -310,6 +313,7 @@ def _objectives(config: TrainConfig, weights: torch.Tensor) -> dict[str, SSZObje
     return {"eval": SSZObjective(plain, torch.ones_like(weights)), "train": SSZObjective(config.loss, weights)}
 
 
+@pytest.mark.slow
 def test_ddp_gradients_match_one_process(tmp_path: Path, shards: Path) -> None:
     """DDP on 2 gloo processes, each with half of a fixed batch of 4, gives the gradients one process computes.
 
@@ -397,6 +401,7 @@ class _MarkedStream(torch.utils.data.IterableDataset):
             Path(self.marker).write_text("closed")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("abort", [False, True])
 def test_batches_close_waits_for_the_workers(tmp_path: Path, abort: bool) -> None:
     """``Batches.close`` stops the workers and waits for them: the worker's stream is finalised before it returns.
@@ -422,6 +427,7 @@ def test_batches_close_waits_for_the_workers(tmp_path: Path, abort: bool) -> Non
         batches.close()  # idempotent
 
 
+@pytest.mark.slow
 def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) -> None:
     """A short run with evaluation writes every file of the run folder, and the shipped model loads."""
     config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"steps": 2}})
@@ -435,6 +441,7 @@ def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) ->
     assert shipped.config == config.model and shipped.training["step"] == 2 and shipped.rules == NO_RULES
 
 
+@pytest.mark.slow
 def test_fit_restores_the_callers_floating_point_mode_and_threads(tmp_path: Path, shards: Path) -> None:
     """Training on the CPU flushes denormals and sets its thread count for itself only: both are process-wide, and
     other code (hypothesis, for one) refuses to run with denormals flushed."""
@@ -530,3 +537,14 @@ def test_a_shipped_file_whose_header_length_starts_with_0x80_is_not_taken_for_a_
     f = read_model_file(path)
     assert f.config == config and f.training["note"] == "x" * pad and set(f.state) == set(gen.state_dict())
     assert not load_model(path).network.training
+
+
+def test_an_empty_or_truncated_checkpoint_is_one_error_naming_it(tmp_path: Path) -> None:
+    path = tmp_path / LATEST
+    path.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"last\.pt: not a readable checkpoint \(.*empty file\)"):
+        read_checkpoint(path)
+    save_checkpoint(path, {"step": 1, "generator": {}}, tiny())
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match=r"last\.pt: not a readable checkpoint"):
+        read_checkpoint(path)

@@ -199,6 +199,7 @@ def test_shipped_refined_model_round_trip(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- training
+@pytest.mark.slow
 def test_training_a_refined_model_from_a_coarse_one(tmp_path: Path) -> None:
     """A real CPU run (the streamed simulator, 16^3 grid): ``run.init`` gives the coarse model, the whole network
     learns with its new level. The loss falls, every weight moves (the level's zero-started heads included), and

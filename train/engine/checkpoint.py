@@ -98,8 +98,8 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         raise CheckpointError(path, f"refused: holds something other than tensors and plain data{what}; nothing "
                                     "in it was run") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError) as e:
-        raise CheckpointError(path, f"not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0]})") \
-            from None
+        first = (str(e).strip().splitlines() or ["empty file" if os.path.getsize(path) == 0 else "no detail"])[0]
+        raise CheckpointError(path, f"not a readable checkpoint ({type(e).__name__}: {first})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         what = repr(state.get("format")) if isinstance(state, dict) else f"a {type(state).__name__}"
         raise CheckpointError(path, f"not a fruxel SSZ checkpoint (format {what})")
