@@ -93,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _config(args: argparse.Namespace) -> Any:
+def demo_config(args: argparse.Namespace) -> Any:
+    """The demo's settings (:class:`fruxel.train.live.RobotDemoConfig`) from the parsed options."""
     from fruxel.train.live import RobotDemoConfig
 
     return RobotDemoConfig(**config_values(args, RobotDemoConfig))
@@ -123,7 +124,7 @@ def _write_video(args: argparse.Namespace, out: Path) -> list[str]:
     from fruxel.render.images import save_video
     from fruxel.train.live import RobotDemo
 
-    config = _config(args)
+    config = demo_config(args)
     demo = RobotDemo(config)
     fps = args.fps if args.fps is not None else 10.0 / config.steps_per_frame
     timed: list[Any] = []
@@ -243,7 +244,7 @@ def _show_viewer(args: argparse.Namespace) -> list[str]:
     from fruxel.train.live import RobotDemo
 
     pyrender = _viewer_pyrender()
-    config = _config(args)
+    config = demo_config(args)
     demo = RobotDemo(config)
     cam = demo.chase
     ctx = multiprocessing.get_context("spawn")
@@ -360,8 +361,7 @@ def _main(args: argparse.Namespace) -> int:
     from fruxel.render.frames import has_display
     from fruxel.render.images import check_video_writer
 
-    config = _config(args)
-    config.check()
+    config = demo_config(args)
     if args.view and args.out is not None:
         raise UsageError("--view shows the drive in a window and writes no file: leave out --out")
     viewer = args.view or (args.out is None and has_display())

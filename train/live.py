@@ -37,7 +37,7 @@ import numpy as np
 
 from fruxel.camera import Camera
 from fruxel.classes import ClassTable
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError, FruxelError
 from fruxel.grid import FruxelGrid
 
 from .sim.robot import CameraMount
@@ -210,23 +210,22 @@ class RobotDemoConfig:
     """Keep the model's ``flip_average`` rule (each camera image and its mirror image predicted and averaged) when
     its file has it on; off, SSZ runs once a frame, faster at the other rules' accuracy (BENCHMARKS.md)."""
 
-    def check(self) -> None:
-        """Raise :class:`LiveError` for impossible settings."""
+    def __post_init__(self) -> None:
         for name in ("frames", "size", "steps_per_frame"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise LiveError(f"{name} must be a positive integer, got {v!r}")
+                raise ConfigError(f"{name} must be a positive integer, got {v!r}")
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
-            raise LiveError(f"threads must be a positive integer, got {self.threads!r}")
+            raise ConfigError(f"threads must be a positive integer, got {self.threads!r}")
         for name in ("scene", "seed"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise LiveError(f"{name} must be a non-negative integer, got {v!r}")
+                raise ConfigError(f"{name} must be a non-negative integer, got {v!r}")
         if self.size > 2048:
-            raise LiveError(f"size must be at most 2048 pixels, got {self.size}")
+            raise ConfigError(f"size must be at most 2048 pixels, got {self.size}")
         if self.shell not in SHELLS:
-            raise LiveError(f"shell must be one of {SHELLS}, got {self.shell!r}")
+            raise ConfigError(f"shell must be one of {SHELLS}, got {self.shell!r}")
 
 
 @dataclass(frozen=True)
@@ -254,7 +253,6 @@ class RobotDemo:
         from .predict import load_predictor, share_cpu
         from .sim.config import AugmentConfig, ImageConfig, SimConfig, TrajectoryConfig
 
-        config.check()
         self.config = config
         share_cpu(config.threads)
         self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile)

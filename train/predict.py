@@ -305,6 +305,11 @@ class Predictor:
         logits = self._pass(images)
         return logits if then is None else then(logits)
 
+    @property
+    def captured(self) -> int:
+        """CUDA graphs held now, one per input shape and ``then`` (at most :attr:`MAX_GRAPHS`)."""
+        return len(self._graphs)
+
     @torch.no_grad()
     def logits(self, images: torch.Tensor) -> torch.Tensor:
         """``(B, 3, h, w)`` float images -> ``(B, C, D, H, W)`` float32 logits under the rules (bfloat16 compute on

@@ -23,7 +23,7 @@ torch = pytest.importorskip("torch")
 
 from fruxel.train.eval.evaluate import count_views, novel_cameras  # noqa: E402 - needs torch
 from fruxel.train.eval.metrics import Accumulator  # noqa: E402
-from fruxel.train.eval.report import _rules_text  # noqa: E402
+from fruxel.train.eval.report import rules_text  # noqa: E402
 from fruxel.train.model_files import load_model  # noqa: E402
 from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig  # noqa: E402
 from fruxel.train.sim.sample import SampleMaker  # noqa: E402
@@ -92,7 +92,7 @@ def check_report(out: Path, accs: dict[str, Accumulator], samples: int, examples
     assert report["command"] in md and "## IoU per class (%)" in md and "![examples](examples.png)" in md
     rules = report["model"]["inference_rules"]
     assert set(rules) == {"fill_columns", "empty_offset", "fill_threshold", "first_hit_label", "flip_average"}
-    assert f"inference rules: {_rules_text(rules)}" in md
+    assert f"inference rules: {rules_text(rules)}" in md
     sheet = np.asarray(Image.open(out / "examples.png").convert("RGB"))
     # Five 192-pixel tiles and the legend column per row, one row per example under two lines of text.
     assert sheet.shape == (36 + examples * 192, 5 * 192 + 130, 3)

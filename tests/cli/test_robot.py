@@ -77,11 +77,11 @@ def test_short_drive_writes_a_video(tmp_path: Path, no_display: None, monkeypatc
 @pytest.mark.slow
 def test_no_flip_average_runs_ssz_once_a_frame(tmp_path: Path, no_display: None) -> None:
     """The shipped model averages each image with its mirror image; --no-flip-average drives with one pass."""
-    from fruxel.cli.robot import _config, build_parser
+    from fruxel.cli.robot import build_parser, demo_config
 
     def passes(argv: list[str]) -> list[int]:
         """Batch sizes through the network's stem while the demo drives (one entry per network pass)."""
-        demo = RobotDemo(_config(build_parser().parse_args([*argv, "--frames", "2", "--size", str(SIZE)])))
+        demo = RobotDemo(demo_config(build_parser().parse_args([*argv, "--frames", "2", "--size", str(SIZE)])))
         calls: list[int] = []
         demo.predictor.network.stem.register_forward_pre_hook(lambda module, args: calls.append(args[0].shape[0]))
         assert len(list(demo.frames())) == 2

@@ -260,16 +260,16 @@ def first_surface_volume(labels: torch.Tensor) -> torch.Tensor:
 
 
 def test_report_names_the_inference_rules() -> None:
-    from fruxel.train.eval.report import _rules_text
+    from fruxel.train.eval.report import rules_text
 
-    assert _rules_text({"fill_columns": True, "empty_offset": 2.0}) == "empty logit +2, fill_columns"
-    assert (_rules_text({"fill_columns": True, "empty_offset": 3.0, "fill_threshold": 0.7})
+    assert rules_text({"fill_columns": True, "empty_offset": 2.0}) == "empty logit +2, fill_columns"
+    assert (rules_text({"fill_columns": True, "empty_offset": 3.0, "fill_threshold": 0.7})
             == "empty logit +3, fill_columns (threshold 0.7)")
-    assert _rules_text({"fill_columns": False, "empty_offset": 0.0, "fill_threshold": 0.7}) == "none (plain argmax)"
-    assert _rules_text({"fill_columns": False, "empty_offset": -0.5}) == "empty logit -0.5"
-    assert _rules_text({"fill_columns": False, "empty_offset": 0.0}) == "none (plain argmax)"
-    assert (_rules_text({"fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8, "first_hit_label": True})
+    assert rules_text({"fill_columns": False, "empty_offset": 0.0, "fill_threshold": 0.7}) == "none (plain argmax)"
+    assert rules_text({"fill_columns": False, "empty_offset": -0.5}) == "empty logit -0.5"
+    assert rules_text({"fill_columns": False, "empty_offset": 0.0}) == "none (plain argmax)"
+    assert (rules_text({"fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8, "first_hit_label": True})
             == "empty logit +1, fill_columns (threshold 0.8), first_hit_label")
-    assert _rules_text({"fill_columns": False, "empty_offset": 0.0, "first_hit_label": False}) == "none (plain argmax)"
-    assert (_rules_text({"flip_average": True, "fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8})
+    assert rules_text({"fill_columns": False, "empty_offset": 0.0, "first_hit_label": False}) == "none (plain argmax)"
+    assert (rules_text({"flip_average": True, "fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8})
             == "flip_average, empty logit +1, fill_columns (threshold 0.8)")

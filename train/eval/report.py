@@ -122,7 +122,7 @@ def _plain(d: Mapping[str, Any], skip: tuple[str, ...] = ()) -> str:
     return ", ".join(parts)
 
 
-def _rules_text(rules: Mapping[str, Any]) -> str:
+def rules_text(rules: Mapping[str, Any]) -> str:
     """The model's inference rules (``ModelConfig.flip_average``, ``fill_columns``, ``empty_offset``,
     ``fill_threshold``, ``first_hit_label``) in words."""
     parts = ["flip_average"] if rules.get("flip_average") else []
@@ -146,7 +146,7 @@ def markdown_report(report: Mapping[str, Any]) -> str:
     h, w = m["image_size"]
     about = [
         ["model", f"`{m['file']}`: grid {_grid_text(m['grid'])}, {w}x{h} images, {len(report['classes']['names'])} "
-                  f"classes" + (f"; inference rules: {_rules_text(m['inference_rules'])}" if "inference_rules" in m
+                  f"classes" + (f"; inference rules: {rules_text(m['inference_rules'])}" if "inference_rules" in m
                                 else "") + (f"; trained: {trained}" if trained else "")],
         ["samples", f"{d['samples']} samples of split `{d['split']}` ({d.get('indices', '')}), {d['source']}"],
     ]

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fruxel.classes import DEFAULT_CLASSES, ClassTable
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError
 
 if TYPE_CHECKING:
     import trimesh
@@ -51,8 +51,9 @@ FURNITURE_KINDS = ("table", "chair", "shelf", "cabinet", "sofa")
 """Procedural furniture types."""
 
 
-class SceneError(FruxelError, ValueError):
-    """Raised for an impossible room configuration."""
+SceneError = ConfigError
+"""An impossible room configuration: the project's one :class:`~fruxel.errors.ConfigError` (this name is kept for
+the callers that catch it)."""
 
 
 # ---------------------------------------------------------------------------------------------- data types
