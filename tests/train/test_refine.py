@@ -67,20 +67,6 @@ def _woken(model: SSZGenerator, seed: int = 7) -> SSZGenerator:
     return model.eval()
 
 
-def _woken(model: SSZGenerator, seed: int = 7) -> SSZGenerator:
-    """``model`` with every parameter moved off its initialisation (the zero-started heads and projections
-    included) and BatchNorm statistics that are not the identity's, so that running a part in the wrong mode, on
-    the wrong image or not at all shows in its output; in eval mode."""
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(0.1 * torch.randn(p.shape, generator=gen))
-        for bn in _batch_norms(model).values():
-            bn.running_mean.copy_(0.2 * torch.randn(bn.running_mean.shape, generator=gen))
-            bn.running_var.copy_(0.5 + 1.5 * torch.rand(bn.running_var.shape, generator=gen))
-    return model.eval()
-
-
 def _repeat(x: torch.Tensor) -> torch.Tensor:
     """Each cell of ``(B, C, D, H, W)`` repeated 2 x 2 x 2."""
     return x.repeat_interleave(2, 2).repeat_interleave(2, 3).repeat_interleave(2, 4)
