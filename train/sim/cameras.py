@@ -22,8 +22,8 @@ Draw
     From the trajectory's camera seed (:func:`.config.camera_seed`), apart from the room's and the drive's seeds: the
     room and the drive are the same whatever the camera. Four uniform numbers ``u`` in [0, 1) are drawn in the order
     height, pitch, roll, field of view (whether or not a field is None), and each value is ``low + (high - low) u``.
-    The field of view is then rounded to whole pixels of the render (below); that rounded value is the one used and
-    recorded.
+    The field of view is then rounded to whole pixels of the render (below; steps of 2 pixels, kept inside the range
+    where a step allows); that rounded value is the one used and recorded.
 
 Rendering and framing
     The grid stays the model's grid, aligned with the camera (the grid's pose is the camera's pose). The camera
@@ -173,13 +173,31 @@ def render_size(config: SimConfig, hfov: float) -> tuple[int, int]:
     return w, h
 
 
-def render_hfov(config: SimConfig, hfov: float) -> float:
-    """The field of view a camera ``hfov`` degrees across renders with: ``2 atan(w / (2 f))`` of its whole-pixel
-    width, or exactly the grid's when that width is the network image's."""
-    w, _ = render_size(config, hfov)
+def _width_hfov(config: SimConfig, w: int) -> float:
+    """The field of view of a render ``w`` pixels wide, degrees: exactly the grid's at the network image's width."""
     if w == config.image_width:
         return float(config.grid.hfov)
     return math.degrees(2.0 * math.atan(w / (2.0 * _render_focal(config))))
+
+
+def render_hfov(config: SimConfig, hfov: float, bounds: tuple[float, float] | None = None) -> float:
+    """The field of view a camera ``hfov`` degrees across renders with: ``2 atan(w / (2 f))`` of its whole-pixel
+    width (:func:`render_size`), or exactly the grid's when that width is the network image's.
+
+    Args:
+        config: the simulator config.
+        hfov: degrees.
+        bounds: ``(low, high)`` degrees the result should keep to: a width whose field of view rounds outside them
+            moves one step (2 pixels) inwards when the step lands inside (small images have coarse steps).
+    """
+    w, _ = render_size(config, hfov)
+    if bounds is not None:
+        lo, hi = bounds
+        if _width_hfov(config, w) < lo and _width_hfov(config, w + 2) <= hi:
+            w += 2
+        elif _width_hfov(config, w) > hi and w > 2 and _width_hfov(config, w - 2) >= lo:
+            w -= 2
+    return _width_hfov(config, w)
 
 
 def render_camera(config: SimConfig, hfov: float, pose: Any = None) -> Camera:
@@ -264,9 +282,9 @@ def draw_mount(config: SimConfig, seed: int) -> Mount:
         # lo + (hi - lo) u is exactly lo for a degenerate range.
         return float(fallback) if r is None else float(r[0] + (r[1] - r[0]) * u[k])
 
-    hfov = pick(cam.hfov, config.grid.hfov, 3)
+    hfov = render_hfov(config, pick(cam.hfov, config.grid.hfov, 3), cam.hfov)
     return Mount(height=pick(cam.height, robot.height, 0), pitch=pick(cam.pitch, robot.tilt, 1),
-                 roll=pick(cam.roll, 0.0, 2), hfov=render_hfov(config, hfov))
+                 roll=pick(cam.roll, 0.0, 2), hfov=hfov)
 
 
 def roll_poses(poses: np.ndarray, roll: float) -> np.ndarray:

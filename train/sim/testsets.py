@@ -91,8 +91,9 @@ def _world(config: SimConfig, test_set: EvaluationSet) -> SimConfig:
 
     TO CONNECT (lead, when merging rooms38): set ``SimConfig.world`` to ``test_set.world`` and, for the home world,
     choose the held-out assets when ``test_set.assets == "test"`` (``SimConfig.home``'s choice), training assets
-    otherwise; then set :data:`ASSET_SIDE_CONNECTED` and un-skip ``test_test_sets_world_and_assets`` in
-    ``tests/train/test_cameras.py``. The flat world is today's only world, so the ``robot`` set needs nothing.
+    otherwise; then set :data:`ASSET_SIDE_CONNECTED`, which runs ``test_test_sets_world_and_assets`` of
+    ``tests/train/test_cameras.py`` (its asset check is to be written then). The flat world is today's only world,
+    so the ``robot`` set needs nothing.
     """
     if test_set.world == "flat":
         return config
