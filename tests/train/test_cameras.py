@@ -343,13 +343,21 @@ class GridOnlyRenderer(CameraLabelRenderer):
         return super().render(pose, rng)
 
 
+class WrongSizeRenderer(CameraLabelRenderer):
+    """A renderer that takes cameras but draws the grid's view whatever it is asked for."""
+
+    def render(self, pose: np.ndarray, rng: Any, camera: Camera | None = None) -> np.ndarray:
+        return super().render(pose, rng)
+
+
 @pytest.fixture
 def label_renderers() -> Iterator[None]:
-    register_renderer("camera-labels", CameraLabelRenderer)
-    register_renderer("grid-labels", GridOnlyRenderer)
+    for name, cls in (("camera-labels", CameraLabelRenderer), ("grid-labels", GridOnlyRenderer),
+                      ("wrong-size", WrongSizeRenderer)):
+        register_renderer(name, cls)
     yield
-    RENDERERS.pop("camera-labels")
-    RENDERERS.pop("grid-labels")
+    for name in ("camera-labels", "grid-labels", "wrong-size"):
+        RENDERERS.pop(name)
 
 
 def test_sample_images_and_labels_line_up_in_real_rooms(label_renderers: None) -> None:
@@ -378,6 +386,11 @@ def test_a_renderer_without_the_camera_argument_serves_the_grid_view_only(label_
         assert maker.make("train", 0).camera.hfov == 60.0
     with SampleMaker(ANY.replace(renderer="grid-labels"), SEED) as maker, pytest.raises(
             ConfigError, match="renderer 'grid-labels' draws only the grid's view"):
+        for i in range(0, 12, 3):
+            maker.make("train", i)
+    # A render of another size than the camera asked for would be resampled by the framing: refused.
+    with SampleMaker(ANY.replace(renderer="wrong-size"), SEED) as maker, pytest.raises(
+            RuntimeError, match=r"renderer 'wrong-size' returned uint8 \(32, 32, 3\) for a \d+x\d+ camera"):
         for i in range(0, 12, 3):
             maker.make("train", i)
 
@@ -548,3 +561,18 @@ def test_test_sets_world_and_assets() -> None:
     # TO CONNECT: a's rooms are furnished from the training assets and b's from the held-out test assets only
     # (SimConfig.home's choice); check it on the configs and on the assets of a few of b's rooms.
     raise AssertionError("the asset split of the test sets is not checked yet")
+
+
+def test_streamed_samples_take_the_source_camera() -> None:
+    """The training stream's simulator config takes its cameras from the sample source, by name."""
+    from fruxel.train.models.ssz import SSZConfig
+    from fruxel.train.samples import DataError, SampleSource, sim_config
+
+    model = SSZConfig(grid=FruxelGrid(16, 16, 16, 0.5, 8.0, 60.0), image_scale=2, levels=3, stem=4, encoder=(8, 8, 8),
+                      encoder_blocks=(1, 1, 1), encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4),
+                      decoder_blocks=(1, 1, 1))
+    assert sim_config(model, SampleSource(), (("train", 4),)).camera == ROBOT_CAMERA
+    source = SampleSource(camera="any")
+    assert sim_config(model, source, (("train", 4),)).camera == ANY_CAMERA and "any camera" in source.describe()
+    with pytest.raises(DataError, match="sample source camera must be one of robot, any, got 'phone'"):
+        SampleSource(camera="phone")

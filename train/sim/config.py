@@ -188,7 +188,7 @@ class SimConfig:
     """Everything that decides the samples of a data set, except the base seed (see the module docstring)."""
 
     grid: FruxelGrid = DEFAULT_GRID
-    """The fruxel grid of every sample, aligned with the robot camera."""
+    """The fruxel grid of every sample, aligned with its camera (the grid's pose is the camera's)."""
     image: ImageConfig = field(default_factory=ImageConfig)
     """The camera image."""
     room: RoomConfig = field(default_factory=RoomConfig)

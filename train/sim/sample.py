@@ -239,7 +239,13 @@ class SampleMaker:
             raise ConfigError(f"renderer {cfg.renderer!r} draws only the grid's view (its render() takes no camera), "
                               f"but the config's camera draws other fields of view ({room.mount.hfov:.4g} degrees); "
                               "use a fixed camera.hfov equal to the grid's, or a renderer that takes cameras")
-        render = self._renderer.render(pose, rng, camera=cameras.render_camera(cfg, room.mount.hfov))
+        camera = cameras.render_camera(cfg, room.mount.hfov)
+        render = self._renderer.render(pose, rng, camera=camera)
+        if getattr(render, "shape", None) != (camera.height, camera.width, 3) or render.dtype != np.uint8:
+            # Framing would resample an image of the wrong size without a word.
+            raise RuntimeError(f"renderer {cfg.renderer!r} returned {getattr(render, 'dtype', type(render))} "
+                               f"{getattr(render, 'shape', '')} for a {camera.width}x{camera.height} camera; "
+                               f"expected ({camera.height}, {camera.width}, 3) uint8")
         return cameras.frame_render(cfg, render, room.mount.hfov)
 
     def close(self) -> None:
