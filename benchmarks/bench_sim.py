@@ -11,6 +11,9 @@ Modes (``--mode``, comma-separated):
   (``fruxelize`` on Warp, ``--device``) batched by ``Batches`` in spawned DataLoader workers, batches of 8;
 * ``profile``   — one process, seconds per stage (no files), plus shard encoding.
 
+``--camera any`` makes every case's samples with any camera (``fruxel.train.sim.cameras.ANY_CAMERA``: renders of
+50 to 80 degrees framed onto the grid's view) instead of the robot's own mount; its rows say so.
+
 Rates: *steady* counts from the moment every worker has delivered (start-up excluded), *end to end* from the call
 to the last sample (process start-up, imports, EGL and Warp start included). Cases are ``SxG`` (image S^2,
 grid G^3), default ``256x64,512x128``.
@@ -62,23 +65,26 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
     return int(m.group(1)), int(m.group(2)), int(m.group(3)) if m.group(3) else None
 
 
-def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True) -> Any:
-    """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels."""
+def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True, camera: str = "robot"
+                ) -> Any:
+    """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels, the cameras
+    named ``camera`` (``fruxel.train.sim.cameras.CAMERAS``)."""
     from fruxel.grid import FruxelGrid
+    from fruxel.train.sim.cameras import camera_named
     from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
-                     shard_size=shard_size, splits=(("train", samples),))
+                     shard_size=shard_size, splits=(("train", samples),), camera=camera_named(camera))
 
 
 # ---------------------------------------------------------------------------------------------------- measuring
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
-                   device: str | None) -> dict[str, Any]:
+                   device: str | None, camera: str = "robot") -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
     from fruxel.train.sim.writer import generate
 
-    cfg = make_config(image, grid, samples, shard_size)
+    cfg = make_config(image, grid, samples, shard_size, camera=camera)
     marks: list[tuple[float, int]] = []
     with tempfile.TemporaryDirectory(prefix="bench_sim_") as out:
         t0 = time.perf_counter()
@@ -90,13 +96,13 @@ def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size
             "bytes_per_sample": size / samples}
 
 
-def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None
-                    ) -> dict[str, Any]:
+def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None,
+                    camera: str = "robot") -> dict[str, Any]:
     """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
     it) with ``workers`` DataLoader workers."""
     from fruxel.train.samples import Batches, BlockPlan, BlockStream
 
-    cfg = make_config(image, grid, samples, 64)
+    cfg = make_config(image, grid, samples, 64, camera=camera)
     plan = BlockPlan(0, samples, cfg.samples_per_scene, None)
     blocks = -(-samples // cfg.samples_per_scene)
 
@@ -132,12 +138,13 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
             "end_to_end_sps": round(samples / wall, 2), "startup_s": round(start[0] - t0, 2)}
 
 
-def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None) -> dict[str, Any]:
+def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None,
+                  camera: str = "robot") -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
     from fruxel.train.sim.sample import STAGES, SampleMaker
     from fruxel.train.sim.shards import ShardSpec, encode_shard
 
-    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps())
+    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps(), camera=camera)
     sps = cfg.samples_per_scene
     with SampleMaker(cfg, 0, backend=backend, device=device) as maker:
         for i in range(sps):
@@ -187,6 +194,12 @@ def gl_renderer() -> str:
 
 
 # ---------------------------------------------------------------------------------------------------- report
+def _image(r: dict[str, Any]) -> str:
+    """A result's image column: ``S^2``, with its cameras when they are not the robot's."""
+    camera = r.get("camera", "robot")
+    return f"{r['image']}^2" + ("" if camera == "robot" else f", {camera} camera")
+
+
 def _target(tag: str, case: str, mode: str) -> float | None:
     if mode not in TARGET_MODES.get(tag, ()):
         return None
@@ -221,9 +234,9 @@ def section(runs: list[dict[str, Any]]) -> str:
             if r["mode"] == "profile":
                 continue
             case = f"{r['image']}x{r['grid']}"
-            target = _target(run["tag"], case, r["mode"])
+            target = _target(run["tag"], case, r["mode"]) if r.get("camera", "robot") == "robot" else None
             met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
-            lines.append(f"| {run['tag']} | {r['mode']} | {r['image']}^2 | {r['grid']}^3 | {r['workers']} | "
+            lines.append(f"| {run['tag']} | {r['mode']} | {_image(r)} | {r['grid']}^3 | {r['workers']} | "
                          f"{r['samples']} | {r['steady_sps']:.1f} | {r['end_to_end_sps']:.1f} | "
                          f"{'' if target is None else f'>= {target:g}'} | {met} |")
     profiles = [(run["tag"], r) for run in runs for r in run["results"] if r["mode"] == "profile"]
@@ -236,7 +249,7 @@ def section(runs: list[dict[str, Any]]) -> str:
                   "| --- | ---: | ---: | " + " | ".join("---:" for _ in stages) + " | ---: | ---: |"]
         for tag, r in profiles:
             ms = r["ms_per_sample"]
-            lines.append(f"| {tag} | {r['image']}^2 | {r['grid']}^3 | "
+            lines.append(f"| {tag} | {_image(r)} | {r['grid']}^3 | "
                          + " | ".join(f"{ms[s]:.1f}" if s in ms else "-" for s in stages)
                          + f" | {r['sps_one_process']:.1f} | {r['bytes_per_sample'] / 1024:.0f} |")
     notes = [n for run in runs for n in run.get("notes", [])]
@@ -249,8 +262,9 @@ def section(runs: list[dict[str, Any]]) -> str:
 def chart(runs: list[dict[str, Any]], path: Path = CHART) -> None:
     """Bars of steady samples/s per machine, mode and case, with the targets as ticks."""
     plt = common.pyplot()
-    bars = [(f"{run['tag']} {r['mode']}\n{r['image']}^2/{r['grid']}^3 x{r['workers']}", r["steady_sps"],
-             _target(run["tag"], f"{r['image']}x{r['grid']}", r["mode"]))
+    bars = [(f"{run['tag']} {r['mode']}\n{_image(r)}/{r['grid']}^3 x{r['workers']}", r["steady_sps"],
+             _target(run["tag"], f"{r['image']}x{r['grid']}", r["mode"]) if r.get("camera", "robot") == "robot"
+             else None)
             for run in runs for r in run["results"] if r["mode"] != "profile"]
     if not bars:
         return
@@ -286,6 +300,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md or the chart")
     p.add_argument("--report", action="store_true", help="only rebuild the section and chart from the JSON files")
     p.add_argument("--json", default=None, help="also copy the JSON here (e.g. $OUT/sim-h100.json)")
+    p.add_argument("--camera", default="robot", choices=("robot", "any"),
+                   help="the cameras of the samples: the robot's own mount (default) or any camera")
     args = p.parse_args(argv)
     if args.report:
         runs = load_results()
@@ -305,14 +321,16 @@ def main(argv: list[str] | None = None) -> None:
             print(f"bench_sim: {args.tag} {mode} {image}^2 / {grid}^3 ...", file=sys.stderr, flush=True)
             if mode == "generate":
                 shard = max(16, min(64, n // (2 * max(1, args.workers)) // 16 * 16))
-                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device)
+                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device, args.camera)
             elif mode == "streaming":
-                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device)
+                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device, args.camera)
             elif mode == "profile":
-                r = bench_profile(image, grid, min(n, 64), args.backend, args.device)
+                r = bench_profile(image, grid, min(n, 64), args.backend, args.device, args.camera)
             else:
                 raise SystemExit(f"bench_sim: unknown mode {mode!r}")
             r.update(image=image, grid=grid)
+            if args.camera != "robot":
+                r["camera"] = args.camera
             results.append(r)
             print(json.dumps(r), flush=True)
     run = {"tag": args.tag, "date": dt.date.today().isoformat(), "machine": info, "results": results,

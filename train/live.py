@@ -251,6 +251,7 @@ class RobotDemo:
 
     def __init__(self, config: RobotDemoConfig) -> None:
         from .predict import load_predictor, share_cpu
+        from .sim.cameras import ROBOT_CAMERA
         from .sim.config import AugmentConfig, ImageConfig, SimConfig, TrajectoryConfig
 
         self.config = config
@@ -266,9 +267,11 @@ class RobotDemo:
             raise LiveError(f"size {cam_w} times the grid's height {self.grid.height} must be a multiple of its "
                             f"width {self.grid.width}")
         trajectory = TrajectoryConfig(steps_per_frame=config.steps_per_frame)
+        # The robot's own mount, whatever the simulator's default camera: the chase view rides on it.
         self.sim = SimConfig(grid=self.grid, image=ImageConfig(size=cam_w, augment=AugmentConfig(enabled=False)),
                              classes=self.classes, samples_per_scene=config.frames, trajectory=trajectory,
-                             splits=(("train", 1), ("test", (config.scene + 1) * config.frames)))
+                             splits=(("train", 1), ("test", (config.scene + 1) * config.frames)),
+                             camera=ROBOT_CAMERA)
         self.camera_height = cam_h
         self.chase = chase_camera(self.sim.trajectory.mount, round(config.size * 4 / 3), config.size, config.chase)
         # The prediction's kernels follow its logits (where SSZ ran); the truth's numpy labels go to the same device

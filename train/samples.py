@@ -16,9 +16,27 @@ Ranks
 
 Arrays
     Blocks and batches hold ``image`` ``(N, h, w, 3)`` uint8 RGB (image rows and columns, the grid camera's
-    image), ``labels`` ``(N, D, H, W)`` uint8 (grid frame) and ``index`` ``(N,)`` int64; they stay uint8 until
-    the training device (:func:`fruxel.train.engine.data.to_device`), where images become ``(N, 3, h, w)`` float
-    in [0, 1].
+    image), ``labels`` ``(N, D, H, W)`` uint8 (grid frame), ``index`` ``(N,)`` int64, and ``camera``, a dictionary
+    of each sample's camera (:data:`fruxel.train.sim.cameras.CAMERA_KEYS`):
+
+    ============== ================ ======= ==========================================================================
+    key            shape            dtype   what, in which frame
+    ============== ================ ======= ==========================================================================
+    ``intrinsics`` ``(N, 4)``       float64 ``fx, fy, cx, cy`` of the rendered camera, pixels of its own render
+    ``image_size`` ``(N, 2)``       int64   ``width, height`` of that render, pixels
+    ``pose``       ``(N, 4, 4)``    float64 camera-to-world (= the grid's pose), OpenCV axes, world z up, metres
+    ``height``     ``(N,)``         float64 optical centre above the floor, metres
+    ``gravity``    ``(N, 3)``       float64 unit direction of gravity in the camera frame (x right, y down, z ahead)
+    ``pitch``      ``(N,)``         float64 degrees, positive looking down
+    ``roll``       ``(N,)``         float64 degrees, positive clockwise as seen from behind the camera
+    ``hfov``       ``(N,)``         float64 the camera's horizontal field of view, degrees
+    ``coverage``   ``(N, H, W)``    bool    grid frame: the columns ``image`` covers (not grey padding)
+    ============== ================ ======= ==========================================================================
+
+    ``image`` is always the grid's view: a camera of another field of view is framed onto it as the commands frame a
+    photo (:mod:`fruxel.train.sim.cameras`); ``labels`` are the full truth, covered columns or not. Images and
+    labels stay uint8 until the training device (:func:`fruxel.train.engine.data.to_device`), where images become
+    ``(N, 3, h, w)`` float in [0, 1]; the camera stays on the host until a network takes it.
 """
 
 from __future__ import annotations
@@ -62,10 +80,17 @@ class SampleSource:
     """Appearance augmentation of streamed images (a data set has its own setting)."""
     samples_per_scene: int = DataConfig.samples_per_scene
     """Consecutive samples per room (streaming; a data set has its own)."""
+    camera: str = "robot"
+    """The cameras streamed samples take, by name (:data:`fruxel.train.sim.cameras.CAMERAS`: ``"robot"``, the
+    robot's own mount, or ``"any"``); a data set has its own."""
 
     def __post_init__(self) -> None:
+        from fruxel.train.sim.cameras import CAMERAS
+
         if self.source not in DATA_SOURCES:
             raise DataError(f"sample source must be one of {', '.join(DATA_SOURCES)}, got {self.source!r}")
+        if self.camera not in CAMERAS:
+            raise DataError(f"sample source camera must be one of {', '.join(CAMERAS)}, got {self.camera!r}")
 
     @classmethod
     def of(cls, data: DataConfig) -> SampleSource:
@@ -76,19 +101,21 @@ class SampleSource:
         """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
         if self.source == "shards":
             return f"data set {self.root}"
+        camera = "" if self.camera == "robot" else f", {self.camera} camera"
         return (f"simulator stream, seed {self.seed}, {self.samples_per_scene} samples per room, "
-                f"{'augmented' if self.augment else 'no augmentation'}")
+                f"{'augmented' if self.augment else 'no augmentation'}{camera}")
 
 
 def sim_config(model: ModelConfig, source: SampleSource, splits: tuple[tuple[str, int], ...]) -> Any:
     """The simulator settings that make ``model``'s samples from a streamed ``source``: its grid, class table and
-    image size, the source's rooms and augmentation, and ``splits`` (a streamed sample depends on the seed, the
+    image size, the source's rooms, camera and augmentation, and ``splits`` (a streamed sample depends on the seed, the
     split's name and its index, never on the split's size)."""
+    from fruxel.train.sim.cameras import camera_named
     from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=model.grid, classes=model.classes, samples_per_scene=source.samples_per_scene,
                      image=ImageConfig(size=model.image_size[1], augment=AugmentConfig(enabled=source.augment)),
-                     splits=splits)
+                     splits=splits, camera=camera_named(source.camera))
 
 
 def check_data_set(root: str, model: ModelConfig) -> Any:
@@ -393,10 +420,12 @@ class BlockStream(IterableDataset):
                 if q == self.first_block:
                     idx = idx[self.skip:]
                 samples = [read(i) for i in idx]
+                cams = [s.camera_arrays() for s in samples]
                 block = {
                     "image": np.stack([s.image for s in samples]),
                     "labels": np.stack([np.asarray(s.labels, dtype=np.uint8) for s in samples]),
                     "index": np.asarray([s.index for s in samples], dtype=np.int64),
+                    "camera": {k: np.stack([c[k] for c in cams]) for k in cams[0]},
                     "block": np.int64(q),
                 }
                 yield block
@@ -429,8 +458,8 @@ def _exit_now() -> None:
     os._exit(0)
 
 
-BATCH_KEYS = ("image", "labels", "index")
-"""What a batch of :class:`Batches` holds."""
+BATCH_KEYS = ("image", "labels", "index", "camera")
+"""What a batch of :class:`Batches` holds (``camera`` a dictionary of tensors; the module docstring)."""
 
 
 class Batches:
@@ -472,7 +501,7 @@ class Batches:
             return self._block, self._base + self._offset
         return self._next
 
-    def __next__(self) -> dict[str, torch.Tensor]:
+    def __next__(self) -> dict[str, Any]:
         """The next batch: ``batch`` samples, fewer only at the end of a stream with a last block.
 
         Raises:
@@ -480,7 +509,7 @@ class Batches:
         """
         if self._it is None:
             self._it = iter(self._loader)
-        parts: list[dict[str, torch.Tensor]] = []
+        parts: list[dict[str, Any]] = []
         need = self.batch
         while need:
             if self._buf is None:
@@ -497,13 +526,13 @@ class Batches:
             n = len(self._buf["index"])
             take = min(n - self._offset, need)
             sl = slice(self._offset, self._offset + take)
-            parts.append({k: torch.as_tensor(self._buf[k][sl]) for k in BATCH_KEYS if k in self._buf})
+            parts.append({k: _take(self._buf[k], sl) for k in BATCH_KEYS if k in self._buf})
             self._offset += take
             need -= take
             if self._offset == n:
                 self._next = (self._block + 1, 0)
                 self._buf = None
-        return {k: torch.cat([p[k] for p in parts]) if len(parts) > 1 else parts[0][k] for k in parts[0]}
+        return _join(parts)
 
     def __iter__(self) -> Batches:
         return self
@@ -533,6 +562,20 @@ class Batches:
         if ended:
             warnings.warn(f"data workers ended by a signal as they stopped, after their last batch was used: "
                           f"{', '.join(ended)}", RuntimeWarning, stacklevel=2)
+
+
+def _take(value: Any, sl: slice) -> Any:
+    """Rows ``sl`` of a block's array, or of every array of a dictionary of them, as tensors."""
+    if isinstance(value, dict):
+        return {k: _take(v, sl) for k, v in value.items()}
+    return torch.as_tensor(value[sl])
+
+
+def _join(parts: list[Any]) -> Any:
+    """The parts of one batch (tensors, or dictionaries of them alike) concatenated along the first axis."""
+    if isinstance(parts[0], dict):
+        return {k: _join([p[k] for p in parts]) for k in parts[0]}
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
 def _signal_name(number: int) -> str:

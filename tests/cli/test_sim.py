@@ -158,3 +158,23 @@ def test_contact_sheet_titles_fit_their_panels() -> None:
     assert band.shape[0] >= 2 * 18, "the long titles take more than one line"
     for gap in (pad + 40, pad + 40 + pad + 40):
         assert np.all(band[:, gap:gap + pad] == 255)
+
+
+def test_camera_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--camera any`` makes data sets and sheets of any camera, recorded in the config; the robot's is the
+    default and records nothing (configs as before cameras varied)."""
+    robot, anyc = tmp_path / "robot", tmp_path / "any"
+    assert main(["generate", "--out", str(robot), "--samples", "2", "-q", *TINY]) == 0
+    assert main(["generate", "--out", str(anyc), "--samples", "2", "-q", "--camera", "any", *TINY]) == 0
+    assert "camera" not in json.loads((robot / "manifest.json").read_text())["config"]
+    m = json.loads((anyc / "manifest.json").read_text())
+    assert m["version"] == 3 and m["config"]["camera"] == {"height": [0.3, 1.9], "pitch": [-20.0, 40.0],
+                                                           "roll": [-10.0, 10.0], "hfov": [50.0, 80.0]}
+    png = tmp_path / "sheet.png"
+    assert main(["preview", "--out", str(png), "--camera", "any", "--count", "2", *TINY]) == 0
+    assert Image.open(png).size[0] >= 3 * 32
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["preview", "--out", str(png), "--camera", "phone"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--camera" in err[0]

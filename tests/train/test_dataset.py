@@ -83,7 +83,7 @@ def test_same_seed_same_bytes_across_runs_and_workers(reference: Path, tmp_path:
 
 def test_manifest_records_the_data_set(reference: Path) -> None:
     m = json.loads((reference / MANIFEST).read_text())
-    assert m["format"] == "fruxel-sim" and m["version"] == 2 and m["complete"] is True and m["seed"] == SEED
+    assert m["format"] == "fruxel-sim" and m["version"] == 3 and m["complete"] is True and m["seed"] == SEED
     assert m["grid"] == CONFIG.grid.to_dict() and m["classes"] == CONFIG.classes.to_dict()
     assert m["intrinsics"]["image"]["fx"] == pytest.approx(m["intrinsics"]["grid"]["fx"] * 64 / 16)
     assert [s["count"] for s in m["splits"]["train"]["shards"]] == [2, 2, 2]
@@ -304,7 +304,7 @@ def test_shard_dataset_items(reference: Path) -> None:
     assert item["pose"].shape == (4, 4) and int(item["index"]) == 5
     np.testing.assert_allclose(item["K"].numpy(), CONFIG.image_camera().K)
     # One source of truth: own-view images are first_hit of the labels on the device, not items of their own.
-    assert sorted(item) == ["K", "image", "index", "labels", "pose"]
+    assert sorted(item) == ["K", "camera", "image", "index", "labels", "pose"]
     with pytest.raises(IndexError):
         ds[6]
 

@@ -9,6 +9,9 @@
   random or scripted trajectories giving one camera pose per frame;
 * :mod:`.renderer` — what draws the camera images: the renderer protocol and the registry of renderers by name
   (:class:`.images.SceneRenderer`, pyrender, is the default), chosen by ``SimConfig.renderer``;
+* :mod:`.cameras` — the camera each trajectory draws (``SimConfig.camera``: the robot's own mount, or any height,
+  pitch, roll and field of view), its render framed onto the grid's view, and each sample's camera record;
+  :mod:`.testsets` — the held-out test sets as named configs;
 * ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids; what the grid's own
   camera sees of them is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``;
 * data sets: :mod:`.sample` (a sample and its maker), :mod:`.shards` (shard files), :mod:`.manifest` (the data

@@ -12,15 +12,19 @@ Image and grid
     point at the image centre. It is the grid's own camera scaled by ``S / W``, so the image and the grid share
     the optical centre and the frustum's side planes: grid column ``(j, i)`` is seen by the ``S / W`` x ``S / W``
     block of pixels around image point ``((i + 1/2) S / W, (j + 1/2) S / W)``. ``S * H / W`` must be an integer.
+    A camera of another field of view (``camera``, :mod:`.cameras`) renders at its own and is framed onto this
+    image, as the commands frame a photo; the grid stays aligned with it (the grid's pose is the camera's pose).
 
 Seeds (sample ``i`` of split ``s`` with base seed ``b``; ``k(s) = crc32(s)``, ``n = samples_per_scene``)
     scene ``c = i // n``, frame ``f = i % n``; the room is ``make_scene(scene_seed)`` with
     ``scene_seed = SeedSequence([b, k(s), c, 0]).generate_state(2, uint32)`` read as one uint64; the robot's
     trajectory through it comes from ``SeedSequence([b, k(s), c, 1])`` (always ``n`` frames, so a sample does
     not depend on the split size), and the image augmentation of sample ``i`` from
-    ``SeedSequence([b, k(s), i, 2])``. A room with no free floor for the robot (rare) is replaced by the next
-    attempt ``a = 1, 2, ...``, whose seeds append ``a`` to the two sequences above. Sample ``i`` is therefore a
-    pure function of ``(config, b, s, i)``: shards, streaming and any number of workers give the same samples.
+    ``SeedSequence([b, k(s), i, 2])``; the camera of room ``c`` (``camera``, :mod:`.cameras`) is drawn from
+    ``SeedSequence([b, k(s), c, 3])``. A room with no free floor for the robot (rare) is replaced by the next
+    attempt ``a = 1, 2, ...``, whose seeds append ``a`` to the first two sequences above (the camera stays).
+    Sample ``i`` is therefore a pure function of ``(config, b, s, i)``: shards, streaming and any number of workers
+    give the same samples.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
+from .cameras import ROBOT_CAMERA, CameraConfig, check_camera
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
 from .scene import RoomConfig, SceneError
@@ -183,13 +188,13 @@ class SimConfig:
     """Everything that decides the samples of a data set, except the base seed (see the module docstring)."""
 
     grid: FruxelGrid = DEFAULT_GRID
-    """The fruxel grid of every sample, aligned with the robot camera."""
+    """The fruxel grid of every sample, aligned with its camera (the grid's pose is the camera's)."""
     image: ImageConfig = field(default_factory=ImageConfig)
     """The camera image."""
     room: RoomConfig = field(default_factory=RoomConfig)
     """Ranges the room generator draws from; a loaded ``assets`` library is refused (it cannot be recorded)."""
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
-    """Robot and camera mount."""
+    """Robot and camera mount (the robot's own camera; ``camera`` says which cameras the samples take)."""
     classes: ClassTable = DEFAULT_CLASSES
     """Class table of the labels (stored with the data set); it must name the simulator's classes
     (:data:`.scene.CLASS_NAMES`, and ``room.ceiling_class`` with a ceiling), whose ids it gives."""
@@ -202,9 +207,14 @@ class SimConfig:
     renderer: str = DEFAULT_RENDERER
     """The renderer that draws the camera images, by its name in the registry of :mod:`fruxel.train.sim.renderer`
     (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials."""
+    camera: CameraConfig = ROBOT_CAMERA
+    """The camera each trajectory draws (:mod:`.cameras`): its height, pitch, roll and field of view. The default,
+    :data:`~.cameras.ROBOT_CAMERA`, is the robot's own mount (``trajectory.mount``, the grid's field of view)."""
 
     def __post_init__(self) -> None:
         check_renderer(self.renderer)
+        if not isinstance(self.camera, CameraConfig):
+            raise ConfigError(f"camera must be a CameraConfig, got {type(self.camera).__name__}")
         if not isinstance(self.grid, FruxelGrid):
             raise ConfigError(f"grid must be a FruxelGrid, got {type(self.grid).__name__}")
         if (self.image.size * self.grid.height) % self.grid.width:
@@ -228,6 +238,7 @@ class SimConfig:
             # The grid's field of view is the camera's; a different number in the mount would only mislead.
             mount = dataclasses.replace(self.trajectory.mount, hfov=self.grid.hfov)
             object.__setattr__(self, "trajectory", dataclasses.replace(self.trajectory, mount=mount))
+        check_camera(self)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -241,7 +252,8 @@ class SimConfig:
         return self.image.size * self.grid.height // self.grid.width
 
     def image_camera(self, pose: Any = None) -> Camera:
-        """The robot camera's intrinsics at image resolution: the grid's own camera scaled by ``S / W``.
+        """The network image's camera: the grid's own camera scaled by ``S / W`` (the robot camera's, and the view
+        every other camera's render is framed onto, :mod:`.cameras`).
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform (OpenCV axes), identity when None.
@@ -266,8 +278,9 @@ class SimConfig:
         """Plain-JSON dictionary of every field (tuples become lists), with ``"version"``:
         :data:`CONFIG_VERSION`.
 
-        ``"renderer"`` is left out when it is the default: data sets made before renderers had names record no
-        renderer, and their configs keep their digests (:meth:`digest`, in every manifest and shard).
+        ``"renderer"`` and ``"camera"`` are left out when they are the defaults: data sets made before renderers had
+        names, or before cameras varied, record neither, and their configs keep their digests (:meth:`digest`, in
+        every manifest and shard).
         """
         out = {
             "version": CONFIG_VERSION,
@@ -282,6 +295,8 @@ class SimConfig:
         }
         if self.renderer != DEFAULT_RENDERER:
             out["renderer"] = self.renderer
+        if self.camera != ROBOT_CAMERA:
+            out["camera"] = _plain(self.camera)
         return out
 
     @classmethod
@@ -296,7 +311,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names, optional=("renderer",))
+        _expect_keys("config", d, names, optional=("renderer", "camera"))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -315,6 +330,7 @@ class SimConfig:
                 shard_size=d["shard_size"],
                 splits=tuple((s[0], s[1]) for s in splits),
                 renderer=d.get("renderer", DEFAULT_RENDERER),
+                camera=_from_plain(CameraConfig, d["camera"], "camera") if "camera" in d else ROBOT_CAMERA,
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None
@@ -478,6 +494,12 @@ def trajectory_seed(seed: int, split: str, scene: int, attempt: int = 0) -> int:
     """Seed of the robot trajectory through scene ``scene`` of ``split`` (a uint64 as a Python int)."""
     entropy = [_check_seed(seed), split_key(split), int(scene), 1]
     return _uint64(entropy + ([int(attempt)] if attempt else []))
+
+
+def camera_seed(seed: int, split: str, scene: int) -> np.random.SeedSequence:
+    """Seed of the camera drawn for scene ``scene`` of ``split`` (:func:`.cameras.draw_mount`); the same for every
+    attempt at the room, so that a replaced room keeps the camera."""
+    return np.random.SeedSequence([_check_seed(seed), split_key(split), int(scene), 3])
 
 
 def augment_rng(seed: int, split: str, index: int) -> np.random.Generator:

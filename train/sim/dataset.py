@@ -4,8 +4,12 @@ Items are dictionaries of tensors (:func:`sample_tensors`):
 
     ``image``       ``(3, S * H / W, S)`` float32 RGB in [0, 1] (the stored uint8 divided by 255), CHW
     ``labels``      ``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``
-    ``pose``        ``(4, 4)`` float64 camera-to-world of the robot camera (world frame z up, OpenCV axes)
-    ``K``           ``(3, 3)`` float64 image intrinsics (the grid's own camera is ``K`` scaled by ``W / S``)
+    ``pose``        ``(4, 4)`` float64 camera-to-world of the camera (world frame z up, OpenCV axes)
+    ``K``           ``(3, 3)`` float64 intrinsics of ``image``, the grid's view (the grid's own camera is ``K``
+                    scaled by ``W / S``)
+    ``camera``      the sample's camera: a dictionary of tensors keyed by :data:`.cameras.CAMERA_KEYS` (its
+                    rendered camera's intrinsics and size, pose, height above the floor, gravity direction,
+                    pitch, roll, field of view, and the grid columns ``image`` covers), shapes and dtypes there
     ``index``       ``()`` int64 sample index in the split
 
 Labels stay uint8, as stored, until the device: an int64 copy would cost eight times the memory and bandwidth in
@@ -47,6 +51,7 @@ def sample_tensors(sample: Sample, config: SimConfig) -> dict[str, torch.Tensor]
         "labels": torch.from_numpy(np.require(sample.labels, np.uint8, "CW")),
         "pose": torch.from_numpy(np.array(sample.pose, dtype=np.float64)),
         "K": torch.from_numpy(config.image_camera().K),
+        "camera": {k: torch.from_numpy(np.array(v)) for k, v in sample.camera_arrays().items()},
         "index": torch.tensor(sample.index, dtype=torch.int64),
     }
 
@@ -107,7 +112,8 @@ class ShardDataset(Dataset):
         if reader is None:
             spec = self._shards[shard]
             sha = self.manifest.hashes[spec.file] if self.verify else None
-            reader = ShardReader(os.path.join(self.root, spec.file), spec, self.config, self.manifest.seed, sha)
+            reader = ShardReader(os.path.join(self.root, spec.file), spec, self.config, self.manifest.seed, sha,
+                                 version=self.manifest.version)
             self._readers[shard] = reader
             while len(self._readers) > self.max_open:
                 self._readers.popitem(last=False)[1].close()

@@ -3,9 +3,11 @@ preview contact sheet. :class:`SceneRenderer` is the simulator's default rendere
 
 Camera
     The robot camera of :meth:`SimConfig.image_camera`: ``S x (S * H / W)`` pixels with the grid's field of view
-    and the robot's camera-to-world pose (OpenCV axes, world frame z up). pyrender gets the same intrinsics
-    (``IntrinsicsCamera``) and the OpenGL pose ``pose @ diag(1, -1, -1, 1)``; pixel ``(x, y)`` of the image then
-    covers ``[x, x + 1) x [y, y + 1)`` of :meth:`fruxel.Camera.project`, so the image lines up with the grid.
+    and the robot's camera-to-world pose (OpenCV axes, world frame z up), or any other camera given to
+    :meth:`SceneRenderer.render` (intrinsics and image size; :mod:`.cameras` asks for those). pyrender gets the same
+    intrinsics (``IntrinsicsCamera``) and the OpenGL pose ``pose @ diag(1, -1, -1, 1)``; pixel ``(x, y)`` of the
+    image then covers ``[x, x + 1) x [y, y + 1)`` of :meth:`fruxel.Camera.project`, so the image lines up with the
+    grid.
 
 Scene
     Every :class:`SceneObject` becomes one pyrender mesh with a metallic-roughness material (base colour,
@@ -174,16 +176,18 @@ class SceneRenderer:
         self._scene = scene
 
     # ------------------------------------------------------------------ frames
-    def render(self, pose: Any, rng: np.random.Generator | None = None) -> np.ndarray:
+    def render(self, pose: Any, rng: np.random.Generator | None = None, camera: Camera | None = None) -> np.ndarray:
         """The image of the current room from one camera pose.
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
             rng: the sample's augmentation generator (:func:`config.augment_rng`); None renders without
                 augmentation.
+            camera: the intrinsics and image size to draw with (its pose is ignored); None: the robot camera of
+                :meth:`SimConfig.image_camera`.
 
         Returns:
-            ``(S * H / W, S, 3)`` uint8 RGB image.
+            ``(h, w, 3)`` uint8 RGB image: ``(S * H / W, S)``, or ``camera``'s ``(height, width)``.
 
         Raises:
             RuntimeError: no room was set.
@@ -193,8 +197,11 @@ class SceneRenderer:
         d = self._drawn
         aug = self.config.image.augment
         post = self._prepare(d, rng if aug.enabled else None)
+        cam = self.config.image_camera() if camera is None else camera
+        intrinsics = d.camera.camera
+        intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy = cam.fx, cam.fy, cam.cx, cam.cy
         d.scene.set_pose(d.camera, check_pose(pose) @ OPENCV_TO_OPENGL)
-        renderer = renderers().get(self.config.image_width, self.config.image_height)
+        renderer = renderers().get(cam.width, cam.height)
         colour, _ = renderer.render(d.scene, flags=self._pyrender.RenderFlags.SKIP_CULL_FACES)
         return _camera_response(colour, post, rng if aug.enabled else None)
 

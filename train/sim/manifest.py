@@ -1,11 +1,11 @@
 """The manifest of a simulator data set folder: what the folder holds, how it was made, and which shards are done.
 
-Data set folder (format version 2)
+Data set folder (format version 3)
     ``manifest.json``, and per split ``ceil(samples / shard_size)`` shards ``{split}-{n:05d}.npz`` (format in
     :mod:`.shards`); shard ``n`` holds samples ``n * shard_size ..`` of its split (the last one fewer). The manifest
     is a JSON object::
 
-        {"format": "fruxel-sim", "version": 2, "complete": bool, "seed": int, "config_sha256": hex,
+        {"format": "fruxel-sim", "version": 3, "complete": bool, "seed": int, "config_sha256": hex,
          "grid": FruxelGrid.to_dict(), "classes": ClassTable.to_dict(),
          "image": {"width": S, "height": S * H / W},
          "intrinsics": {"image": {fx, fy, cx, cy, width, height}, "grid": {...the grid's own camera...}},
@@ -13,7 +13,12 @@ Data set folder (format version 2)
          "splits": {name: {"samples": int, "shards": [{"file", "start", "count", "sha256": hex or null}]}},
          "config": SimConfig.to_dict()}
 
-    ``sha256`` is the SHA-256 of a complete shard file, null until the shard is written.
+    ``sha256`` is the SHA-256 of a complete shard file, null until the shard is written. ``intrinsics.image`` is
+    the network image's camera, the view every sample's image shows; each sample's own camera is in its shard
+    (:mod:`.shards`).
+
+    Version 2 folders (made before cameras varied; their shards hold no camera record) are read as they are, with
+    their own seed rule (:data:`SEED_RULE_V2`); the generator does not add version 3 shards to them.
 
 Writes are atomic (:func:`fruxel.io.atomic_write`: temporary file beside the target, fsync, rename); reading checks
 every field against what the recorded config and seed imply, and any problem raises one :class:`DatasetError`
@@ -30,21 +35,27 @@ from typing import Any
 
 from fruxel.io import atomic_write
 
+from .cameras import ROBOT_CAMERA
 from .config import ConfigError, SimConfig
-from .shards import VERSION, DatasetError, ShardSpec, shard_specs
+from .shards import READ_VERSIONS, VERSION, DatasetError, ShardSpec, shard_specs
 
 FORMAT = "fruxel-sim"
 """``format`` of a data set manifest."""
 MANIFEST = "manifest.json"
 """File name of the manifest in a data set folder."""
-SEED_RULE = (
+SEED_RULE_V2 = (
     "sample i of split s (k = crc32(s), n = samples_per_scene): scene c = i // n, frame f = i % n; "
     "room = make_scene(SeedSequence([seed, k, c, 0]).generate_state(2, uint32) as uint64); "
     "trajectory = random_trajectory(room, n, seed from SeedSequence([seed, k, c, 1])); "
     "augmentation rng = default_rng(SeedSequence([seed, k, i, 2])); a room without free floor is replaced by "
     "attempt a = 1, 2, ..., with a appended to the first two sequences"
 )
-"""The seed rule in words, recorded in every manifest (the code is in :mod:`.config`)."""
+"""The seed rule in words of version 2 manifests."""
+SEED_RULE = SEED_RULE_V2 + (
+    "; the camera of scene c is drawn from default_rng(SeedSequence([seed, k, c, 3])) (config.camera: uniform "
+    "draws in the order height, pitch, roll, hfov), the same for every attempt"
+)
+"""The seed rule in words, recorded in every manifest (the code is in :mod:`.config` and :mod:`.cameras`)."""
 
 
 @dataclass
@@ -59,6 +70,8 @@ class Manifest:
     """SHA-256 (hex) of each complete shard by file name; None for shards not written yet."""
     complete: bool = False
     """True once every shard is written and recorded."""
+    version: int = VERSION
+    """The folder's format version (:data:`.shards.READ_VERSIONS`; what this fruxel writes: :data:`.shards.VERSION`)."""
 
     def __post_init__(self) -> None:
         for spec in shard_specs(self.config):
@@ -79,7 +92,7 @@ class Manifest:
 
         return {
             "format": FORMAT,
-            "version": VERSION,
+            "version": self.version,
             "complete": bool(self.complete),
             "seed": int(self.seed),
             "config_sha256": cfg.digest(),
@@ -87,7 +100,7 @@ class Manifest:
             "classes": cfg.classes.to_dict(),
             "image": {"width": cfg.image_width, "height": cfg.image_height},
             "intrinsics": {"image": intr(img_cam), "grid": intr(grid_cam)},
-            "seeds": SEED_RULE,
+            "seeds": SEED_RULE if self.version >= 3 else SEED_RULE_V2,
             "samples_per_scene": cfg.samples_per_scene,
             "shard_size": cfg.shard_size,
             "splits": {
@@ -131,9 +144,11 @@ class Manifest:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             fmt = d.get("format") if isinstance(d, dict) else None
             raise DatasetError(path, f"not a fruxel-sim manifest (format {fmt!r})")
-        if d.get("version") != VERSION:
-            raise DatasetError(path, f"manifest version {d.get('version')!r}; this fruxel reads version {VERSION} "
-                                     "(make the data set again with this fruxel, into a new folder)")
+        version = d.get("version")
+        if isinstance(version, bool) or version not in READ_VERSIONS:
+            raise DatasetError(path, f"manifest version {version!r}; this fruxel reads versions "
+                                     f"{', '.join(map(str, READ_VERSIONS))} (make the data set again with this fruxel, "
+                                     "into a new folder)")
         try:
             config = SimConfig.from_dict(d.get("config"))
         except ConfigError as e:
@@ -141,7 +156,9 @@ class Manifest:
         seed = d.get("seed")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise DatasetError(path, f"manifest seed must be a non-negative integer, got {seed!r}")
-        out = cls(config, seed)
+        if version < 3 and config.camera != ROBOT_CAMERA:
+            raise DatasetError(path, f"a version {version} manifest cannot hold a camera other than the robot's")
+        out = cls(config, seed, version=version)
         try:
             for split, _ in config.splits:
                 for entry in d["splits"][split]["shards"]:

@@ -18,6 +18,14 @@ Protocol (:class:`Renderer`)
       It returns an ``(S * H / W, S, 3)`` uint8 RGB array (``config.image_height``, ``config.image_width``): the
       camera of :meth:`SimConfig.image_camera <.config.SimConfig.image_camera>`, in which pixel ``(x, y)`` covers
       ``[x, x + 1) x [y, y + 1)`` of :meth:`fruxel.Camera.project`, so the image lines up with the grid;
+    * ``render(pose, rng, camera=camera)``, optional: the image of another camera, a :class:`fruxel.Camera` whose
+      intrinsics and image size are drawn with (its own pose is ignored: ``pose`` places it), as an
+      ``(camera.height, camera.width, 3)`` uint8 RGB array with the same pixel convention; ``camera=None`` is the
+      call above. The simulator asks for it when ``SimConfig.camera`` draws fields of view other than the grid's
+      (:mod:`.cameras` renders those at their own field of view and frames them onto the grid's view). A renderer
+      without the ``camera`` argument still serves every config whose cameras all render the grid's view (the
+      robot's, :data:`~.cameras.ROBOT_CAMERA`), and is refused with one clear error for the others
+      (:func:`takes_camera`);
     * ``close()``: frees what it holds (idempotent).
 
     The image must be a function of the config, the room, the pose and the generator's state alone (the seed rule
@@ -44,6 +52,7 @@ Adding a renderer
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -68,7 +77,10 @@ class Renderer(Protocol):
 
     def render(self, pose: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
         """The ``(S * H / W, S, 3)`` uint8 RGB image of the current room from camera-to-world ``pose``
-        (``(4, 4)``, OpenCV axes, world frame z up, metres), augmented with ``rng`` (None: no augmentation)."""
+        (``(4, 4)``, OpenCV axes, world frame z up, metres), augmented with ``rng`` (None: no augmentation).
+
+        A renderer that draws other cameras takes a third argument, ``camera: fruxel.Camera | None = None`` (the
+        module docstring), and returns ``(camera.height, camera.width, 3)`` then."""
 
     def close(self) -> None:
         """Free what the renderer holds (idempotent)."""
@@ -146,6 +158,15 @@ def make_renderer(config: SimConfig) -> Renderer:
         ConfigError: an unknown renderer, or one that does not import.
     """
     return renderer_factory(config.renderer)(config)
+
+
+def takes_camera(renderer: Any) -> bool:
+    """Whether ``renderer.render`` takes the optional ``camera`` argument (module docstring)."""
+    try:
+        params = inspect.signature(renderer.render).parameters
+    except (TypeError, ValueError):
+        return False
+    return "camera" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
 def _describe(entry: RendererFactory | str) -> str:

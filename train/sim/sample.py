@@ -1,8 +1,11 @@
 """One sample of the simulator and the code that makes it.
 
 Sample
-    One robot camera view (:class:`Sample`): the RGB image, the ground-truth labels of the grid aligned with that
-    camera, the camera pose and where the sample came from. Sample
+    One camera view (:class:`Sample`): the RGB image, the ground-truth labels of the grid aligned with that
+    camera, the camera pose, what the sample records about its camera (:class:`.cameras.CameraRecord`, and the grid
+    columns the image covers) and where the sample came from. Each room's trajectory draws its camera from
+    ``SimConfig.camera`` (:mod:`.cameras`: the robot's own mount by default); a camera of another field of view than
+    the grid's renders at its own and is framed onto the grid's view, as the commands frame a photo. Sample
     ``i`` of a split is a pure function of the config, the base seed, the split and ``i`` (seed rule in
     :mod:`.config`); :class:`SampleMaker` computes it, reusing the room, its robot trajectory, its uploaded
     meshes and the renderer for consecutive samples of one room.
@@ -28,8 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from .config import ConfigError, SimConfig, augment_rng, scene_seed, trajectory_seed
-from .renderer import Renderer, make_renderer
+from . import cameras
+from .cameras import CameraRecord, Mount
+from .config import ConfigError, SimConfig, augment_rng, camera_seed, scene_seed, trajectory_seed
+from .renderer import Renderer, make_renderer, takes_camera
 
 MAX_ROOM_ATTEMPTS = 16
 """Rooms tried for one scene index before giving up, when the robot finds no free floor (see the seed rule)."""
@@ -40,7 +45,7 @@ FIELDS = ("image", "labels", "pose")
 
 @dataclass(frozen=True, eq=False)
 class Sample:
-    """One training sample: a robot camera image and the ground truth of the grid aligned with it."""
+    """One training sample: a camera image, the ground truth of the grid aligned with the camera, and the camera."""
 
     split: str
     """Name of the split the sample belongs to."""
@@ -53,17 +58,29 @@ class Sample:
     scene_seed: int
     """The seed the room was made from (``make_scene(scene_seed, config.room)``)."""
     image: np.ndarray
-    """``(S * H / W, S, 3)`` uint8 RGB image of the robot camera."""
+    """``(S * H / W, S, 3)`` uint8 RGB image of the grid's view: the camera's own render, framed onto the grid's
+    view when its field of view is another (grey where the camera saw nothing, :mod:`.cameras`)."""
     labels: np.ndarray
     """``(D, H, W)`` uint8 ground-truth labels of the grid (0 = empty), indexed ``[k, j, i]``; the one source of
     truth, own view included (see the module docstring)."""
     pose: np.ndarray
-    """``(4, 4)`` float64 camera-to-world transform of the robot camera (= the grid's pose), world frame z up,
-    OpenCV camera axes."""
+    """``(4, 4)`` float64 camera-to-world transform of the camera (= the grid's pose), world frame z up, OpenCV
+    camera axes."""
+    camera: CameraRecord
+    """The camera's intrinsics, image size, height above the floor, gravity direction, pitch, roll and field of
+    view (:mod:`.cameras`)."""
+    coverage: np.ndarray
+    """``(H, W)`` bool, grid frame: the grid columns the image covers (:func:`fruxel.train.framing.frame_coverage`
+    of the framed render; all True for a camera as wide as the grid's or wider). The labels of the others are the
+    full truth all the same (:mod:`.cameras` says why)."""
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays keyed by :data:`FIELDS`."""
         return {name: getattr(self, name) for name in FIELDS}
+
+    def camera_arrays(self) -> dict[str, np.ndarray]:
+        """The camera as arrays keyed by :data:`.cameras.CAMERA_KEYS` (the ``camera`` of a batch, per sample)."""
+        return {**self.camera.arrays(), "pose": self.pose, "coverage": self.coverage}
 
 
 def field_specs(config: SimConfig) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
@@ -85,12 +102,16 @@ class _Room:
     scene: Any
     """The :class:`fruxel.train.sim.scene.Scene`."""
     poses: np.ndarray
-    """``(samples_per_scene, 4, 4)`` float64 camera-to-world poses of the robot trajectory, world frame z up,
-    OpenCV camera axes."""
+    """``(samples_per_scene, 4, 4)`` float64 camera-to-world poses of the robot trajectory's camera (its roll
+    included), world frame z up, OpenCV camera axes."""
     mesh_set: Any
     """The room's solids uploaded for ``fruxelize`` (:class:`fruxel.kernels.fruxelize.MeshSet`)."""
     seed: int
     """The seed the room was made from."""
+    mount: Mount
+    """The camera the trajectory drew."""
+    coverage: np.ndarray
+    """``(H, W)`` bool: the grid columns the camera's framed image covers."""
 
 
 STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
@@ -140,9 +161,11 @@ class SampleMaker:
             room = make_scene(s_seed, cfg.room, cfg.classes)
             t1 = time.perf_counter()
             self.timings["scene"] += t1 - t0
+            mount = cameras.draw_mount(cfg, camera_seed(self.seed, split, scene))
+            kwargs = {**cfg.trajectory.kwargs(), "mount": mount.robot_mount(cfg.trajectory.mount.offset)}
             try:
                 traj = random_trajectory(room, cfg.samples_per_scene, trajectory_seed(self.seed, split, scene, attempt),
-                                         **cfg.trajectory.kwargs())
+                                         **kwargs)
             except TrajectoryError:
                 self.timings["trajectory"] += time.perf_counter() - t1
                 continue
@@ -151,7 +174,9 @@ class SampleMaker:
             self._room = None
             mesh_set = room.mesh_set(backend=self.backend, device=self.device)
             self.timings["upload"] += time.perf_counter() - t2
-            self._room = _Room((split, scene), room, np.asarray(traj.poses, dtype=np.float64), mesh_set, s_seed)
+            poses = cameras.roll_poses(np.asarray(traj.poses, dtype=np.float64), mount.roll)
+            self._room = _Room((split, scene), room, poses, mesh_set, s_seed, mount,
+                               cameras.coverage(cfg, mount.hfov))
             return self._room
         raise RuntimeError(f"split {split!r} scene {scene}: no room among {MAX_ROOM_ATTEMPTS} attempts had free "
                            "floor for the robot; loosen config.room or config.trajectory")
@@ -187,17 +212,41 @@ class SampleMaker:
         room, frame = self._locate(split, index)
         index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
-        if self._renderer is None:
-            self._renderer = make_renderer(self.config)
-        self._renderer.set_scene(room.scene)
-        image = self._renderer.render(pose, augment_rng(self.seed, split, index))
+        image = self._render(room, pose, augment_rng(self.seed, split, index))
         t1 = time.perf_counter()
         labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
                                       dtype=np.uint8)
         t2 = time.perf_counter()
         self.timings["render"] += t1 - t0
         self.timings["fruxelize"] += t2 - t1
-        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy())
+        record = cameras.camera_record(self.config, room.mount, pose)
+        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy(), record, room.coverage.copy())
+
+    def _render(self, room: _Room, pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The sample's image: the renderer's image of the network's view, or the render of the room's camera at its
+        own field of view framed onto that view (:mod:`.cameras`).
+
+        Raises:
+            ConfigError: a camera of another field of view for a renderer that draws only the network's view.
+        """
+        cfg = self.config
+        if self._renderer is None:
+            self._renderer = make_renderer(cfg)
+        self._renderer.set_scene(room.scene)
+        if not cameras.is_framed(cfg, room.mount.hfov):
+            return self._renderer.render(pose, rng)
+        if not takes_camera(self._renderer):
+            raise ConfigError(f"renderer {cfg.renderer!r} draws only the grid's view (its render() takes no camera), "
+                              f"but the config's camera draws other fields of view ({room.mount.hfov:.4g} degrees); "
+                              "use a fixed camera.hfov equal to the grid's, or a renderer that takes cameras")
+        camera = cameras.render_camera(cfg, room.mount.hfov)
+        render = self._renderer.render(pose, rng, camera=camera)
+        if getattr(render, "shape", None) != (camera.height, camera.width, 3) or render.dtype != np.uint8:
+            # Framing would resample an image of the wrong size without a word.
+            raise RuntimeError(f"renderer {cfg.renderer!r} returned {getattr(render, 'dtype', type(render))} "
+                               f"{getattr(render, 'shape', '')} for a {camera.width}x{camera.height} camera; "
+                               f"expected ({camera.height}, {camera.width}, 3) uint8")
+        return cameras.frame_render(cfg, render, room.mount.hfov)
 
     def close(self) -> None:
         """Free the renderer (its OpenGL context, say) and the current room (idempotent)."""

@@ -2,16 +2,25 @@
 
 Shard file
     An ``.npz`` (zip) read without pickle. Member ``meta`` is a 0-d unicode JSON string
-    ``{"format": "fruxel-sim-shard", "version": 2, "config_sha256", "seed", "split", "shard", "start", "count",
-    "samples": [{"index", "scene", "frame", "scene_seed"}, ...]}``; sample ``j`` (``0 <= j < count``, index
-    ``start + j``) is stored as the members ``image_{j:05d}`` ``(S * H / W, S, 3)`` uint8 RGB,
-    ``labels_{j:05d}`` ``(D, H, W)`` uint8 and ``pose_{j:05d}`` ``(4, 4)`` float64 camera-to-world (world frame
-    z up, OpenCV camera axes). One member per sample and field lets a map-style data set read one sample without
-    inflating the whole shard. Members are deflate-compressed with fixed zip timestamps, so the same samples
-    give the same file bytes (with the same zlib). The samples themselves are bit-identical for the same config
-    and seed on the same machine, OpenGL driver and library versions (what the tests check); images made with
-    another driver (llvmpipe here, NVIDIA on a GPU machine) can differ in the last bits of some pixels, and poses
-    computed by another numpy build in the last bits of some entries.
+    ``{"format": "fruxel-sim-shard", "version": 3, "config_sha256", "seed", "split", "shard", "start", "count",
+    "samples": [{"index", "scene", "frame", "scene_seed", "camera"}, ...]}``, where ``camera`` is the sample's
+    camera record (:meth:`.cameras.CameraRecord.to_dict`: ``intrinsics`` ``[fx, fy, cx, cy]`` and ``image_size``
+    ``[width, height]`` of the rendered camera, ``height`` above the floor in metres, ``gravity`` ``[x, y, z]`` in
+    the camera frame, ``pitch``, ``roll`` and ``hfov`` in degrees; JSON floats round-trip exactly). Sample ``j``
+    (``0 <= j < count``, index ``start + j``) is stored as the members ``image_{j:05d}`` ``(S * H / W, S, 3)``
+    uint8 RGB, ``labels_{j:05d}`` ``(D, H, W)`` uint8 and ``pose_{j:05d}`` ``(4, 4)`` float64 camera-to-world
+    (world frame z up, OpenCV camera axes). One member per sample and field lets a map-style data set read one
+    sample without inflating the whole shard. The grid columns the image covers are not stored: they follow from
+    the record and the config (:func:`.cameras.coverage`), and are computed when a sample is read. Members are
+    deflate-compressed with fixed zip timestamps, so the same samples give the same file bytes (with the same
+    zlib). The samples themselves are bit-identical for the same config and seed on the same machine, OpenGL
+    driver and library versions (what the tests check); images made with another driver (llvmpipe here, NVIDIA on
+    a GPU machine) can differ in the last bits of some pixels, and poses computed by another numpy build in the
+    last bits of some entries.
+
+Version 2 (data sets made before cameras varied) is the same without ``camera``; its samples were all taken by
+the robot's own mount, and are read with the record that mount gives (:func:`.cameras.robot_mount`), exactly what
+this version records for it.
 
 The data set folder that holds the shards, and its manifest, are described in :mod:`.manifest`. Reads are
 strict: the file's SHA-256 must match the manifest, the members must be exactly the expected ones, and every npy
@@ -38,14 +47,19 @@ import numpy.lib.format as npy_format
 from fruxel.errors import FruxelError
 from fruxel.io import ArchiveError, describe_read_error, open_archive, read_json_member, read_npy_member
 
+from . import cameras
+from .cameras import ROBOT_CAMERA, CameraRecord
 from .config import SimConfig
 from .sample import FIELDS, Sample, field_specs
 
 SHARD_FORMAT = "fruxel-sim-shard"
 """``format`` in a shard's meta."""
-VERSION = 2
-"""Version of the manifest and shard layout. Version 1 also stored each sample's own-view depth and label images
-(``view_depth_*``, ``view_label_*``), which are now ``first_hit`` of the labels (see :mod:`.sample`)."""
+VERSION = 3
+"""Version of the manifest and shard layout, written. Version 3 added each sample's camera record; version 1 also
+stored each sample's own-view depth and label images (``view_depth_*``, ``view_label_*``), which are now
+``first_hit`` of the labels (see :mod:`.sample`)."""
+READ_VERSIONS = (2, 3)
+"""Versions read (version 2 as the robot's mount, module docstring)."""
 COMPRESS_LEVEL = 1
 """zlib level of the shard members: label volumes are mostly runs that level 1 already packs tightly, and images
 barely compress at any level, while higher levels take longer (the ``encode`` stage of the simulator's profile,
@@ -118,12 +132,13 @@ def _put(zf: zipfile.ZipFile, key: str, array: np.ndarray) -> None:
     zf.writestr(info, buf.getvalue(), compresslevel=COMPRESS_LEVEL)
 
 
-def _shard_meta(spec: ShardSpec, config: SimConfig, seed: int, samples: Sequence[Sample]) -> dict[str, Any]:
+def _shard_meta(spec: ShardSpec, config: SimConfig, seed: int, samples: Sequence[Sample], version: int = VERSION
+                ) -> dict[str, Any]:
     return {
-        "format": SHARD_FORMAT, "version": VERSION, "config_sha256": config.digest(), "seed": int(seed),
+        "format": SHARD_FORMAT, "version": version, "config_sha256": config.digest(), "seed": int(seed),
         "split": spec.split, "shard": spec.number, "start": spec.start, "count": spec.count,
-        "samples": [{"index": s.index, "scene": s.scene, "frame": s.frame, "scene_seed": s.scene_seed}
-                    for s in samples],
+        "samples": [{"index": s.index, "scene": s.scene, "frame": s.frame, "scene_seed": s.scene_seed,
+                     "camera": s.camera.to_dict()} for s in samples],
     }
 
 
@@ -198,12 +213,14 @@ class ShardReader:
         config: the data set's settings (dtypes and shapes, the config digest).
         seed: the data set's base seed.
         sha256: the expected SHA-256 (hex) from the manifest, or None to skip the check.
+        version: the data set's format version (its manifest's, one of :data:`READ_VERSIONS`).
 
     Raises:
         DatasetError: a missing, unreadable, corrupt or foreign file (the message names it).
     """
 
-    def __init__(self, path: str, spec: ShardSpec, config: SimConfig, seed: int, sha256: str | None = None) -> None:
+    def __init__(self, path: str, spec: ShardSpec, config: SimConfig, seed: int, sha256: str | None = None,
+                 version: int = VERSION) -> None:
         self.path = os.fsdecode(path)
         """The shard file."""
         self.spec = spec
@@ -215,6 +232,9 @@ class ShardReader:
         self._zip: zipfile.ZipFile | None = None
         self.meta: dict[str, Any] = {}
         """The shard's meta JSON."""
+        self.version = version
+        """The shard's format version."""
+        self._records: list[CameraRecord] = []
         if not os.path.isfile(self.path):
             raise DatasetError(self.path, "missing shard (no such file)" if not os.path.exists(self.path)
                                else "not a regular file")
@@ -238,21 +258,39 @@ class ShardReader:
             raise ArchiveError(f"wrong members (missing {missing}, unexpected {extra}; "
                                f"{len(names)} members, expected {len(expected)})")
         self.meta = self._read_meta()
-        want = _shard_meta(self.spec, self.config, seed, [])
+        want = _shard_meta(self.spec, self.config, seed, [], self.version)
         for key in ("format", "version", "config_sha256", "seed", "split", "shard", "start", "count"):
             if self.meta.get(key) != want[key]:
                 raise ArchiveError(f"meta {key} is {self.meta.get(key)!r}, expected {want[key]!r} (a shard of another "
                                    "data set, split or version)")
+        if self.version not in READ_VERSIONS or (self.version < 3 and self.config.camera != ROBOT_CAMERA):
+            raise ArchiveError(f"format version {self.version} cannot hold this config's samples")
         entries = self.meta.get("samples")
         sps = self.config.samples_per_scene
         if not isinstance(entries, list) or len(entries) != self.spec.count:
             raise ArchiveError("meta 'samples' must list one entry per sample")
+        keys = ["frame", "index", "scene", "scene_seed"] + (["camera"] if self.version >= 3 else [])
         for j, e in enumerate(entries):
             index = self.spec.start + j
-            ok = isinstance(e, dict) and sorted(e) == ["frame", "index", "scene", "scene_seed"] and all(
-                isinstance(v, int) and not isinstance(v, bool) for v in e.values())
+            ok = isinstance(e, dict) and sorted(e) == sorted(keys) and all(
+                isinstance(e[k], int) and not isinstance(e[k], bool) for k in keys if k != "camera")
             if not ok or (e["index"], e["scene"], e["frame"]) != (index, *divmod(index, sps)):
                 raise ArchiveError(f"meta entry {j} does not describe sample {index}")
+            if self.version >= 3:
+                self._records.append(self._record(j, e["camera"]))
+
+    def _record(self, j: int, d: Any) -> CameraRecord:
+        """The camera record of meta entry ``j``, checked against the config (the render its field of view gives)."""
+        try:
+            record = CameraRecord.from_dict(d)
+        except ValueError as e:
+            raise ArchiveError(f"meta entry {j}: {e}") from None
+        cam = cameras.render_camera(self.config, record.hfov)
+        if record.image_size != (cam.width, cam.height) or not np.allclose(
+                record.intrinsics, (cam.fx, cam.fy, cam.cx, cam.cy), rtol=1e-9, atol=0.0):
+            raise ArchiveError(f"meta entry {j}: its camera's intrinsics and image size are not those of its field of "
+                               f"view ({record.hfov:g} degrees) in this data set's config")
+        return record
 
     def _read_meta(self) -> dict[str, Any]:
         assert self._zip is not None
@@ -282,7 +320,12 @@ class ShardReader:
             if not np.all(np.isfinite(arrays["pose"])):
                 raise ArchiveError(f"sample {j} has non-finite pose values")
         e = self.meta["samples"][j]
-        return Sample(self.spec.split, e["index"], e["scene"], e["frame"], e["scene_seed"], **arrays)
+        if self._records:
+            record = self._records[j]
+        else:
+            record = cameras.camera_record(self.config, cameras.robot_mount(self.config), arrays["pose"])
+        return Sample(self.spec.split, e["index"], e["scene"], e["frame"], e["scene_seed"], **arrays, camera=record,
+                      coverage=cameras.coverage(self.config, record.hfov))
 
     def samples(self) -> list[Sample]:
         """Every sample of the shard, in order."""

@@ -22,7 +22,7 @@ from .config import ConfigError, SimConfig
 from .manifest import MANIFEST, Manifest
 from .renderer import RENDERERS, register_renderer
 from .sample import SampleMaker
-from .shards import DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard, file_sha256
+from .shards import VERSION, DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard, file_sha256
 
 # The temporary files fruxel.io.atomic_write leaves beside a shard or the manifest when a run is killed.
 _SHARD_RE = re.compile(r"^\.([a-z0-9][a-z0-9_-]*-\d{5,}\.npz|manifest\.json)\.[0-9a-f]{12}\.tmp$")
@@ -168,6 +168,10 @@ def _open_folder(out: str, config: SimConfig, seed: int) -> tuple[Manifest, str]
     if not os.path.exists(mpath):
         return Manifest(config, seed), mpath
     manifest = Manifest.load(mpath)
+    if manifest.version != VERSION:
+        raise DatasetError(mpath, f"this folder holds a data set of format version {manifest.version}, made by an "
+                                  f"older fruxel; it stays readable, but new shards (version {VERSION}) are not added "
+                                  "to it: use another --out")
     if manifest.config.digest() != config.digest() or manifest.seed != seed:
         ours, theirs = config.to_dict(), manifest.config.to_dict()
         diff = [k for k in dict.fromkeys([*ours, *theirs]) if ours.get(k) != theirs.get(k)]
