@@ -231,6 +231,9 @@ class Scene:
     """The seed the scene was made from."""
     classes: ClassTable = DEFAULT_CLASSES
     """The class table the objects' labels index."""
+    ambient: tuple[float, float, float] | None = None
+    """Linear RGB of the diffuse light the sky and the room's walls give everywhere (a photoreal renderer's
+    ambient or sky term), or None: the renderer's own (the flat renderer's augmentation draws its ambient level)."""
 
     def labelled_meshes(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per solid object, world frame, in priority order:
