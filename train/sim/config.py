@@ -43,6 +43,7 @@ from fruxel.grid import FruxelGrid, GridError
 
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
+from .rooms.config import HomeConfig
 from .scene import RoomConfig, SceneError
 
 CONFIG_VERSION = 1
@@ -50,6 +51,14 @@ CONFIG_VERSION = 1
 
 PAPER_SPLITS: tuple[tuple[str, int], ...] = (("train", 15000), ("test", 1000))
 """The paper's data set: 15k training and 1k test samples."""
+
+WORLDS = ("flat", "home")
+"""What the rooms look like (:attr:`SimConfig.world`): ``flat`` (:func:`.scene.make_scene`, flat-coloured box
+furniture, the robot's first data sets) or ``home`` (:func:`.rooms.make_home`, furnished rooms from the asset
+pack)."""
+
+DEFAULT_WORLD = "flat"
+"""The world of every data set made before there were two, and of a config that names none."""
 
 MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
@@ -202,9 +211,21 @@ class SimConfig:
     renderer: str = DEFAULT_RENDERER
     """The renderer that draws the camera images, by its name in the registry of :mod:`fruxel.train.sim.renderer`
     (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials."""
+    world: str = DEFAULT_WORLD
+    """Which room generator makes the rooms (:data:`WORLDS`): ``flat`` uses :attr:`room`, ``home`` uses
+    :attr:`home` and the asset pack (its classes must include ``ceiling`` and ``object``: :data:`fruxel.classes.
+    HOME_CLASSES`)."""
+    home: HomeConfig = field(default_factory=HomeConfig)
+    """Ranges the furnished rooms draw from (the ``home`` world), the material sampling, and which pack split
+    test rooms draw their assets from."""
+    assets: str | None = None
+    """The asset pack folder of the ``home`` world; None: the ``FRUXEL_ASSETS`` environment variable, else the
+    repository's ``assets/pack`` (:func:`fruxel.train.sim.rooms.resolve_pack`; ``make assets`` builds it). The
+    pack is named by its folder: ``make assets`` gives the same pack from the same pinned sources on any machine."""
 
     def __post_init__(self) -> None:
         check_renderer(self.renderer)
+        self._check_world()
         if not isinstance(self.grid, FruxelGrid):
             raise ConfigError(f"grid must be a FruxelGrid, got {type(self.grid).__name__}")
         if (self.image.size * self.grid.height) % self.grid.width:
@@ -228,6 +249,21 @@ class SimConfig:
             # The grid's field of view is the camera's; a different number in the mount would only mislead.
             mount = dataclasses.replace(self.trajectory.mount, hfov=self.grid.hfov)
             object.__setattr__(self, "trajectory", dataclasses.replace(self.trajectory, mount=mount))
+
+    def _check_world(self) -> None:
+        if self.world not in WORLDS:
+            raise ConfigError(f"world must be one of {', '.join(WORLDS)}, got {self.world!r}")
+        if not isinstance(self.home, HomeConfig):
+            raise ConfigError(f"home must be a HomeConfig, got {type(self.home).__name__}")
+        if self.assets is not None and (not isinstance(self.assets, str) or not self.assets):
+            raise ConfigError(f"assets must be a folder name or None, got {self.assets!r}")
+        if self.world == "home":
+            from .rooms import CLASS_NAMES
+
+            missing = [n for n in CLASS_NAMES if n not in self.classes.names]
+            if missing:
+                raise ConfigError(f"world 'home' labels {list(CLASS_NAMES)}; the class table lacks {missing}: use "
+                                  "fruxel.classes.HOME_CLASSES")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -266,8 +302,9 @@ class SimConfig:
         """Plain-JSON dictionary of every field (tuples become lists), with ``"version"``:
         :data:`CONFIG_VERSION`.
 
-        ``"renderer"`` is left out when it is the default: data sets made before renderers had names record no
-        renderer, and their configs keep their digests (:meth:`digest`, in every manifest and shard).
+        ``"renderer"``, ``"world"``, ``"home"`` and ``"assets"`` are left out when they are the defaults (``home``
+        is written whenever the world is ``home``): data sets made before renderers and worlds had names record
+        none, and their configs keep their digests (:meth:`digest`, in every manifest and shard).
         """
         out = {
             "version": CONFIG_VERSION,
@@ -282,6 +319,12 @@ class SimConfig:
         }
         if self.renderer != DEFAULT_RENDERER:
             out["renderer"] = self.renderer
+        if self.world != DEFAULT_WORLD:
+            out["world"] = self.world
+        if self.world != DEFAULT_WORLD or self.home != HomeConfig():
+            out["home"] = _plain(self.home)
+        if self.assets is not None:
+            out["assets"] = self.assets
         return out
 
     @classmethod
@@ -296,7 +339,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names, optional=("renderer",))
+        _expect_keys("config", d, names, optional=("renderer", "world", "home", "assets"))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -315,6 +358,9 @@ class SimConfig:
                 shard_size=d["shard_size"],
                 splits=tuple((s[0], s[1]) for s in splits),
                 renderer=d.get("renderer", DEFAULT_RENDERER),
+                world=d.get("world", DEFAULT_WORLD),
+                home=_from_plain(HomeConfig, d["home"], "home") if "home" in d else HomeConfig(),
+                assets=d.get("assets"),
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None
