@@ -111,6 +111,9 @@ class SceneObject:
     solid: bool = True
     """False for a surface that is drawn but is not a solid of the room (the outdoor view behind a window): never
     labelled, never in the robot's way."""
+    asset: str | None = None
+    """Id of the asset pack mesh the object was made from (None: built by the generator); its materials name their
+    own textures and images."""
 
 
 @dataclass(frozen=True, eq=False)

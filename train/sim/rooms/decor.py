@@ -44,7 +44,8 @@ def radiators(h: Home) -> None:
         prop = prop_for(h, "radiator")
         if prop is None or prop.size[0] > w.width + 0.2:
             continue
-        z = rng.uniform(0.06, 0.15)
+        # Hung on the wall above the baseboard, as radiators are.
+        z = max(rng.uniform(0.06, 0.15), h.baseboard_height + 0.01)
         if z + prop.size[2] > w.z0 - w.sill - 0.06:
             continue
         along_wall(h, prop, "radiator", k=w.wall, s=w.x0 + w.width / 2, tries=1, z=z, mount="wall", kind="fixed")
@@ -61,7 +62,7 @@ def _curtain(h: Home, w: Window) -> None:
     rng, wall = h.rng, h.walls[w.wall]
     top_room = h.lz - 0.04 - (0.12 if any(p.name == "crown" for p in h.pieces) else 0.0)
     rod_z = min(w.z1 + rng.uniform(0.06, 0.25), top_room - 0.03)
-    dist = rng.uniform(0.1, 0.16)
+    dist = rng.uniform(0.12, 0.18)  # in front of the sill, which sticks out up to 6 cm
     lo, hi = h.inner(w.wall)
     x0 = max(w.x0 - rng.uniform(0.1, 0.35), lo + 0.05)
     x1 = min(w.x0 + w.width + rng.uniform(0.1, 0.35), hi - 0.05)
@@ -120,7 +121,8 @@ def _pleated(x0: float, x1: float, y0: float, amp: float, period: float, t: floa
 # ---------------------------------------------------------------------------------------------- rugs
 def rugs(h: Home) -> None:
     """Lay the rugs the groups asked for, then free ones up to ``HomeConfig.rugs``, and raise what stands on
-    them."""
+    them: a piece whose feet are over a rug stands on it; a rug that would cut into anything else that comes
+    down that low (a bedspread, a base) is taken away again."""
     rng = h.rng
     laid: list[Piece] = []
     n = int(rng.integers(h.cfg.rugs[0], h.cfg.rugs[1] + 1))
@@ -132,15 +134,59 @@ def rugs(h: Home) -> None:
         spots = [(rng.uniform(0.0, h.lx), rng.uniform(0.0, h.ly), float(rng.choice([0.0, math.pi / 2])))
                  for _ in range(h.cfg.placement_tries)]
         laid += _lay(h, spots, w, d, allow_pack=True)
-    for p in h.pieces:
-        if p.mount != "floor" or p.slot is None:
+    lifts: dict[int, float] = {}
+    for r in laid:
+        feet, clash = [], False
+        for p in h.pieces:
+            if p.mount != "floor" or p.slot is None or not _overlap(p.slot.fp, r.slot.fp, -0.01):
+                continue
+            if _below(p, r.slot.fp, p.slot.z0 + 0.003):
+                feet.append(id(p))
+            elif _below(p, r.slot.fp, p.slot.z0 + (r.slot.z1 - r.slot.z0) + 0.002):
+                clash = True
+        if clash:
+            h.pieces.remove(r)
+            h.slots.remove(r.slot)
             continue
-        lift = max((r.slot.z1 for r in laid if _overlap(p.slot.fp, r.slot.fp, -0.01)), default=0.0)
+        for k in feet:
+            lifts[k] = max(lifts.get(k, 0.0), r.slot.z1)
+    for p in h.pieces:
+        lift = lifts.get(id(p), 0.0)
         if lift > 0:
             p.vertices = p.vertices + [0.0, 0.0, lift]
             p.slot.z0, p.slot.z1 = p.slot.z0 + lift, p.slot.z1 + lift
             p.pose = (p.pose[0], p.pose[1], p.pose[2] + lift, p.pose[3])
             p.mount = "rug"
+
+
+def _below(p: Piece, fp: _Footprint, z: float) -> bool:
+    """Whether any part of the piece below height ``z`` lies over the rectangle ``fp`` (5 mm inside its edges):
+    each face is clipped to ``z`` and the floor projection of what is left is tested against the rectangle by
+    separating axes (the rectangle's two, and the face's three edge normals)."""
+    tri = p.vertices[p.faces]
+    tri = tri[tri[:, :, 2].min(axis=1) < z]
+    if len(tri) == 0:
+        return False
+    a, b = tri, np.roll(tri, -1, axis=1)
+    za, zb = a[:, :, 2] - z, b[:, :, 2] - z
+    cross = za * zb < 0
+    t = np.where(cross, za / np.where(cross, za - zb, 1.0), 0.0)
+    pts = np.concatenate([a, a + (b - a) * t[..., None]], axis=1)[:, :, :2]
+    keep = np.concatenate([za <= 0, cross], axis=1)
+    # Points not kept repeat a kept one, which changes no projection's extent.
+    first = pts[np.arange(len(pts)), np.argmax(keep, axis=1)]
+    pts = np.where(keep[..., None], pts, first[:, None, :])
+    ax = fp.axes()
+    q = (pts - np.array([fp.cx, fp.cy])) @ ax.T  # (T, 6, 2) in the rectangle's frame
+    half = np.array([fp.hx - 0.005, fp.hy - 0.005])
+    apart = np.any(q.min(axis=1) > half, axis=1) | np.any(q.max(axis=1) < -half, axis=1)
+    for k in range(3):
+        edge = (tri[:, (k + 1) % 3, :2] - tri[:, k, :2]) @ ax.T
+        n = np.stack([-edge[:, 1], edge[:, 0]], axis=1)
+        proj = np.einsum("tij,tj->ti", q, n)
+        reach = np.abs(n) @ half
+        apart |= (proj.min(axis=1) > reach) | (proj.max(axis=1) < -reach)
+    return bool(np.any(~apart))
 
 
 def _lay(h: Home, spots: list[tuple[float, float, float]], w: float, d: float, allow_pack: bool) -> list[Piece]:
@@ -286,35 +332,37 @@ def _books(h: Home, piece: Piece, levels: list[Any]) -> None:
 
 def _row(h: Home, piece: Piece, lv: Any, c_start: int, c_end: int) -> None:
     """Books standing side by side on one shelf from column ``c_start`` to ``c_end`` (grid of ``lv``), each as
-    high and deep as the shelf allows, their spines at the shelf's front."""
+    high and deep as the shelf allows over all the cells it covers (and below the ceiling), spines at the front."""
     from .supports import CELL
 
     rng = h.rng
     lo, hi, which = [], [], []
-    x = lv.x0 + c_start * CELL
-    x_end = lv.x0 + c_end * CELL
+    x, x_end = lv.x0 + c_start * CELL, lv.x0 + c_end * CELL
+    ceiling = h.lz - (piece.pose[2] + lv.z) - 0.02
     tones = int(rng.integers(2, 6))
     while x < x_end:
         t = rng.uniform(0.015, 0.06)
-        c = int((x + t / 2 - lv.x0) / CELL)
-        col_ok = (lv.room[:, min(c, lv.room.shape[1] - 1)] >= 0.14) & ~lv.used[:, min(c, lv.room.shape[1] - 1)]
-        r = np.nonzero(col_ok)[0]
-        if len(r) < 5 or x + t > x_end:
+        c0, c1 = int((x - lv.x0) / CELL), int(math.ceil((x + t - lv.x0) / CELL))
+        ok = np.all((lv.room[:, c0:c1] >= 0.14) & ~lv.used[:, c0:c1], axis=1) if c1 <= lv.room.shape[1] else []
+        r = np.nonzero(ok)[0]
+        # The rows from the front-most free one backwards, as long as they stay free.
+        run = r[:int(np.argmax(np.diff(np.r_[r, -9]) != 1)) + 1] if len(r) else r
+        if len(run) < 5 or x + t > x_end:
             x += t
             continue
-        front, back = lv.y0 + r.min() * CELL, lv.y0 + (r.max() + 1) * CELL
-        room = float(lv.room[r, c].min())
+        front, back = lv.y0 + run[0] * CELL, lv.y0 + (run[-1] + 1) * CELL
+        room = min(float(lv.room[run[0]:run[-1] + 1, c0:c1].min()) - 0.01, ceiling)
         height = min(rng.uniform(0.6, 0.95) * room, rng.uniform(0.15, 0.32))
         depth = min(back - front - 0.01, rng.uniform(0.12, 0.25))
-        inset = rng.uniform(0.0, 0.03)
-        lo.append([x, front + inset, lv.z + 0.0005])
-        hi.append([x + t - 0.001, front + inset + depth, lv.z + 0.0005 + height])
-        which.append(int(rng.integers(tones)))
+        inset = rng.uniform(0.0, min(0.03, back - front - 0.01 - depth))
+        if height >= 0.1:
+            lo.append([x, front + inset, lv.z + 0.0005])
+            hi.append([x + t - 0.001, front + inset + depth, lv.z + 0.0005 + height])
+            which.append(int(rng.integers(tones)))
         x += t + rng.uniform(0.0, 0.003)
     if lo:
         _book_piece(h, piece, lo, hi, which, tones)
-        c0, c1 = c_start, c_end
-        lv.used[:, c0:c1 + 1] = True
+        lv.used[:, c_start:c_end + 1] = True
 
 
 def _stack(h: Home, piece: Piece, lv: Any) -> None:
@@ -323,6 +371,8 @@ def _stack(h: Home, piece: Piece, lv: Any) -> None:
     w, d = rng.uniform(0.15, 0.3), rng.uniform(0.12, 0.22)
     n = int(rng.integers(2, 7))
     ts = rng.uniform(0.015, 0.05, size=n)
+    if piece.pose[2] + lv.z + ts.sum() > h.lz - 0.02:
+        return
     spot = lv.fit(rng, w + 0.02, d + 0.02, float(ts.sum()) + 0.01)
     if spot is None:
         return

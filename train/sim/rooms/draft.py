@@ -30,6 +30,11 @@ from .library import Library, Prop
 from .materials import MaterialSampler, linear_to_srgb
 from .supports import Level
 
+SUPPORT_ROLES = frozenset({"dining_table", "small_table", "coffee_table", "side_table", "nightstand", "desk",
+                           "dresser", "shelf", "cabinet", "tv_unit", "kitchen_upper", "worktop", "piano",
+                           "fireplace", "wardrobe"})
+"""Roles whose tops and shelves get things put on them (not beds, seats or appliances)."""
+
 LAYERS = ("structure", "trim", "window", "door", "rug", "furniture", "sculpture", "object", "view")
 """``fruxelize`` priority of the pieces (later wins where solids touch), by layer: the scene's object order."""
 
@@ -254,7 +259,7 @@ class Home:
         v = prop.vertices @ r.T + np.array([x, y, z])
         parts, mats = self.dress(prop, body, shared)
         levels = [lv.fresh() for lv in prop.levels()] if mount in ("floor", "rug", "wall") and \
-            label == "furniture" else []
+            role in SUPPORT_ROLES else []
         return self.add(Piece(self.name(role), label, v, prop.faces, parts, mats, layer, mount, slot, role=role,
                               prop=prop, pose=(x, y, z, yaw), levels=levels))
 

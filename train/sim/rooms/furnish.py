@@ -45,21 +45,21 @@ ROLE_LABEL: dict[str, str] = {
 """Class name of each role's built pieces; roles not listed are ``furniture``."""
 
 PLANS: dict[str, tuple[tuple[str, float], ...]] = {
-    "living": (("sofa_group", 1.0), ("storage:shelf", 0.7), ("storage:cabinet", 0.4), ("storage:dresser", 0.3),
-               ("piano", 0.1), ("fireplace", 0.15), ("desk", 0.15)),
-    "bedroom": (("bed", 1.0), ("storage:wardrobe", 0.75), ("storage:dresser", 0.5), ("desk", 0.3),
-                ("armchair", 0.3), ("storage:shelf", 0.35)),
-    "dining": (("dining", 1.0), ("storage:dresser", 0.7), ("storage:shelf", 0.4), ("storage:cabinet", 0.4)),
-    "office": (("desk", 1.0), ("desk", 0.35), ("storage:shelf", 0.9), ("storage:shelf", 0.5),
-               ("storage:cabinet", 0.5), ("armchair", 0.4)),
-    "kitchen": (("kitchen", 1.0), ("small_dining", 0.75), ("storage:cabinet", 0.3)),
-    "studio": (("bed", 0.9), ("sofa_group", 0.7), ("small_dining", 0.6), ("desk", 0.4), ("storage:shelf", 0.5),
-               ("storage:wardrobe", 0.4)),
+    "living": (("sofa_group", 1.0), ("storage:shelf", 0.8), ("storage:cabinet", 0.5), ("storage:dresser", 0.4),
+               ("armchair", 0.3), ("piano", 0.1), ("fireplace", 0.2), ("desk", 0.2), ("small_dining", 0.25)),
+    "bedroom": (("bed", 1.0), ("storage:wardrobe", 0.8), ("storage:dresser", 0.6), ("desk", 0.35),
+                ("armchair", 0.35), ("storage:shelf", 0.4)),
+    "dining": (("dining", 1.0), ("storage:dresser", 0.8), ("storage:shelf", 0.5), ("storage:cabinet", 0.5),
+               ("armchair", 0.2)),
+    "office": (("desk", 1.0), ("desk", 0.4), ("storage:shelf", 0.9), ("storage:shelf", 0.6),
+               ("storage:cabinet", 0.6), ("armchair", 0.5), ("sofa_group", 0.15)),
+    "kitchen": (("kitchen", 1.0), ("small_dining", 0.8), ("storage:cabinet", 0.4), ("storage:shelf", 0.3)),
+    "studio": (("bed", 0.9), ("sofa_group", 0.7), ("small_dining", 0.6), ("desk", 0.5), ("storage:shelf", 0.6),
+               ("storage:wardrobe", 0.5)),
 }
 """What each room type places (module docstring): ``(group, chance)`` in order."""
 
-EXTRAS = ("storage:shelf", "storage:cabinet", "armchair", "storage:dresser", "floor_clutter", "chair",
-          "side_table")
+EXTRAS = ("storage:shelf", "storage:cabinet", "armchair", "storage:dresser", "floor_clutter", "side_table")
 """What ``HomeConfig.extra_furniture`` draws from, uniformly."""
 
 
@@ -96,8 +96,8 @@ def stand(h: Home, prop: Prop, role: str, x: float, y: float, yaw: float, *, z: 
 
 
 def along_wall(h: Home, prop: Prop, role: str, k: int | None = None, s: float | None = None, tries: int | None = None,
-               z: float = 0.0, mount: str = "floor", kind: str = "piece", shared: dict[Any, Material] | None = None
-               ) -> tuple[Piece, int, float] | None:
+               z: float = 0.0, mount: str = "floor", kind: str = "piece", shared: dict[Any, Material] | None = None,
+               gap: float | None = None) -> tuple[Piece, int, float] | None:
     """Put ``prop`` with its back to a wall (wall ``k`` at ``s`` when given, else random ones). Things hung on the
     wall above the baseboard touch the wall; things standing on the floor stand a little in front of the baseboard.
 
@@ -110,11 +110,12 @@ def along_wall(h: Home, prop: Prop, role: str, k: int | None = None, s: float | 
     for _ in range(tries or h.cfg.placement_tries):
         kk = int(rng.integers(4)) if k is None else k
         lo, hi = h.inner(kk)
-        where, gap = rng.uniform(), rng.uniform(0.005, 0.03)
+        where, drawn = rng.uniform(), rng.uniform(0.005, 0.03)
+        back = drawn if gap is None else gap
         if hi - lo < size[0] + 0.02:
             continue
         ss = lo + size[0] / 2 + 0.01 + where * (hi - lo - size[0] - 0.02) if s is None else s
-        centre, yaw, _ = h.against(kk, ss, float(size[0]), float(size[1]), -h.baseboard if hung else gap)
+        centre, yaw, _ = h.against(kk, ss, float(size[0]), float(size[1]), -h.baseboard if hung else back)
         piece = stand(h, prop, role, float(centre[0]), float(centre[1]), yaw, z=z, mount=mount, kind=kind,
                       shared=shared, wall_margin=-0.001 if hung else 0.005)
         if piece is not None:
@@ -157,7 +158,7 @@ def _group(h: Home, group: str) -> None:
             placed[0].wants.append("table_lamp")
         return
     {"sofa_group": _sofa_group, "bed": _bed, "dining": _dining, "small_dining": lambda x: _dining(x, small=True),
-     "desk": _desk, "kitchen": _kitchen, "armchair": _free_seat, "chair": lambda x: _free_seat(x, "chair"),
+     "desk": _desk, "kitchen": _kitchen, "armchair": _free_seat,
      "piano": lambda x: _simple(x, "piano"), "fireplace": lambda x: _simple(x, "fireplace"),
      "floor_clutter": lambda x: _corner_piece(x, "floor_clutter"),
      "side_table": lambda x: _simple(x, "side_table")}[group](h)
@@ -306,7 +307,7 @@ def _desk(h: Home) -> None:
     chair = prop_for(h, "chair")
     if chair is not None:
         x, y, _, yaw = desk.pose
-        at = np.array([x, y]) + _front(yaw) * (prop.size[1] / 2 + rng.uniform(0.03, 0.2) + chair.size[1] / 2)
+        at = np.array([x, y]) + _front(yaw) * (prop.size[1] / 2 + rng.uniform(0.03, 0.15) + chair.size[1] / 2)
         stand(h, chair, "chair", *at, yaw + math.pi + rng.uniform(-0.3, 0.3))
 
 
@@ -341,6 +342,10 @@ def _corner_piece(h: Home, role: str) -> None:
     along_wall(h, prop, role)
 
 
+KITCHEN_GAP = 0.01
+"""Gap between a kitchen run's backs and the baseboard, metres: the units and their worktop line up at the back."""
+
+
 def _kitchen(h: Home) -> None:
     """A run of lower units and appliances along one wall under a worktop, a tall unit at its start, and upper
     cabinets above the lower units (module docstring)."""
@@ -352,21 +357,22 @@ def _kitchen(h: Home) -> None:
     if rng.uniform() < 0.6:
         tall = prop_for(h, "kitchen_tall")
         if tall is not None and along_wall(h, tall, "kitchen_tall", k=k, s=cursor + tall.size[0] / 2, tries=1,
-                                           kind="fixed") is not None:
+                                           kind="fixed", gap=KITCHEN_GAP) is not None:
             cursor += float(tall.size[0]) + 0.01
     run: list[Piece] = []
     shared: dict[Any, Material] = {}
     while cursor < end - 0.3:
-        role = "appliance" if rng.uniform() < 0.25 else "kitchen_lower"
+        # Under the worktop only cabinets; an appliance (with its own top, its console) ends the worktop.
+        role = "appliance" if rng.uniform() < 0.2 else "kitchen_lower"
         unit = prop_for(h, role)
         if unit is None or cursor + unit.size[0] > end:
             break
         got = along_wall(h, unit, role, k=k, s=cursor + unit.size[0] / 2, tries=1, kind="fixed",
-                         shared=shared if role == "kitchen_lower" else None)
-        if got is None:
+                         shared=shared if role == "kitchen_lower" else None, gap=KITCHEN_GAP)
+        if got is None or role == "appliance":
             _worktop(h, run, k)
             run = []
-            cursor += 0.3
+            cursor += float(unit.size[0]) + 0.01 if got is not None else 0.3
             continue
         run.append(got[0])
         cursor += float(unit.size[0]) + 0.005
@@ -383,12 +389,20 @@ def _worktop(h: Home, run: list[Piece], k: int) -> None:
     half = [float(p.prop.size[0]) / 2 for p in run]
     a, b = min(s - w for s, w in zip(ss, half, strict=True)), max(s + w for s, w in zip(ss, half, strict=True))
     depth = max(float(p.prop.size[1]) for p in run) + 0.03
-    top = max(float(p.vertices[:, 2].max()) for p in run) + 0.002
+    top = max(float(p.vertices[:, 2].max()) for p in run)
+    for p in run:
+        # One counter height: lower units are stretched up to the tallest (a few centimetres at most).
+        z0, z1 = p.slot.z0, float(p.vertices[:, 2].max())
+        if z1 < top:
+            p.vertices = np.column_stack([p.vertices[:, :2], z0 + (p.vertices[:, 2] - z0) * (top - z0) / (z1 - z0)])
+            p.slot.z1 = top
+    top += 0.002
     t = rng.uniform(0.025, 0.045)
     b_ = _Parts(("stone" if rng.uniform() < 0.5 else "wood",))
     b_.box([-(b - a) / 2, -depth / 2, 0.0], [(b - a) / 2, depth / 2, t], 0)
     worktop = b_.prop("worktop")
-    got = along_wall(h, worktop, "worktop", k=k, s=(a + b) / 2, tries=1, z=top, mount="floor", kind="fixed")
+    got = along_wall(h, worktop, "worktop", k=k, s=(a + b) / 2, tries=1, z=top, mount="floor", kind="fixed",
+                     gap=KITCHEN_GAP)
     if got is not None:
         got[0].mount = "support"
     shared: dict[Any, Material] = {}

@@ -134,7 +134,8 @@ def _object(p: Piece, ids: dict[str, int], lib: Library) -> SceneObject:
     main = p.materials[int(np.argmax(counts))]
     return SceneObject(p.name, ids[p.label], _make_mesh(p.vertices, p.faces), flat_colour(p, lib),
                        float(main.metallic), float(main.roughness), tuple(p.materials),
-                       np.ascontiguousarray(p.parts, dtype=np.int32), p.solid)
+                       np.ascontiguousarray(p.parts, dtype=np.int32), p.solid,
+                       p.prop.asset if p.prop is not None else None)
 
 
 def describe(scene: Scene) -> dict[str, Any]:

@@ -250,7 +250,8 @@ def _mullions(rng: np.random.Generator, width: float, height: float
     nh = int(rng.choice([0, 0, 1, 2])) if height > 1.0 else 0
     bw = rng.uniform(0.03, 0.06)
     xs = [(0.0, 0.0)] + [(c - bw / 2, c + bw / 2) for c in np.linspace(0, width, nv + 2)[1:-1]] + [(width, width)]
-    cuts = np.sort(rng.uniform(0.3, 0.8, size=nh)) if nh else []
+    # Transoms a third of the height or more apart, so that no pane is thinner than its bars.
+    cuts = [rng.uniform(0.55, 0.8)] if nh == 1 else [rng.uniform(0.25, 0.4), rng.uniform(0.65, 0.8)] if nh else []
     zs = [(0.0, 0.0)] + [(height * c - bw / 2, height * c + bw / 2) for c in cuts] + [(height, height)]
     return xs, zs
 

@@ -2,6 +2,9 @@
 
 Frame: the mesh's own (canonical) frame of :mod:`fruxel.train.sim.assets`: metres, z up, front towards -y.
 
+Each level is eroded by one cell (a cell keeps the smallest free height of its 3 x 3 neighbourhood): a panel that
+stands on the surface between two cell centres has no horizontal face there and would not be seen from above.
+
 A *support level* is the set of cells of a horizontal grid (:data:`CELL` metres) where the mesh has an upward,
 horizontal face at one height: a table top, a shelf board, a cabinet's top. Each cell records the free height
 above the surface there: up to the mesh's next surface above the cell (the shelf board above), and only as long as
@@ -162,14 +165,21 @@ def _levels(cells: np.ndarray, z: np.ndarray, above: np.ndarray, front: np.ndarr
     ny, nx, nz = shape
     out = []
     bins = np.round(z / 0.01).astype(np.int64)
-    unique = np.unique(bins)
-    # Heights within a centimetre of each other are one surface (a board's faces after decimation).
-    for group in np.split(unique, np.nonzero(np.diff(unique) > 1)[0] + 1):
+    groups: list[list[int]] = []
+    # Heights within a centimetre of each other are one surface (a board's faces after decimation); things
+    # stand where it is highest, so they neither sink into it nor float above it.
+    for b in np.unique(bins):
+        if groups and b - groups[-1][0] <= 1:
+            groups[-1].append(int(b))
+        else:
+            groups.append([int(b)])
+    for group in groups:
         sel = np.isin(bins, group)
         if np.count_nonzero(sel) < MIN_CELLS:
             continue
-        c, zz, room = cells[sel], z[sel], above[sel]
-        level_z = float(np.median(zz))
+        level_z = float(z[sel].max())
+        sel &= z >= level_z - 0.004
+        c, room = cells[sel], above[sel]
         r, col = c // nx, c % nx
         # Open towards the front: the frontmost surface over this x column, from just above the level up to the
         # item's top, must lie behind the cell (else a cabinet door or a rail would hide and enclose the item).
@@ -183,6 +193,10 @@ def _levels(cells: np.ndarray, z: np.ndarray, above: np.ndarray, front: np.ndarr
         room = np.minimum(room, free)
         grid = np.zeros((ny, nx), dtype=np.float32)
         np.maximum.at(grid, (r, col), room.astype(np.float32))
+        # A vertical panel standing on the surface between two cell centres is not seen from above: each cell
+        # keeps the smallest room of its neighbourhood, so things stay a cell clear of every edge.
+        pad = np.pad(grid, 1)
+        grid = np.min([pad[i:i + ny, j:j + nx] for i in range(3) for j in range(3)], axis=0)
         if np.count_nonzero(grid >= 0.04) < MIN_CELLS:
             continue
         if out and abs(out[-1].z - level_z) < 0.015:
