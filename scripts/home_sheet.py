@@ -47,7 +47,7 @@ def _picture_uv(tri: np.ndarray) -> np.ndarray:
 
 def build_scene(scene, lib, pr, with_ceiling: bool = True):
     """A pyrender scene of a furnished room with its materials and lights."""
-    ps = pr.Scene(bg_color=(0.75, 0.82, 0.9, 1.0), ambient_light=np.array(scene.ambient or (0.1,) * 3) * 3.0)
+    ps = pr.Scene(bg_color=(0.75, 0.82, 0.9, 1.0), ambient_light=np.array(scene.ambient or (0.1,) * 3) * 4.0)
     textures: dict[str, object] = {}
 
     def tex(kind: str, ident: str):
@@ -95,12 +95,12 @@ def build_scene(scene, lib, pr, with_ceiling: bool = True):
     for light in scene.lights:
         c = np.array(light.color)
         if light.kind == "directional":
-            ps.add(pr.DirectionalLight(color=c, intensity=light.intensity * 0.8), pose=light.pose)
+            ps.add(pr.DirectionalLight(color=c, intensity=light.intensity * 1.0), pose=light.pose)
         elif light.kind == "spot":
-            ps.add(pr.SpotLight(color=c, intensity=light.intensity * 0.6, innerConeAngle=light.cone[0],
+            ps.add(pr.SpotLight(color=c, intensity=light.intensity * 1.5, innerConeAngle=light.cone[0],
                                 outerConeAngle=light.cone[1]), pose=light.pose)
         else:
-            ps.add(pr.PointLight(color=c, intensity=light.intensity * 0.6), pose=light.pose)
+            ps.add(pr.PointLight(color=c, intensity=light.intensity * 1.5), pose=light.pose)
     return ps
 
 
@@ -140,12 +140,13 @@ def main() -> None:
     p.add_argument("--assets", default=None)
     p.add_argument("--views", type=int, default=4)
     p.add_argument("--size", type=int, default=320)
+    p.add_argument("--types", default=None, help="room types, comma-separated, one room each in turn")
     args = p.parse_args()
 
     from PIL import Image, ImageDraw
 
     from fruxel.render.compat import import_pyrender
-    from fruxel.train.sim.rooms import library, make_home
+    from fruxel.train.sim.rooms import HomeConfig, library, make_home
     from fruxel.train.sim.rooms.home import describe
 
     pr = import_pyrender()
@@ -155,7 +156,11 @@ def main() -> None:
     rows = []
     for r in range(args.rooms):
         seed = args.seed + r
-        scene = make_home(seed, assets=lib, split=args.split)
+        config = HomeConfig()
+        if args.types:
+            types = args.types.split(",")
+            config = HomeConfig(room_types=(types[r % len(types)],))
+        scene = make_home(seed, config, assets=lib, split=args.split)
         rng = np.random.default_rng(seed)
         tiles = [_plan(scene, lib, pr, renderer, w, hgt)]
         ps = build_scene(scene, lib, pr)

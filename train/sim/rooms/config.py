@@ -124,7 +124,7 @@ class HomeConfig:
     """Chance of a crown moulding along the top of the walls."""
     radiator: float = 0.35
     """Chance that a window with room below it has a radiator under it."""
-    extra_furniture: tuple[int, int] = (1, 4)
+    extra_furniture: tuple[int, int] = (2, 5)
     """Additional pieces (storage, armchairs, plants, lamps) placed after the room type's own."""
     procedural: float = 0.0
     """Chance that a piece is built from boxes rather than taken from the pack even when the pack has one for its
@@ -137,9 +137,9 @@ class HomeConfig:
     """Number of rugs (under the main group's furniture, or free on the floor)."""
     rug_thickness: tuple[float, float] = (0.008, 0.025)
     """Rug thickness, metres; furniture standing on a rug is raised by it."""
-    wall_art: tuple[int, int] = (1, 6)
+    wall_art: tuple[int, int] = (2, 7)
     """Number of paintings and posters on the walls."""
-    plants: tuple[int, int] = (0, 3)
+    plants: tuple[int, int] = (1, 3)
     """Number of plants standing on the floor (small ones on furniture come with the clutter)."""
     ceiling_lamps: tuple[int, int] = (1, 2)
     """Number of ceiling fixtures (flush, pendant or track lights)."""

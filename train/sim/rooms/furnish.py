@@ -143,7 +143,7 @@ def furnish(h: Home, room_type: str) -> None:
         _group(h, EXTRAS[int(rng.integers(len(EXTRAS)))])
     for _ in range(int(rng.integers(h.cfg.plants[0], h.cfg.plants[1] + 1))):
         _corner_piece(h, "floor_plant")
-    if rng.uniform() < 0.5:
+    if rng.uniform() < 0.6:
         _corner_piece(h, "floor_lamp")
     for _ in range(int(rng.integers(h.cfg.sculptures[0], h.cfg.sculptures[1] + 1))):
         _sculpture(h)
@@ -347,18 +347,27 @@ KITCHEN_GAP = 0.01
 
 
 def _kitchen(h: Home) -> None:
-    """A run of lower units and appliances along one wall under a worktop, a tall unit at its start, and upper
-    cabinets above the lower units (module docstring)."""
+    """A run of lower units and appliances along a wall under a worktop, a tall unit at its start, and upper
+    cabinets above the lower units (module docstring); the walls are tried in random order until a run of two
+    units or more stands."""
+    for k in h.rng.permutation(4):
+        if _kitchen_run(h, int(k)) >= 2:
+            return
+
+
+def _kitchen_run(h: Home, k: int) -> int:
+    """The kitchen along wall ``k``, from one of its ends; spots a door, a French window or furniture takes are
+    stepped over. Returns the number of units placed."""
     rng = h.rng
-    k = int(rng.integers(4))
     lo, hi = h.inner(k)
-    end = min(hi, lo + rng.uniform(1.8, 4.2))
-    cursor = lo + 0.01
+    end = min(hi, lo + rng.uniform(2.0, 4.5))
+    cursor, placed = lo + 0.01, 0
     if rng.uniform() < 0.6:
         tall = prop_for(h, "kitchen_tall")
         if tall is not None and along_wall(h, tall, "kitchen_tall", k=k, s=cursor + tall.size[0] / 2, tries=1,
                                            kind="fixed", gap=KITCHEN_GAP) is not None:
             cursor += float(tall.size[0]) + 0.01
+            placed += 1
     run: list[Piece] = []
     shared: dict[Any, Material] = {}
     while cursor < end - 0.3:
@@ -369,14 +378,24 @@ def _kitchen(h: Home) -> None:
             break
         got = along_wall(h, unit, role, k=k, s=cursor + unit.size[0] / 2, tries=1, kind="fixed",
                          shared=shared if role == "kitchen_lower" else None, gap=KITCHEN_GAP)
-        if got is None or role == "appliance":
+        if got is None or role == "appliance" or not _flat_top(unit):
             _worktop(h, run, k)
             run = []
-            cursor += float(unit.size[0]) + 0.01 if got is not None else 0.3
+            cursor += float(unit.size[0]) + 0.01 if got is not None else 0.1
+            placed += got is not None
             continue
         run.append(got[0])
+        placed += 1
         cursor += float(unit.size[0]) + 0.005
     _worktop(h, run, k)
+    return placed
+
+
+def _flat_top(prop: Prop) -> bool:
+    """Whether a unit's top is one flat surface at its full height covering most of it (a worktop can rest on
+    it; a sink's faucet or a back rail would stand in the worktop)."""
+    size = prop.size
+    return any(lv.z > size[2] - 0.01 and lv.area > 0.4 * size[0] * size[1] for lv in prop.levels())
 
 
 def _worktop(h: Home, run: list[Piece], k: int) -> None:

@@ -140,7 +140,7 @@ ROLES: dict[str, Role] = {
                           body="any"),
     "wall_clock": Role(("wall_decor",), (0.2, 0.8), (0.15, 0.5), (0.03, 0.25), (0.5, 2.0), body="any"),
     "statue": Role(("statue",), body="stone"),
-    "figure": Role(("person", "animal"), (0.2, 2.0), body="stone"),
+    "figure": Role(("person", "animal"), (0.2, 1.9), (0.1, 1.3), exclude=r"horse|lying", body="stone"),
 }
 """Every role the generator fills from the pack (module docstring)."""
 
@@ -166,11 +166,11 @@ class Prop:
     elevation: float = 0.0
     """Usual height above the floor, metres."""
     _levels: tuple[Level, ...] | None = field(default=None, repr=False)
+    size: np.ndarray = field(init=False, repr=False)
+    """``(3,)`` float64 extent along x, y, z, metres (computed once)."""
 
-    @property
-    def size(self) -> np.ndarray:
-        """``(3,)`` extent along x, y, z, metres."""
-        return self.vertices.max(axis=0) - self.vertices.min(axis=0)
+    def __post_init__(self) -> None:
+        self.size = self.vertices.max(axis=0) - self.vertices.min(axis=0)
 
     def levels(self) -> tuple[Level, ...]:
         """Support surfaces (:mod:`.supports`), computed on first use and kept."""

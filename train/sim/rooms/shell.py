@@ -230,7 +230,7 @@ def _window(h: Home, w: Window) -> None:
     if w.sill > 0:
         p, e = rng.uniform(0.02, 0.06), rng.uniform(0.02, 0.08)
         lo = [[w.x0, -p, w.z0 - w.sill], [w.x0 - e, -p, w.z0 - w.sill], [w.x0 + w.width, -p, w.z0 - w.sill]]
-        hi = [[w.x0 + w.width, tw + rng.uniform(0.0, 0.04), w.z0], [w.x0, 0.0, w.z0], [w.x0 + w.width + e, 0.0, w.z0]]
+        hi = [[w.x0 + w.width, tw, w.z0], [w.x0, 0.0, w.z0], [w.x0 + w.width + e, 0.0, w.z0]]
         h.add_box_piece("window", "window", "window", [_local_boxes(wall, lo, hi)], [h.sampler.draw("trim")],
                         name=f"window_{n}_sill")
     # Tall furniture must not stand in front of the glass; what is lower than the sill may.
