@@ -56,7 +56,7 @@ class MaterialConfig:
     the role's table of plausible categories, so that no category belongs to one class.
     """
 
-    plausibility: float = 0.7
+    plausibility: float = 0.8
     """In [0, 1]: weight of the role's plausible categories in the mixture (0: every surface draws its category
     uniformly, whatever it is; 1: only plausible pairings, a wall is never leather)."""
     plain: float = 0.08
@@ -126,13 +126,14 @@ class HomeConfig:
     """Chance that a window with room below it has a radiator under it."""
     extra_furniture: tuple[int, int] = (2, 5)
     """Additional pieces (storage, armchairs, plants, lamps) placed after the room type's own."""
-    procedural: float = 0.0
+    procedural: float = 0.05
     """Chance that a piece is built from boxes rather than taken from the pack even when the pack has one for its
-    role (roles the pack's split lacks are always built)."""
+    role. Roles the pack's split lacks are always built (the held-out split has a fifth of the meshes); this share
+    puts built pieces into training rooms too, so that they are not a look only test rooms have."""
     sculptures: tuple[int, int] = (0, 2)
     """Number of sculptures (on the floor, on a pedestal, or small ones on furniture)."""
-    sculpture_people: float = 0.15
-    """Chance that a sculpture is one of the pack's people or animals rather than a scanned statue."""
+    sculpture_figures: float = 0.2
+    """Chance that a sculpture is one of the pack's scanned animal figurines rather than a scanned statue."""
     rugs: tuple[int, int] = (0, 2)
     """Number of rugs (under the main group's furniture, or free on the floor)."""
     rug_thickness: tuple[float, float] = (0.008, 0.025)
@@ -188,7 +189,7 @@ class HomeConfig:
         if self.lights[0] < 1:
             raise ConfigError(f"home.lights must light the room: low >= 1, got {self.lights!r}")
         for name in ("double_door", "open_door", "french_window", "curtains", "baseboard", "crown", "radiator",
-                     "procedural", "sculpture_people", "sun"):
+                     "procedural", "sculpture_figures", "sun"):
             _probability(name, getattr(self, name))
         for name in ("slab_thickness", "min_gap", "door_clearance", "free_space_resolution"):
             v = getattr(self, name)

@@ -435,10 +435,10 @@ def _worktop(h: Home, run: list[Piece], k: int) -> None:
 
 
 def _sculpture(h: Home) -> None:
-    """A statue (or, with ``HomeConfig.sculpture_people``, a figure) on the floor or on a pedestal; a small one
-    may instead wait for a piece of furniture's top (:mod:`.decor`)."""
+    """A statue (or, with ``HomeConfig.sculpture_figures``, an animal figurine) on the floor or on a pedestal; a
+    small one may instead wait for a piece of furniture's top (:mod:`.decor`)."""
     rng = h.rng
-    role = "figure" if rng.uniform() < h.cfg.sculpture_people else "statue"
+    role = "figure" if rng.uniform() < h.cfg.sculpture_figures else "statue"
     prop = prop_for(h, role)
     if prop is None:
         return
