@@ -1,9 +1,10 @@
 """Contact sheet of furnished rooms (the simulator's "home" world), to look at them: per room a plan seen from
 above (ceiling left out) and views from cameras at several heights and pitches, drawn by pyrender with the rooms'
 materials (textures tiled at metric scale by box projection, pictures stretched once, the scene's lights with
-shadow maps, the ambient colour) and, beside each view, the labels of its visible surfaces in the class colours.
+shadow maps, the ambient colour) and, with --labels, beside each view its visible solids in the class colours.
 
     python scripts/home_sheet.py --out sheet.png [--rooms 4] [--seed 0] [--split train] [--assets assets/pack]
+                                 [--types living,bedroom] [--labels]
 
 This is a look at layout and materials, not the training renderer (train/sim/images.py is the flat one, the
 photoreal one lives behind the renderer seam).
@@ -104,6 +105,18 @@ def build_scene(scene, lib, pr, with_ceiling: bool = True):
     return ps
 
 
+def label_scene(scene, pr):
+    """The room's solids in their class colours (drawn unlit), the drawn-only surfaces left out."""
+    ps = pr.Scene(bg_color=(0.0, 0.0, 0.0, 1.0), ambient_light=np.ones(3))
+    palette = scene.classes.palette() / 255.0
+    for o in scene.objects:
+        if not o.solid:
+            continue
+        mat = pr.MetallicRoughnessMaterial(baseColorFactor=(*palette[o.label], 1.0), doubleSided=True)
+        ps.add(pr.Mesh.from_trimesh(o.mesh, material=mat, smooth=False))
+    return ps
+
+
 def look(eye: np.ndarray, yaw: float, pitch_down: float) -> np.ndarray:
     """OpenGL camera-to-world pose at ``eye`` looking along ``yaw`` (from +x towards +y), pitched down."""
     f = np.array([math.cos(yaw) * math.cos(pitch_down), math.sin(yaw) * math.cos(pitch_down), -math.sin(pitch_down)])
@@ -141,6 +154,7 @@ def main() -> None:
     p.add_argument("--views", type=int, default=4)
     p.add_argument("--size", type=int, default=320)
     p.add_argument("--types", default=None, help="room types, comma-separated, one room each in turn")
+    p.add_argument("--labels", action="store_true", help="beside each view, its visible solids in class colours")
     args = p.parse_args()
 
     from PIL import Image, ImageDraw
@@ -163,15 +177,19 @@ def main() -> None:
         scene = make_home(seed, config, assets=lib, split=args.split)
         rng = np.random.default_rng(seed)
         tiles = [_plan(scene, lib, pr, renderer, w, hgt)]
-        ps = build_scene(scene, lib, pr)
+        ps, ls = build_scene(scene, lib, pr), label_scene(scene, pr)
         cam = pr.PerspectiveCamera(yfov=math.radians(52), aspectRatio=w / hgt)
-        node = ps.add(cam, pose=np.eye(4))
+        node, label_node = ps.add(cam, pose=np.eye(4)), ls.add(cam, pose=np.eye(4))
         for eye, yaw, pitch in _views(scene, rng, args.views):
             ps.set_pose(node, look(eye, yaw, pitch))
+            ls.set_pose(label_node, look(eye, yaw, pitch))
             colour, _ = renderer.render(ps, flags=pr.RenderFlags.SHADOWS_DIRECTIONAL | pr.RenderFlags.SHADOWS_SPOT)
             tile = Image.fromarray(colour)
             ImageDraw.Draw(tile).text((4, 4), f"h {eye[2]:.2f} m, pitch {math.degrees(pitch):.0f}", fill="white")
             tiles.append(np.asarray(tile))
+            if args.labels:
+                labels, _ = renderer.render(ls, flags=pr.RenderFlags.FLAT)
+                tiles.append(labels)
         row = Image.fromarray(np.concatenate(tiles, axis=1))
         ImageDraw.Draw(row).text((4, hgt - 14), f"seed {seed}: {describe(scene)}"[:120], fill="yellow")
         rows.append(np.asarray(row))
