@@ -13,7 +13,7 @@ import importlib
 from typing import Any
 
 from .camera import Camera, CameraError
-from .classes import DEFAULT_CLASSES, ClassTable, ClassTableError
+from .classes import DEFAULT_CLASSES, HOME_CLASSES, ClassTable, ClassTableError
 from .errors import FruxelError
 from .grid import FruxelGrid, GridError
 from .io import FruxelFileError, LogitsFile, load, load_logits, save, save_logits
@@ -24,6 +24,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "DEFAULT_CLASSES",
+    "HOME_CLASSES",
     "Camera",
     "CameraError",
     "ClassTable",

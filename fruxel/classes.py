@@ -19,6 +19,14 @@ greyscale print and keep the semantic hints a viewer expects (floor greenish, wi
     6    sculpture  (148, 103, 189)  purple
     ===  =========  ===============  =========================================================
 
+:data:`HOME_CLASSES` appends the two classes of the simulator's furnished rooms (conventions section 2), so files
+with the default table stay readable:
+
+    ===  =========  ===============  =========================================================
+    7    ceiling    (219, 219, 141)  pale olive: large and calm like the walls, yet told apart from them
+    8    object     (227, 119, 194)  pink: clutter and decoration (paintings, plants, lamps, rugs, books)
+    ===  =========  ===============  =========================================================
+
 Classes added without a colour get the next unused colour of :data:`EXTRA_COLOURS`, then generated hues.
 """
 
@@ -257,3 +265,9 @@ class ClassTable:
 
 DEFAULT_CLASSES = ClassTable(DEFAULT_NAMES, DEFAULT_COLOURS)
 """``0 empty, 1 wall, 2 floor, 3 window, 4 furniture, 5 door, 6 sculpture`` with the default palette."""
+
+HOME_NAMES: tuple[str, ...] = ("ceiling", "object")
+"""The classes the furnished rooms add after the default ones (conventions section 2), in label order."""
+
+HOME_CLASSES = DEFAULT_CLASSES.extended(*HOME_NAMES, colours=((219, 219, 141), (227, 119, 194)))
+"""The default table with ``7 ceiling, 8 object`` appended: the class table of the simulator's furnished rooms."""

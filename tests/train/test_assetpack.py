@@ -19,15 +19,14 @@ from fruxel.train.sim.assetpack.build import PackConfig, build_pack
 from fruxel.train.sim.assetpack.licences import ALLOWED, COMMITTABLE, lookup_copyright, parse_debian_copyright
 from fruxel.train.sim.assetpack.manifest import MANIFEST_NAME, assign_splits
 
-SOURCES = Path(__file__).resolve().parents[1] / "data" / "assetpack_sources"
+from .conftest import ASSETPACK_SOURCES as SOURCES
+
 SH3F = SOURCES / "debian/sweethome3d-furniture-1.8-1/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f"
 
 
-@pytest.fixture(scope="module")
-def pack_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("pack") / "pack"
-    build_pack(SOURCES, out)
-    return out
+@pytest.fixture()
+def pack_dir(tiny_pack: Path) -> Path:
+    return tiny_pack
 
 
 @pytest.fixture()

@@ -48,6 +48,7 @@ from fruxel.grid import FruxelGrid, GridError
 from .cameras import ROBOT_CAMERA, CameraConfig, check_camera
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
+from .rooms.config import HomeConfig
 from .scene import RoomConfig, SceneError
 
 CONFIG_VERSION = 1
@@ -55,6 +56,14 @@ CONFIG_VERSION = 1
 
 PAPER_SPLITS: tuple[tuple[str, int], ...] = (("train", 15000), ("test", 1000))
 """The paper's data set: 15k training and 1k test samples."""
+
+WORLDS = ("flat", "home")
+"""What the rooms look like (:attr:`SimConfig.world`): ``flat`` (:func:`.scene.make_scene`, flat-coloured box
+furniture, the robot's first data sets) or ``home`` (:func:`.rooms.make_home`, furnished rooms from the asset
+pack)."""
+
+DEFAULT_WORLD = "flat"
+"""The world of every data set made before there were two, and of a config that names none."""
 
 MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
@@ -210,11 +219,23 @@ class SimConfig:
     camera: CameraConfig = ROBOT_CAMERA
     """The camera each trajectory draws (:mod:`.cameras`): its height, pitch, roll and field of view. The default,
     :data:`~.cameras.ROBOT_CAMERA`, is the robot's own mount (``trajectory.mount``, the grid's field of view)."""
+    world: str = DEFAULT_WORLD
+    """Which room generator makes the rooms (:data:`WORLDS`): ``flat`` uses :attr:`room`, ``home`` uses
+    :attr:`home` and the asset pack (its classes must include ``ceiling`` and ``object``: :data:`fruxel.classes.
+    HOME_CLASSES`)."""
+    home: HomeConfig = field(default_factory=HomeConfig)
+    """Ranges the furnished rooms draw from (the ``home`` world), the material sampling, and which pack split
+    test rooms draw their assets from."""
+    assets: str | None = None
+    """The asset pack folder of the ``home`` world; None: the ``FRUXEL_ASSETS`` environment variable, else the
+    repository's ``assets/pack`` (:func:`fruxel.train.sim.rooms.resolve_pack`; ``make assets`` builds it). The
+    pack is named by its folder: ``make assets`` gives the same pack from the same pinned sources on any machine."""
 
     def __post_init__(self) -> None:
         check_renderer(self.renderer)
         if not isinstance(self.camera, CameraConfig):
             raise ConfigError(f"camera must be a CameraConfig, got {type(self.camera).__name__}")
+        self._check_world()
         if not isinstance(self.grid, FruxelGrid):
             raise ConfigError(f"grid must be a FruxelGrid, got {type(self.grid).__name__}")
         if (self.image.size * self.grid.height) % self.grid.width:
@@ -239,6 +260,21 @@ class SimConfig:
             mount = dataclasses.replace(self.trajectory.mount, hfov=self.grid.hfov)
             object.__setattr__(self, "trajectory", dataclasses.replace(self.trajectory, mount=mount))
         check_camera(self)
+
+    def _check_world(self) -> None:
+        if self.world not in WORLDS:
+            raise ConfigError(f"world must be one of {', '.join(WORLDS)}, got {self.world!r}")
+        if not isinstance(self.home, HomeConfig):
+            raise ConfigError(f"home must be a HomeConfig, got {type(self.home).__name__}")
+        if self.assets is not None and (not isinstance(self.assets, str) or not self.assets):
+            raise ConfigError(f"assets must be a folder name or None, got {self.assets!r}")
+        if self.world == "home":
+            from .rooms import CLASS_NAMES
+
+            missing = [n for n in CLASS_NAMES if n not in self.classes.names]
+            if missing:
+                raise ConfigError(f"world 'home' labels {list(CLASS_NAMES)}; the class table lacks {missing}: use "
+                                  "fruxel.classes.HOME_CLASSES")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -278,9 +314,10 @@ class SimConfig:
         """Plain-JSON dictionary of every field (tuples become lists), with ``"version"``:
         :data:`CONFIG_VERSION`.
 
-        ``"renderer"`` and ``"camera"`` are left out when they are the defaults: data sets made before renderers had
-        names, or before cameras varied, record neither, and their configs keep their digests (:meth:`digest`, in
-        every manifest and shard).
+        ``"renderer"``, ``"camera"``, ``"world"``, ``"home"`` and ``"assets"`` are left out when they are the
+        defaults (``home`` is written whenever the world is ``home``): data sets made before renderers, cameras and
+        worlds had names record none of them, and their configs keep their digests (:meth:`digest`, in every manifest
+        and shard).
         """
         out = {
             "version": CONFIG_VERSION,
@@ -297,6 +334,12 @@ class SimConfig:
             out["renderer"] = self.renderer
         if self.camera != ROBOT_CAMERA:
             out["camera"] = _plain(self.camera)
+        if self.world != DEFAULT_WORLD:
+            out["world"] = self.world
+        if self.world != DEFAULT_WORLD or self.home != HomeConfig():
+            out["home"] = _plain(self.home)
+        if self.assets is not None:
+            out["assets"] = self.assets
         return out
 
     @classmethod
@@ -311,7 +354,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names, optional=("renderer", "camera"))
+        _expect_keys("config", d, names, optional=("renderer", "camera", "world", "home", "assets"))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -331,6 +374,9 @@ class SimConfig:
                 splits=tuple((s[0], s[1]) for s in splits),
                 renderer=d.get("renderer", DEFAULT_RENDERER),
                 camera=_from_plain(CameraConfig, d["camera"], "camera") if "camera" in d else ROBOT_CAMERA,
+                world=d.get("world", DEFAULT_WORLD),
+                home=_from_plain(HomeConfig, d["home"], "home") if "home" in d else HomeConfig(),
+                assets=d.get("assets"),
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None

@@ -114,6 +114,19 @@ class _Room:
     """``(H, W)`` bool: the grid columns the camera's framed image covers."""
 
 
+def make_room(config: SimConfig, seed: int, split: str) -> Any:
+    """The room of ``config.world`` made from ``seed`` for data split ``split``: a flat room
+    (:func:`.scene.make_scene`) or a furnished one (:func:`.rooms.make_home`, whose assets come from the pack split
+    that ``config.home`` gives ``split``)."""
+    if config.world == "home":
+        from .rooms import make_home
+
+        return make_home(seed, config.home, config.classes, assets=config.assets, split=split)
+    from .scene import make_scene
+
+    return make_scene(seed, config.room, config.classes)
+
+
 STAGES = ("scene", "trajectory", "upload", "render", "fruxelize")
 """Stages :class:`SampleMaker` times (seconds accumulate in ``SampleMaker.timings``)."""
 
@@ -152,13 +165,12 @@ class SampleMaker:
             return self._room
 
         from .robot import TrajectoryError, random_trajectory
-        from .scene import make_scene
 
         cfg = self.config
         for attempt in range(MAX_ROOM_ATTEMPTS):
             t0 = time.perf_counter()
             s_seed = scene_seed(self.seed, split, scene, attempt)
-            room = make_scene(s_seed, cfg.room, cfg.classes)
+            room = make_room(cfg, s_seed, split)
             t1 = time.perf_counter()
             self.timings["scene"] += t1 - t0
             mount = cameras.draw_mount(cfg, camera_seed(self.seed, split, scene))

@@ -112,6 +112,9 @@ class SceneObject:
     solid: bool = True
     """False for a surface that is drawn but is not a solid of the room (the outdoor view behind a window): never
     labelled, never in the robot's way."""
+    asset: str | None = None
+    """Id of the asset pack mesh the object was made from (None: built by the generator); its materials name their
+    own textures and images."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,6 +235,9 @@ class Scene:
     """The seed the scene was made from."""
     classes: ClassTable = DEFAULT_CLASSES
     """The class table the objects' labels index."""
+    ambient: tuple[float, float, float] | None = None
+    """Linear RGB of the diffuse light the sky and the room's walls give everywhere (a photoreal renderer's
+    ambient or sky term), or None: the renderer's own (the flat renderer's augmentation draws its ambient level)."""
 
     def labelled_meshes(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per solid object, world frame, in priority order:

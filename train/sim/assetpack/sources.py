@@ -355,13 +355,14 @@ CGAL_STATUES = {"nefertiti": "statue", "lion": "statue", "lion-head": "statue", 
 CGAL_REJECTED = ("armadillo", "bunny00", "ChineseDragon-10kv", "elephant", "camel", "homer", "kitten")
 """Scans left out: research-only or non-free origins (Stanford, deformation-transfer data, a cartoon character)."""
 
-CGAL_HEIGHT_M = {"nefertiti": 0.5, "lion": 1.0, "lion-head": 0.6, "man": 1.75, "mannequin-devil": 1.2,
+CGAL_HEIGHT_M = {"nefertiti": 0.5, "lion": 1.0, "lion-head": 0.6, "man": 1.75, "mannequin-devil": 0.5,
                  "head": 0.45, "bull": 0.8, "elk": 0.9, "bear": 0.8, "triceratops": 0.5, "dino": 0.5, "cow": 0.6,
                  "pig": 0.4}
 """Height given to each statue (metres): the scans have no unit."""
 
-CGAL_UP = {"nefertiti": "z"}
-"""Each scan's up axis where it is not ``y`` (seen on the mesh sheet)."""
+CGAL_UP = {"man": "z", "mannequin-devil": "z"}
+"""Each scan's up axis where it is not ``y`` (seen on renders of the scan turned by each candidate axis: with
+``y`` the man and the devil's head lay on their backs, with ``z`` the Nefertiti face lay face up)."""
 
 
 def _cgal(tree: Path, doc_tree: Path) -> list[Candidate]:
