@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from fruxel.classes import ClassTable, ClassTableError
+from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
@@ -191,6 +191,19 @@ class DataConfig:
     ``fruxel-sim generate`` (``root``)."""
     root: str = ""
     """The data set folder, for ``source = "shards"`` (its grid and image size must match the model)."""
+    world: str = "home"
+    """The simulator's world of streamed samples (:data:`fruxel.train.sim.config.WORLDS`): ``"home"``, furnished
+    rooms from the asset pack (the model's classes must include ``ceiling`` and ``object``), or ``"flat"``, the
+    flat-shaded rooms the shipped models learnt."""
+    camera: str = "any"
+    """The cameras of streamed samples (:data:`fruxel.train.sim.cameras.CAMERAS`): ``"any"``, a mount drawn per
+    trajectory, or ``"robot"``, the robot's own."""
+    renderer: str = ""
+    """The renderer of streamed samples, by its registry name; "" takes the world's own
+    (:data:`fruxel.train.sim.config.WORLD_RENDERERS`)."""
+    assets: str = ""
+    """The asset pack folder of the home world; "" takes the ``FRUXEL_ASSETS`` environment variable, else the
+    repository's ``assets/pack`` (``make assets``)."""
     seed: int = 0
     """Base seed of the simulator's samples (streaming); the test split's rooms come from seeds the training split
     never uses."""
@@ -216,8 +229,18 @@ class DataConfig:
     """Training samples counted for the cross-entropy's class frequencies."""
 
     def __post_init__(self) -> None:
+        from .sim.cameras import CAMERAS
+        from .sim.config import WORLDS
+        from .sim.renderer import renderer_names
+
         if self.source not in DATA_SOURCES:
             raise ConfigError(f"data.source must be one of {', '.join(DATA_SOURCES)}, got {self.source!r}")
+        for name, value, known in (("world", self.world, WORLDS), ("camera", self.camera, tuple(CAMERAS))):
+            if value not in known:
+                raise ConfigError(f"data.{name} must be one of {', '.join(known)}, got {value!r}")
+        if self.renderer and self.renderer not in renderer_names():
+            raise ConfigError(f"data.renderer must be one of {', '.join(renderer_names())} (or empty: the world's "
+                              f"own), got {self.renderer!r}")
         if self.source == "shards" and not self.root:
             raise ConfigError("data.root must name a data set folder when data.source is 'shards'")
         for name in ("seed", "workers", "replay", "eval_samples"):
@@ -330,6 +353,13 @@ class TrainConfig:
                            ("optim", OptimConfig), ("run", RunConfig)):
             if not isinstance(getattr(self, part), kind):
                 raise ConfigError(f"{part} must be a {kind.__name__}, got {type(getattr(self, part)).__name__}")
+        if self.data.source == "stream" and self.data.world == "home":
+            from .sim.rooms import CLASS_NAMES
+
+            missing = [n for n in CLASS_NAMES if n not in self.model.classes.names]
+            if missing:
+                raise ConfigError(f"data.world 'home' labels {list(CLASS_NAMES)}; model.classes lacks {missing} (use "
+                                  "fruxel.classes.HOME_CLASSES, or data.world 'flat')")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON form with ``"version"``."""
@@ -374,7 +404,7 @@ class TrainConfig:
 def _presets() -> dict[str, TrainConfig]:
     tiny_grid = FruxelGrid(width=32, height=32, depth=32, z_near=0.5, z_far=8.0, hfov=60.0)
     grid128 = FruxelGrid(width=128, height=128, depth=128, z_near=0.5, z_far=8.0, hfov=60.0)
-    gpu = DataConfig(workers=14, replay=4096, reuse=2)
+    shipped = DataConfig(workers=14, replay=4096, reuse=2, world="flat", camera="robot")
     return {
         "tiny": TrainConfig(
             name="tiny",
@@ -388,20 +418,24 @@ def _presets() -> dict[str, TrainConfig]:
                           checkpoint_every=500),
         ),
         # The shipped ssz64's architecture and image size (256 x 256: the stem reads it 2 x 2-pooled).
-        "ssz64": TrainConfig(name="ssz64", model=SSZConfig(detail_branch=24), data=gpu, run=RunConfig(compile=True)),
+        # The shipped ssz64's architecture, image size (256 x 256: the stem reads it 2 x 2-pooled), classes and
+        # samples (the flat world from the robot's mount).
+        "ssz64": TrainConfig(name="ssz64", model=SSZConfig(detail_branch=24, classes=DEFAULT_CLASSES), data=shipped,
+                             run=RunConfig(compile=True)),
         # The shipped ssz128's: ssz64 below a refinement level, 512 x 512 images, fine-tuned from the shipped ssz64
         # with the whole network training (its last two stages; the level started alone: docs/model.md).
         "ssz128": TrainConfig(
-            name="ssz128", model=SSZConfig(grid=grid128, detail_branch=24, refine=16),
-            loss=LossConfig(first_hit=1.0), data=dataclasses.replace(gpu, replay=2048),
+            name="ssz128", model=SSZConfig(grid=grid128, detail_branch=24, refine=16, classes=DEFAULT_CLASSES),
+            loss=LossConfig(first_hit=1.0), data=dataclasses.replace(shipped, replay=2048),
             optim=OptimConfig(lr=3e-4, warmup=100),
             run=RunConfig(steps=5000, batch_size=16, compile=True, init="ssz64")),
     }
 
 
 PRESETS = ("tiny", "ssz64", "ssz128")
-"""Named presets: ``tiny`` (32^3 from 64^2, trains on a laptop CPU), ``ssz64`` and ``ssz128`` (the shipped models'
-architectures and image sizes: 64^3 from 256^2, 128^3 from 512^2)."""
+"""Named presets: ``tiny`` (32^3 from 64^2, trains on a laptop CPU, in the simulator's furnished rooms from any
+camera), ``ssz64`` and ``ssz128`` (the shipped models' architectures, image sizes, classes and samples: 64^3 from
+256^2, 128^3 from 512^2, the flat world from the robot's mount)."""
 REPLACED_PRESETS = {"paper": "ssz128"}
 """Presets that no longer exist, and what replaced them."""
 

@@ -83,6 +83,12 @@ class SampleSource:
     camera: str = "robot"
     """The cameras streamed samples take, by name (:data:`fruxel.train.sim.cameras.CAMERAS`: ``"robot"``, the
     robot's own mount, or ``"any"``); a data set has its own."""
+    world: str = "flat"
+    """The simulator's world of streamed samples (:data:`fruxel.train.sim.config.WORLDS`); a data set has its own."""
+    renderer: str = ""
+    """The renderer of streamed samples; "" takes the world's own (:data:`fruxel.train.sim.config.WORLD_RENDERERS`)."""
+    assets: str = ""
+    """The asset pack folder of the home world ("": the default one, :func:`fruxel.train.sim.rooms.resolve_pack`)."""
 
     def __post_init__(self) -> None:
         from fruxel.train.sim.cameras import CAMERAS
@@ -95,15 +101,17 @@ class SampleSource:
     @classmethod
     def of(cls, data: DataConfig) -> SampleSource:
         """The source a training run's :class:`~fruxel.train.config.DataConfig` describes."""
-        return cls(data.source, data.root, data.seed, data.augment, data.samples_per_scene)
+        return cls(data.source, data.root, data.seed, data.augment, data.samples_per_scene, data.camera, data.world,
+                   data.renderer, data.assets)
 
     def describe(self) -> str:
         """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
         if self.source == "shards":
             return f"data set {self.root}"
         camera = "" if self.camera == "robot" else f", {self.camera} camera"
+        world = "" if self.world == "flat" else f", {self.world} world"
         return (f"simulator stream, seed {self.seed}, {self.samples_per_scene} samples per room, "
-                f"{'augmented' if self.augment else 'no augmentation'}{camera}")
+                f"{'augmented' if self.augment else 'no augmentation'}{camera}{world}")
 
 
 def sim_config(model: ModelConfig, source: SampleSource, splits: tuple[tuple[str, int], ...]) -> Any:
@@ -111,11 +119,12 @@ def sim_config(model: ModelConfig, source: SampleSource, splits: tuple[tuple[str
     image size, the source's rooms, camera and augmentation, and ``splits`` (a streamed sample depends on the seed, the
     split's name and its index, never on the split's size)."""
     from fruxel.train.sim.cameras import camera_named
-    from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
+    from fruxel.train.sim.config import WORLD_RENDERERS, AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=model.grid, classes=model.classes, samples_per_scene=source.samples_per_scene,
                      image=ImageConfig(size=model.image_size[1], augment=AugmentConfig(enabled=source.augment)),
-                     splits=splits, camera=camera_named(source.camera))
+                     splits=splits, camera=camera_named(source.camera), world=source.world,
+                     renderer=source.renderer or WORLD_RENDERERS[source.world], assets=source.assets or None)
 
 
 def check_data_set(root: str, model: ModelConfig) -> Any:

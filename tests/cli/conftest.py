@@ -16,10 +16,12 @@ SMALL_GRID = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hf
 def small_model_config() -> Any:
     """A :class:`fruxel.train.models.ssz.SSZConfig`: a 16^3-from-64^2 SSZ architecture with a few thousand weights
     (a forward pass takes milliseconds)."""
+    from fruxel.classes import DEFAULT_CLASSES
     from fruxel.train.models.ssz import SSZConfig
 
-    return SSZConfig(grid=SMALL_GRID, image_scale=2, levels=3, stem=4, encoder=(8, 8, 8), encoder_blocks=(1, 1, 1),
-                     encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4), decoder_blocks=(1, 1, 1))
+    return SSZConfig(grid=SMALL_GRID, classes=DEFAULT_CLASSES, image_scale=2, levels=3, stem=4, encoder=(8, 8, 8),
+                     encoder_blocks=(1, 1, 1), encoder_expand=2, topdown=(8, 8, 8), decoder=(4, 4, 4),
+                     decoder_blocks=(1, 1, 1))
 
 
 @pytest.fixture(scope="session")
@@ -52,13 +54,13 @@ def shipped_model(small_generator: Any, tmp_path_factory: pytest.TempPathFactory
 @pytest.fixture(scope="session")
 def checkpoint_model(small_generator: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The small model as a training checkpoint (``.pt``, written by the engine's own writer)."""
-    from fruxel.train.config import TrainConfig
+    from fruxel.train.config import DataConfig, TrainConfig
     from fruxel.train.engine.checkpoint import save_checkpoint
 
     gen, config = small_generator
     path = tmp_path_factory.mktemp("models") / "small.pt"
     save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()},
-                    TrainConfig(name="small", model=config))
+                    TrainConfig(name="small", model=config, data=DataConfig(world="flat")))
     return path
 
 

@@ -250,13 +250,14 @@ def bad_model_file(kind: str, tmp_path: Path, shipped_model: Path) -> tuple[Path
         path.write_bytes(pickle.dumps({"generator": CreatesFile(marker)}, protocol=2))
         return path, "Python pickle"
     elif kind == "checkpoint-named-safetensors":
-        from fruxel.train.config import TrainConfig
+        from fruxel.train.config import DataConfig, TrainConfig
         from fruxel.train.engine.checkpoint import save_checkpoint
 
         loaded = load_model(shipped_model)
         gen, config = loaded.network, loaded.config
         path = tmp_path / "last.safetensors"
-        save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()}, TrainConfig(model=config))
+        save_checkpoint(path, {"step": 0, "samples": 0, "generator": gen.state_dict()},
+                        TrainConfig(model=config, data=DataConfig(world="flat")))
         return path, ".pt name"
     elif kind in ("int8-weights", "nan-weights"):
         from safetensors import safe_open

@@ -10,6 +10,7 @@ import pytest
 import torch
 from torch import nn
 
+from fruxel.classes import DEFAULT_CLASSES
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid
 from fruxel.train.models.blocks import Pointwise3d, SurfaceFusion
@@ -20,8 +21,8 @@ from fruxel.train.models.ssz import SSZConfig
 def small_config(**kw: object) -> SSZConfig:
     """A 16^3 SSZ from 32^2 images with a few thousand weights."""
     grid = FruxelGrid(width=16, height=16, depth=16, z_near=0.5, z_far=8.0, hfov=60.0)
-    base = {"grid": grid, "levels": 3, "stem": 8, "encoder": (8, 8, 8), "encoder_blocks": (1, 1, 1),
-            "topdown": (8, 8, 8), "decoder": (8, 8, 8), "decoder_blocks": (1, 1, 1)}
+    base = {"grid": grid, "classes": DEFAULT_CLASSES, "levels": 3, "stem": 8, "encoder": (8, 8, 8),
+            "encoder_blocks": (1, 1, 1), "topdown": (8, 8, 8), "decoder": (8, 8, 8), "decoder_blocks": (1, 1, 1)}
     return SSZConfig(**{**base, **kw})
 
 

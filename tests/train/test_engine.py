@@ -21,6 +21,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
+from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
 from fruxel.train.config import TrainConfig, override  # noqa: E402
 from fruxel.train.engine.checkpoint import (  # noqa: E402
     FORMAT,
@@ -47,7 +48,8 @@ TINY: dict[str, Any] = {
               "encoder_blocks": [1, 1, 1], "topdown": [8, 12, 16], "decoder": [4, 8, 12],
               "decoder_blocks": [1, 1, 1]},
     "loss": {"discriminator": [8]},
-    "data": {"workers": 0, "samples_per_scene": 4, "train_samples": 64, "test_samples": 4, "eval_samples": 4,
+    "data": {"world": "flat", "camera": "robot", "workers": 0, "samples_per_scene": 4, "train_samples": 64,
+             "test_samples": 4, "eval_samples": 4,
              "frequency_samples": 4},
     "optim": {"warmup": 2},
     "run": {"steps": 8, "batch_size": 2, "log_every": 1, "eval_every": 0, "checkpoint_every": 0,
@@ -58,7 +60,8 @@ TINY: dict[str, Any] = {
 
 def tiny(changes: dict[str, Any] | None = None) -> TrainConfig:
     """:data:`TINY` with ``changes`` (nested as in a config file)."""
-    return override(TrainConfig.from_dict(TINY), changes or {}, "")
+    base = override(TrainConfig.from_dict(TINY), {"model": {"classes": DEFAULT_CLASSES.to_dict()}}, "")
+    return override(base, changes or {}, "")
 
 
 def sim_config(config: TrainConfig) -> Any:

@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
-from fruxel.classes import DEFAULT_CLASSES, ClassTable
+from fruxel.classes import HOME_CLASSES, ClassTable
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid
 
@@ -59,8 +59,10 @@ class ModelConfig:
 
     grid: FruxelGrid = FruxelGrid(width=64, height=64, depth=64, z_near=0.5, z_far=8.0, hfov=60.0)
     """The output grid: shape ``(D, H, W)`` and the frustum it spans (the image's camera is the grid's own)."""
-    classes: ClassTable = DEFAULT_CLASSES
-    """Class table of the output; C = ``len(classes.names)``, class 0 = empty."""
+    classes: ClassTable = HOME_CLASSES
+    """Class table of the output; C = ``len(classes.names)``, class 0 = empty. The default is the simulator's
+    furnished rooms' (:data:`fruxel.classes.HOME_CLASSES`: the paper's six, ``ceiling`` and ``object``); the shipped
+    ``ssz64`` and ``ssz128`` have the paper's six (:data:`fruxel.classes.DEFAULT_CLASSES`)."""
 
     def __post_init__(self) -> None:
         self.validate()

@@ -64,6 +64,9 @@ pack)."""
 
 DEFAULT_WORLD = "flat"
 """The world of every data set made before there were two, and of a config that names none."""
+WORLD_RENDERERS = {"flat": "pyrender", "home": "raytrace"}
+"""The renderer each world is drawn with unless another is named: the flat world's flat-shaded OpenGL, the furnished
+rooms' ray tracer (textures, soft shadows, a camera response)."""
 
 MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
