@@ -41,6 +41,7 @@ from fruxel.classes import DEFAULT_CLASSES, ClassTable, ClassTableError
 from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
+from .raytrace.config import RaytraceConfig
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
 from .scene import RoomConfig, SceneError
@@ -201,10 +202,15 @@ class SimConfig:
     """``(name, samples)`` per split, in file order; names are lower-case letters, digits, '_' or '-'."""
     renderer: str = DEFAULT_RENDERER
     """The renderer that draws the camera images, by its name in the registry of :mod:`fruxel.train.sim.renderer`
-    (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials."""
+    (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials, ``raytrace`` the ray-traced
+    renderer of :mod:`.raytrace`."""
+    raytrace: RaytraceConfig = field(default_factory=RaytraceConfig)
+    """Settings of the ``raytrace`` renderer (sampling, camera response); other renderers ignore them."""
 
     def __post_init__(self) -> None:
         check_renderer(self.renderer)
+        if not isinstance(self.raytrace, RaytraceConfig):
+            raise ConfigError(f"raytrace must be a RaytraceConfig, got {type(self.raytrace).__name__}")
         if not isinstance(self.grid, FruxelGrid):
             raise ConfigError(f"grid must be a FruxelGrid, got {type(self.grid).__name__}")
         if (self.image.size * self.grid.height) % self.grid.width:
@@ -267,7 +273,8 @@ class SimConfig:
         :data:`CONFIG_VERSION`.
 
         ``"renderer"`` is left out when it is the default: data sets made before renderers had names record no
-        renderer, and their configs keep their digests (:meth:`digest`, in every manifest and shard).
+        renderer, and their configs keep their digests (:meth:`digest`, in every manifest and shard). So is
+        ``"raytrace"`` unless the ``raytrace`` renderer draws or its settings are not the defaults.
         """
         out = {
             "version": CONFIG_VERSION,
@@ -282,6 +289,8 @@ class SimConfig:
         }
         if self.renderer != DEFAULT_RENDERER:
             out["renderer"] = self.renderer
+        if self.renderer == "raytrace" or self.raytrace != RaytraceConfig():
+            out["raytrace"] = _plain(self.raytrace)
         return out
 
     @classmethod
@@ -296,7 +305,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names, optional=("renderer",))
+        _expect_keys("config", d, names, optional=("renderer", "raytrace"))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -315,6 +324,8 @@ class SimConfig:
                 shard_size=d["shard_size"],
                 splits=tuple((s[0], s[1]) for s in splits),
                 renderer=d.get("renderer", DEFAULT_RENDERER),
+                raytrace=_from_plain(RaytraceConfig, d.get("raytrace", {}), "raytrace") if "raytrace" in d
+                else RaytraceConfig(),
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None

@@ -1,0 +1,101 @@
+"""The device buffers one image is computed in, kept by the renderer between images of one size (every kernel
+overwrites what it writes, so nothing passes from one image to the next).
+
+Per camera ray (``N = H * W * samples_per_pixel`` entries, ray ``(y * W + x) * spp + k`` is sample ``k`` of pixel
+``(x, y)``): :class:`RayBuffers`, written by :func:`.primary.trace_primary_kernel` and read by the lighting,
+occlusion and combining kernels. Per pixel (``H * W``): :class:`PixelBuffers`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from fruxel.kernels.wp.runtime import warp
+
+wp = warp()
+
+
+@wp.struct
+class RayBuffers:
+    """What each camera ray found (world frame); arrays of ``N`` entries."""
+
+    flag: wp.array(dtype=wp.int32)
+    """0: no opaque surface (sky); 1: a lit surface; 2: an emitter (its light is in ``front``)."""
+    pos: wp.array(dtype=wp.vec3)
+    """The opaque hit point, metres."""
+    normal: wp.array(dtype=wp.vec3)
+    """Unit shading normal there (smoothed, normal-mapped), facing the camera."""
+    geometric: wp.array(dtype=wp.vec3)
+    """Unit face normal there, facing the camera."""
+    view: wp.array(dtype=wp.vec3)
+    """Unit direction from the hit back along the ray."""
+    albedo: wp.array(dtype=wp.vec3)
+    """Linear albedo (texture times colour)."""
+    rough_metal: wp.array(dtype=wp.vec2)
+    """Roughness and metalness."""
+    through: wp.array(dtype=wp.vec3)
+    """What the glass on the way lets through (1 without glass)."""
+    front: wp.array(dtype=wp.vec3)
+    """Radiance added on the way: glass reflections, emitters, the sky."""
+    depth: wp.array(dtype=wp.float32)
+    """Distance along the ray to the opaque hit (or far), metres."""
+    diffuse: wp.array(dtype=wp.vec3)
+    """Irradiance from the lights (shadows included), per unit albedo times pi (lighting kernel)."""
+    specular: wp.array(dtype=wp.vec3)
+    """Specular radiance reflected from the lights (lighting kernel)."""
+    ao: wp.array(dtype=wp.float32)
+    """Unoccluded share of the ambient light, in [0, 1] (occlusion kernel)."""
+
+
+@wp.struct
+class PixelBuffers:
+    """Per pixel (``H * W`` entries, pixel ``y * W + x``)."""
+
+    albedo: wp.array(dtype=wp.vec3)
+    """Mean diffuse albedo of the pixel's samples (times the glass in front)."""
+    light: wp.array(dtype=wp.vec3)
+    """Diffuse radiance over ``albedo``: the lighting the edge-aware filter smooths."""
+    add: wp.array(dtype=wp.vec3)
+    """Radiance added to ``albedo * light``: specular reflections, emitters, glass, sky."""
+    normal: wp.array(dtype=wp.vec3)
+    """Shading normal of sample 0 (0 where it found no lit surface)."""
+    depth: wp.array(dtype=wp.float32)
+    """Distance to sample 0's surface, metres."""
+    radiance: wp.array(dtype=wp.vec3)
+    """The rendered linear radiance (after the filter)."""
+    blurred: wp.array(dtype=wp.vec3)
+    """The radiance through the lens blur."""
+    meter: wp.array(dtype=wp.float32)
+    """Per image row, the sum of log luminance (auto-exposure); entry ``H`` the exposure factor."""
+    image: wp.array(dtype=wp.vec3ub)
+    """The developed 8-bit sRGB image."""
+
+
+@dataclass
+class Buffers:
+    """The two structs for one image size, on one device."""
+
+    height: int
+    width: int
+    spp: int
+    rays: Any
+    pixels: Any
+
+
+def allocate(height: int, width: int, spp: int, device: str) -> Buffers:
+    """Buffers for ``height x width`` images with ``spp`` rays per pixel on ``device``."""
+    n, p = height * width * spp, height * width
+    rays = RayBuffers()
+    for name, dtype in (("flag", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3), ("geometric", wp.vec3),
+                        ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2), ("through", wp.vec3),
+                        ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3), ("specular", wp.vec3),
+                        ("ao", wp.float32)):
+        setattr(rays, name, wp.zeros(n, dtype=dtype, device=device))
+    pixels = PixelBuffers()
+    for name, dtype in (("albedo", wp.vec3), ("light", wp.vec3), ("add", wp.vec3), ("normal", wp.vec3),
+                        ("depth", wp.float32), ("radiance", wp.vec3), ("blurred", wp.vec3),
+                        ("image", wp.vec3ub)):
+        setattr(pixels, name, wp.zeros(p, dtype=dtype, device=device))
+    pixels.meter = wp.zeros(height + 1, dtype=wp.float32, device=device)
+    return Buffers(height, width, spp, rays, pixels)
