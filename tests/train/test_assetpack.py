@@ -23,13 +23,6 @@ SOURCES = Path(__file__).resolve().parents[1] / "data" / "assetpack_sources"
 SH3F = SOURCES / "debian/sweethome3d-furniture-1.8-1/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f"
 
 
-@pytest.fixture(scope="module")
-def pack_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("pack") / "pack"
-    build_pack(SOURCES, out)
-    return out
-
-
 @pytest.fixture()
 def pack_copy(pack_dir: Path, tmp_path: Path) -> Path:
     dest = tmp_path / "pack"

@@ -46,24 +46,20 @@ class RayBuffers:
     """Specular radiance reflected from the lights (lighting kernel)."""
     ao: wp.array(dtype=wp.float32)
     """Unoccluded share of the ambient light, in [0, 1] (occlusion kernel)."""
+    kd: wp.array(dtype=wp.vec3)
+    """Diffuse albedo times the glass in front (:mod:`.resolve`)."""
+    light: wp.array(dtype=wp.vec3)
+    """Diffuse lighting, lights and ambient, over pi (:mod:`.resolve`)."""
+    add: wp.array(dtype=wp.vec3)
+    """Radiance besides ``kd * light``: reflections, emitters, glass, sky (:mod:`.resolve`)."""
 
 
 @wp.struct
 class PixelBuffers:
     """Per pixel (``H * W`` entries, pixel ``y * W + x``)."""
 
-    albedo: wp.array(dtype=wp.vec3)
-    """Mean diffuse albedo of the pixel's samples (times the glass in front)."""
-    light: wp.array(dtype=wp.vec3)
-    """Diffuse radiance over ``albedo``: the lighting the edge-aware filter smooths."""
-    add: wp.array(dtype=wp.vec3)
-    """Radiance added to ``albedo * light``: specular reflections, emitters, glass, sky."""
-    normal: wp.array(dtype=wp.vec3)
-    """Shading normal of sample 0 (0 where it found no lit surface)."""
-    depth: wp.array(dtype=wp.float32)
-    """Distance to sample 0's surface, metres."""
     radiance: wp.array(dtype=wp.vec3)
-    """The rendered linear radiance (after the filter)."""
+    """The rendered linear radiance (:mod:`.resolve`)."""
     blurred: wp.array(dtype=wp.vec3)
     """The radiance through the lens blur."""
     meter: wp.array(dtype=wp.float32)
@@ -90,12 +86,10 @@ def allocate(height: int, width: int, spp: int, device: str) -> Buffers:
     for name, dtype in (("flag", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3), ("geometric", wp.vec3),
                         ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2), ("through", wp.vec3),
                         ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3), ("specular", wp.vec3),
-                        ("ao", wp.float32)):
+                        ("ao", wp.float32), ("kd", wp.vec3), ("light", wp.vec3), ("add", wp.vec3)):
         setattr(rays, name, wp.zeros(n, dtype=dtype, device=device))
     pixels = PixelBuffers()
-    for name, dtype in (("albedo", wp.vec3), ("light", wp.vec3), ("add", wp.vec3), ("normal", wp.vec3),
-                        ("depth", wp.float32), ("radiance", wp.vec3), ("blurred", wp.vec3),
-                        ("image", wp.vec3ub)):
+    for name, dtype in (("radiance", wp.vec3), ("blurred", wp.vec3), ("image", wp.vec3ub)):
         setattr(pixels, name, wp.zeros(p, dtype=dtype, device=device))
     pixels.meter = wp.zeros(height + 1, dtype=wp.float32, device=device)
     return Buffers(height, width, spp, rays, pixels)

@@ -1,13 +1,15 @@
-"""From camera rays to pixels: the samples of each pixel combined (:func:`combine_samples_kernel`), then the
-diffuse lighting smoothed by an edge-aware filter and multiplied back with the albedo
-(:func:`filter_lighting_kernel`), giving the image's linear radiance.
+"""From camera rays to pixels: each ray's light split into its diffuse albedo and lighting
+(:func:`split_light_kernel`), then every ray's lighting smoothed over the rays of neighbouring pixels that saw the
+same surface, multiplied back with its albedo and averaged over the pixel (:func:`filter_light_kernel`), giving the
+image's linear radiance.
 
-Per ray, the radiance is ``through * ((1 - metallic) albedo / pi * (E_lights + E_ambient ao) + specular)
-+ front``. The pixel keeps the diffuse part apart, as ``albedo`` (the mean of ``through (1 - metallic) albedo``)
-times ``light`` (the mean diffuse radiance over it): a few shadow and occlusion rays make ``light`` noisy, and the
-filter averages it over the ``(2 r + 1)^2`` neighbours on the same surface (weights: a Gaussian of the pixel
-distance, the depth difference relative to depth, and the 8th power of the normals' cosine), while the texture in
-``albedo`` stays sharp.
+A ray's radiance is ``kd * light + add``: ``kd = through (1 - metallic) albedo``, ``light = (E_lights + E_ambient
+ao) / pi`` (the diffuse lighting, which a few shadow and occlusion rays make noisy) and ``add = through (specular +
+ambient specular) + front`` (reflections, emitters, glass, sky). The filter replaces each ray's ``light`` by the
+weighted mean of the ``light`` of the rays of the ``(2 r + 1)^2`` pixels around it (all their samples), weighted by
+a Gaussian of the pixel distance, the depth difference relative to depth and the 8th power of the normals' cosine:
+rays on another surface (across an edge, a silhouette) get no weight, so a lit chair's edge takes no light from the
+dark wall behind it, and the texture in ``kd`` stays sharp.
 """
 
 from __future__ import annotations
@@ -24,98 +26,84 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def combine_samples_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers, pixels: PixelBuffers):
-    """One thread combines the ``spp`` camera rays of pixel ``(x, y)`` into entry ``y * W + x`` of ``pixels``
-    albedo, light, add (vec3, linear), normal (vec3, world frame; 0 where the samples saw different surfaces or
-    no lit one) and depth (metres).
+def split_light_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers):
+    """One thread splits camera ray ``k`` of pixel ``(x, y)`` (entry ``(y * W + x) * spp + k``) into ``rays.kd``,
+    ``rays.light`` and ``rays.add`` (vec3, linear; module docstring); ``kd`` and ``light`` are 0 where the ray found
+    no lit surface.
 
-    Launch dims ``(H, W)``. ``ambient``: the ambient irradiance (vec3, per sample); reads every ``rays`` buffer.
+    Launch dims ``(H, W, spp)``. ``ambient``: the ambient irradiance (vec3, this sample's); reads ``rays`` flag,
+    normal, view, albedo, rough_metal, through, front, diffuse, specular, ao.
     """
-    y, x = wp.tid()
-    pixel = y * width + x
-    albedo = wp.vec3(0.0, 0.0, 0.0)
-    diffuse = wp.vec3(0.0, 0.0, 0.0)
-    add = wp.vec3(0.0, 0.0, 0.0)
-    for k in range(spp):
-        i = pixel * spp + k
-        add += rays.front[i]
-        if rays.flag[i] == 1:
-            through = rays.through[i]
-            rm = rays.rough_metal[i]
-            a = rays.albedo[i]
-            kd = wp.cw_mul(through, a) * (1.0 - rm[1])
-            e = rays.diffuse[i] + ambient * rays.ao[i]
-            albedo += kd
-            diffuse += wp.cw_mul(kd, e) / PI
-            n_v = wp.max(wp.dot(rays.normal[i], rays.view[i]), 0.0)
-            env = wp.cw_mul(ambient_specular(specular_f0(a, rm[1]), n_v, rm[0]), ambient) * (rays.ao[i] / PI)
-            add += wp.cw_mul(through, rays.specular[i] + env)
-    inv = 1.0 / float(spp)
-    albedo = albedo * inv
+    y, x, k = wp.tid()
+    i = (y * width + x) * spp + k
+    add = rays.front[i]
+    kd = wp.vec3(0.0, 0.0, 0.0)
     light = wp.vec3(0.0, 0.0, 0.0)
-    for c in range(3):
-        if albedo[c] > 1.0e-5:
-            light[c] = diffuse[c] * inv / albedo[c]
-    pixels.albedo[pixel] = albedo
-    pixels.light[pixel] = light
-    pixels.add[pixel] = add * inv
-    i0 = pixel * spp
-    n0 = rays.normal[i0]
-    d0 = rays.depth[i0]
-    same = rays.flag[i0] == 1
-    for k in range(1, spp):
-        i = i0 + k
-        if rays.flag[i] != 1 or wp.dot(rays.normal[i], n0) < 0.9 or wp.abs(rays.depth[i] - d0) > 0.01 + 0.03 * d0:
-            same = False
-    # A pixel whose samples saw different surfaces (an edge) keeps its own light and lends none: its light is a
-    # mixture that belongs to neither side.
-    pixels.normal[pixel] = wp.where(same, n0, wp.vec3(0.0, 0.0, 0.0))
-    pixels.depth[pixel] = d0
+    if rays.flag[i] == 1:
+        through = rays.through[i]
+        rm = rays.rough_metal[i]
+        a = rays.albedo[i]
+        ao = rays.ao[i]
+        kd = wp.cw_mul(through, a) * (1.0 - rm[1])
+        light = (rays.diffuse[i] + ambient * ao) / PI
+        n_v = wp.max(wp.dot(rays.normal[i], rays.view[i]), 0.0)
+        env = wp.cw_mul(ambient_specular(specular_f0(a, rm[1]), n_v, rm[0]), ambient) * (ao / PI)
+        add += wp.cw_mul(through, rays.specular[i] + env)
+    rays.kd[i] = kd
+    rays.light[i] = light
+    rays.add[i] = add
 
 
 @wp.kernel
-def filter_lighting_kernel(width: int, height: int, radius: int, pixels: PixelBuffers):
-    """One thread writes pixel ``(x, y)``'s radiance (vec3, linear): its albedo times its neighbours' filtered
-    light, plus its added radiance (module docstring).
+def filter_light_kernel(width: int, height: int, spp: int, radius: int, rays: RayBuffers, pixels: PixelBuffers):
+    """One thread writes pixel ``(x, y)``'s radiance ``pixels.radiance[y * W + x]`` (vec3, linear): the mean over its
+    rays of ``kd`` times the filtered ``light`` plus ``add`` (module docstring).
 
-    Launch dims ``(H, W)``. ``radius``: the filter's half width in pixels (0: no filter). Reads ``pixels`` albedo,
-    light, add, normal, depth; writes ``pixels.radiance``.
+    Launch dims ``(H, W)``. ``radius``: the filter's half width in pixels (0: no filter). Reads ``rays`` flag, kd,
+    light, add, normal, depth.
     """
     y, x = wp.tid()
-    p = y * width + x
-    albedo = pixels.albedo[p]
-    light = pixels.light[p]
-    n = pixels.normal[p]
-    if radius > 0 and wp.length_sq(n) > 0.0:
-        depth = pixels.depth[p]
-        tolerance = 0.01 + 0.03 * depth
-        sigma2 = 2.0 * (0.5 * float(radius) + 0.5) * (0.5 * float(radius) + 0.5)
-        total = wp.vec3(0.0, 0.0, 0.0)
-        weight = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-        for dy in range(-radius, radius + 1):
-            for dx in range(-radius, radius + 1):
-                yy = y + dy
-                xx = x + dx
-                if yy < 0 or yy >= height or xx < 0 or xx >= width:
-                    continue
-                q = yy * width + xx
-                c = wp.max(wp.dot(n, pixels.normal[q]), 0.0)
-                c2 = c * c
-                c4 = c2 * c2
-                w = wp.exp(-float(dx * dx + dy * dy) / sigma2 - wp.abs(pixels.depth[q] - depth) / tolerance)
-                w = w * c4 * c4
-                total += w * pixels.light[q]
-                weight += w
-        if weight > 0.0:
-            light = total / weight
-    pixels.radiance[p] = wp.cw_mul(albedo, light) + pixels.add[p]
+    base = (y * width + x) * spp
+    sigma2 = 2.0 * (0.5 * float(radius) + 0.5) * (0.5 * float(radius) + 0.5)
+    out = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(spp):
+        i = base + k
+        out += rays.add[i]
+        if rays.flag[i] != 1:
+            continue
+        light = rays.light[i]
+        if radius > 0:
+            n = rays.normal[i]
+            depth = rays.depth[i]
+            tolerance = 0.01 + 0.03 * depth
+            total = wp.vec3(0.0, 0.0, 0.0)
+            weight = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
+            for dy in range(-radius, radius + 1):
+                for dx in range(-radius, radius + 1):
+                    yy = y + dy
+                    xx = x + dx
+                    if yy < 0 or yy >= height or xx < 0 or xx >= width:
+                        continue
+                    spatial = -float(dx * dx + dy * dy) / sigma2
+                    for j in range(spp):
+                        q = (yy * width + xx) * spp + j
+                        if rays.flag[q] != 1:
+                            continue
+                        c = wp.max(wp.dot(n, rays.normal[q]), 0.0)
+                        c2 = c * c
+                        c4 = c2 * c2
+                        w = wp.exp(spatial - wp.abs(rays.depth[q] - depth) / tolerance) * c4 * c4
+                        total += w * rays.light[q]
+                        weight += w
+            if weight > 0.0:
+                light = total / weight
+        out += wp.cw_mul(rays.kd[i], light)
+    pixels.radiance[y * width + x] = out / float(spp)
 
 
 def resolve(buffers: Buffers, ambient: np.ndarray, radius: int, device: str) -> None:
     """Launch the two kernels for one image (after the primary, lighting and occlusion kernels)."""
-    dim = (buffers.height, buffers.width)
-    wp.launch(combine_samples_kernel, dim=dim, device=device,
-              inputs=[buffers.width, buffers.spp, wp.vec3(*np.asarray(ambient, dtype=np.float32)), buffers.rays,
-                      buffers.pixels])
-    wp.launch(filter_lighting_kernel, dim=dim, device=device,
-              inputs=[buffers.width, buffers.height, int(radius), buffers.pixels])
+    wp.launch(split_light_kernel, dim=(buffers.height, buffers.width, buffers.spp), device=device,
+              inputs=[buffers.width, buffers.spp, wp.vec3(*np.asarray(ambient, dtype=np.float32)), buffers.rays])
+    wp.launch(filter_light_kernel, dim=(buffers.height, buffers.width), device=device,
+              inputs=[buffers.width, buffers.height, buffers.spp, int(radius), buffers.rays, buffers.pixels])

@@ -74,7 +74,7 @@ class ResponseDraws:
 _STEP_FIELDS = {
     "exposure": ("key", "ev"), "white_balance": ("temperature", "tint"), "tone": ("contrast", "gamma", "saturation"),
     "vignetting": ("vignetting",), "blur": ("defocus_px", "motion_px", "motion_angle", "motion"),
-    "noise": ("shot_noise", "read_noise"), "jpeg": ("jpeg_quality",),
+    "noise": ("shot_noise", "read_noise", "noise_seed"), "jpeg": ("jpeg_quality",),
 }
 """The values each step sets; a step that is off keeps their neutral values (the defaults above)."""
 
