@@ -62,23 +62,25 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
     return int(m.group(1)), int(m.group(2)), int(m.group(3)) if m.group(3) else None
 
 
-def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True) -> Any:
-    """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels."""
+def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True,
+                renderer: str = "pyrender") -> Any:
+    """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels, drawn by
+    ``renderer``."""
     from fruxel.grid import FruxelGrid
     from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
-                     shard_size=shard_size, splits=(("train", samples),))
+                     shard_size=shard_size, splits=(("train", samples),), renderer=renderer)
 
 
 # ---------------------------------------------------------------------------------------------------- measuring
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
-                   device: str | None) -> dict[str, Any]:
+                   device: str | None, renderer: str = "pyrender") -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
     from fruxel.train.sim.writer import generate
 
-    cfg = make_config(image, grid, samples, shard_size)
+    cfg = make_config(image, grid, samples, shard_size, renderer=renderer)
     marks: list[tuple[float, int]] = []
     with tempfile.TemporaryDirectory(prefix="bench_sim_") as out:
         t0 = time.perf_counter()
@@ -90,13 +92,13 @@ def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size
             "bytes_per_sample": size / samples}
 
 
-def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None
-                    ) -> dict[str, Any]:
+def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None,
+                    renderer: str = "pyrender") -> dict[str, Any]:
     """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
     it) with ``workers`` DataLoader workers."""
     from fruxel.train.samples import Batches, BlockPlan, BlockStream
 
-    cfg = make_config(image, grid, samples, 64)
+    cfg = make_config(image, grid, samples, 64, renderer=renderer)
     plan = BlockPlan(0, samples, cfg.samples_per_scene, None)
     blocks = -(-samples // cfg.samples_per_scene)
 
@@ -132,12 +134,13 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
             "end_to_end_sps": round(samples / wall, 2), "startup_s": round(start[0] - t0, 2)}
 
 
-def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None) -> dict[str, Any]:
+def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None,
+                  renderer: str = "pyrender") -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
     from fruxel.train.sim.sample import STAGES, SampleMaker
     from fruxel.train.sim.shards import ShardSpec, encode_shard
 
-    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps())
+    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps(), renderer=renderer)
     sps = cfg.samples_per_scene
     with SampleMaker(cfg, 0, backend=backend, device=device) as maker:
         for i in range(sps):
@@ -221,9 +224,10 @@ def section(runs: list[dict[str, Any]]) -> str:
             if r["mode"] == "profile":
                 continue
             case = f"{r['image']}x{r['grid']}"
-            target = _target(run["tag"], case, r["mode"])
+            target = _target(run["tag"], case, r["mode"]) if r.get("renderer", "pyrender") == "pyrender" else None
             met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
-            lines.append(f"| {run['tag']} | {r['mode']} | {r['image']}^2 | {r['grid']}^3 | {r['workers']} | "
+            mode = r["mode"] + (f" ({r['renderer']})" if r.get("renderer", "pyrender") != "pyrender" else "")
+            lines.append(f"| {run['tag']} | {mode} | {r['image']}^2 | {r['grid']}^3 | {r['workers']} | "
                          f"{r['samples']} | {r['steady_sps']:.1f} | {r['end_to_end_sps']:.1f} | "
                          f"{'' if target is None else f'>= {target:g}'} | {met} |")
     profiles = [(run["tag"], r) for run in runs for r in run["results"] if r["mode"] == "profile"]
@@ -282,6 +286,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--backend", default="warp", help="fruxelize backend of generate and profile (default warp; "
                    "streaming uses the engine's, warp)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA when present, else CPU)")
+    p.add_argument("--renderer", default="pyrender", help="the renderer of the images (default pyrender; raytrace: "
+                   "the ray-traced one, on the flat rooms' colours)")
     p.add_argument("--note", action="append", default=[], help="a note to print under the table (repeatable)")
     p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md or the chart")
     p.add_argument("--report", action="store_true", help="only rebuild the section and chart from the JSON files")
@@ -305,14 +311,14 @@ def main(argv: list[str] | None = None) -> None:
             print(f"bench_sim: {args.tag} {mode} {image}^2 / {grid}^3 ...", file=sys.stderr, flush=True)
             if mode == "generate":
                 shard = max(16, min(64, n // (2 * max(1, args.workers)) // 16 * 16))
-                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device)
+                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device, args.renderer)
             elif mode == "streaming":
-                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device)
+                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device, args.renderer)
             elif mode == "profile":
-                r = bench_profile(image, grid, min(n, 64), args.backend, args.device)
+                r = bench_profile(image, grid, min(n, 64), args.backend, args.device, args.renderer)
             else:
                 raise SystemExit(f"bench_sim: unknown mode {mode!r}")
-            r.update(image=image, grid=grid)
+            r.update(image=image, grid=grid, renderer=args.renderer)
             results.append(r)
             print(json.dumps(r), flush=True)
     run = {"tag": args.tag, "date": dt.date.today().isoformat(), "machine": info, "results": results,

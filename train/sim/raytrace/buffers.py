@@ -1,9 +1,9 @@
 """The device buffers one image is computed in, kept by the renderer between images of one size (every kernel
 overwrites what it writes, so nothing passes from one image to the next).
 
-Per camera ray (``N = H * W * samples_per_pixel`` entries, ray ``(y * W + x) * spp + k`` is sample ``k`` of pixel
-``(x, y)``): :class:`RayBuffers`, written by :func:`.primary.trace_primary_kernel` and read by the lighting,
-occlusion and combining kernels. Per pixel (``H * W``): :class:`PixelBuffers`.
+Per camera ray (``N = H * W * S`` entries, ``S`` = samples per pixel plus edge samples; ray ``(y * W + x) * S + k``
+is sample ``k`` of pixel ``(x, y)``): :class:`RayBuffers`, written by :func:`.primary.trace_primary_kernel` and read
+by the lighting, occlusion and resolving kernels. Per pixel (``H * W``): :class:`PixelBuffers`.
 """
 
 from __future__ import annotations
@@ -21,7 +21,10 @@ class RayBuffers:
     """What each camera ray found (world frame); arrays of ``N`` entries."""
 
     flag: wp.array(dtype=wp.int32)
-    """0: no opaque surface (sky); 1: a lit surface; 2: an emitter (its light is in ``front``)."""
+    """-1: no ray (an edge sample of a pixel off the edges); 0: no opaque surface (sky); 1: a lit surface; 2: an
+    emitter (its light is in ``front``)."""
+    material: wp.array(dtype=wp.int32)
+    """The opaque surface's material row (-1: none)."""
     pos: wp.array(dtype=wp.vec3)
     """The opaque hit point, metres."""
     normal: wp.array(dtype=wp.vec3)
@@ -58,6 +61,8 @@ class RayBuffers:
 class PixelBuffers:
     """Per pixel (``H * W`` entries, pixel ``y * W + x``)."""
 
+    edge: wp.array(dtype=wp.int32)
+    """1 where the pixel is on an edge and takes the edge samples (:func:`.primary.find_edges_kernel`)."""
     radiance: wp.array(dtype=wp.vec3)
     """The rendered linear radiance (:mod:`.resolve`)."""
     blurred: wp.array(dtype=wp.vec3)
@@ -75,21 +80,22 @@ class Buffers:
     height: int
     width: int
     spp: int
+    """Ray slots per pixel: samples per pixel plus edge samples."""
     rays: Any
     pixels: Any
 
 
 def allocate(height: int, width: int, spp: int, device: str) -> Buffers:
-    """Buffers for ``height x width`` images with ``spp`` rays per pixel on ``device``."""
+    """Buffers for ``height x width`` images with ``spp`` ray slots per pixel on ``device``."""
     n, p = height * width * spp, height * width
     rays = RayBuffers()
-    for name, dtype in (("flag", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3), ("geometric", wp.vec3),
+    for name, dtype in (("flag", wp.int32), ("material", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3), ("geometric", wp.vec3),
                         ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2), ("through", wp.vec3),
                         ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3), ("specular", wp.vec3),
                         ("ao", wp.float32), ("kd", wp.vec3), ("light", wp.vec3), ("add", wp.vec3)):
         setattr(rays, name, wp.zeros(n, dtype=dtype, device=device))
     pixels = PixelBuffers()
-    for name, dtype in (("radiance", wp.vec3), ("blurred", wp.vec3), ("image", wp.vec3ub)):
+    for name, dtype in (("edge", wp.int32), ("radiance", wp.vec3), ("blurred", wp.vec3), ("image", wp.vec3ub)):
         setattr(pixels, name, wp.zeros(p, dtype=dtype, device=device))
     pixels.meter = wp.zeros(height + 1, dtype=wp.float32, device=device)
     return Buffers(height, width, spp, rays, pixels)

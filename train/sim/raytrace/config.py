@@ -112,10 +112,12 @@ class RaytraceConfig:
     """How the ray-traced renderer (``"raytrace"``) samples light, and the camera response on its images.
 
     Per pixel, :attr:`samples_per_pixel` camera rays (stratified within the pixel) find their first opaque surface
-    through up to :attr:`glass_layers` glass surfaces; at each, every light sends :attr:`shadow_samples` shadow
-    rays to random points of the light (soft shadows), and :attr:`ao_samples` short rays measure the ambient
-    occlusion of the ambient light. The cost of an image grows about as ``samples_per_pixel * (1 + lights *
-    shadow_samples + ao_samples)`` rays per pixel.
+    through up to :attr:`glass_layers` glass surfaces; pixels on an edge (whose rays, or whose neighbours' first
+    rays, found different surfaces) get :attr:`edge_samples` more, continuing the same stratified sequence. At each
+    surface every light sends :attr:`shadow_samples` shadow rays to random points of the light (soft shadows), and
+    :attr:`ao_samples` short rays measure the ambient occlusion of the ambient light. The cost of an image grows
+    about as ``(samples_per_pixel + edge share * edge_samples) * (1 + lights * shadow_samples + ao_samples)`` rays
+    per pixel.
     """
 
     pack: str = "assets/pack"
@@ -123,6 +125,9 @@ class RaytraceConfig:
     a scene names one."""
     samples_per_pixel: int = 2
     """Camera rays per pixel (anti-aliasing, and the samples of shadows and occlusion), 1-16."""
+    edge_samples: int = 2
+    """More camera rays at pixels on an edge (anti-aliasing where it shows), 0-14; at most 16 rays a pixel in
+    all."""
     shadow_samples: int = 1
     """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft)."""
     ao_samples: int = 1
@@ -153,6 +158,7 @@ class RaytraceConfig:
         if not isinstance(self.pack, str) or not self.pack:
             raise ConfigError(f"raytrace.pack must be a folder name, got {self.pack!r}")
         _check_int("samples_per_pixel", self.samples_per_pixel, 1, 16)
+        _check_int("edge_samples", self.edge_samples, 0, 16 - self.samples_per_pixel)
         _check_int("shadow_samples", self.shadow_samples, 1, 16)
         _check_int("ao_samples", self.ao_samples, 0, 16)
         _check_int("glass_layers", self.glass_layers, 0, 8)

@@ -31,7 +31,7 @@ OUTDOOR_SIZE = (8.0, 5.0)
 """Width and height of an outdoor view, metres."""
 
 
-def dress_scene(scene: Scene, pack: Any, seed: int, split: str = "train") -> Scene:
+def dress_scene(scene: Scene, pack: Any, seed: int, split: str = "train", committable: bool = False) -> Scene:
     """``scene`` with pack materials, glass, outdoor views and soft lights (module docstring).
 
     Args:
@@ -39,15 +39,20 @@ def dress_scene(scene: Scene, pack: Any, seed: int, split: str = "train") -> Sce
         pack: the :class:`~fruxel.train.sim.assetpack.AssetPack` to draw textures and images from.
         seed: the dressing's random seed.
         split: the pack split to draw from (``"train"`` or ``"test"``).
+        committable: draw only assets whose licence lets them be committed (for pictures that go into docs/).
 
     Returns:
         A new scene: the same solids in the same order (so the same labels), with materials, then one non-solid
         outdoor view per window.
     """
     rng = np.random.default_rng(seed)
-    textures = pack.select("texture", split=split)
+
+    def entries(kind: str, category: str | None = None, of_split: str | None = split) -> list[Any]:
+        return [e for e in pack.select(kind, category, of_split) if e.committable or not committable]
+
+    textures = entries("texture")
     categories = sorted({e.category for e in textures})
-    outdoor = pack.select("image", "outdoor", split=split) or pack.select("image", "outdoor")
+    outdoor = entries("image", "outdoor") or entries("image", "outdoor", None)
     groups: dict[str, Material] = {}
     objects, views = [], []
     for obj in scene.objects:
@@ -61,14 +66,13 @@ def dress_scene(scene: Scene, pack: Any, seed: int, split: str = "train") -> Sce
         key = re.sub(r"_\d+", "", obj.name)
         if key not in groups:
             pale = key in ("wall", "ceiling") and rng.uniform() < 0.7
-            groups[key] = _random_material(rng, pack, textures, [c for c in PALE if c in categories] if pale
+            groups[key] = _random_material(rng, textures, [c for c in PALE if c in categories] if pale
                                            else categories)
         objects.append(dataclasses.replace(obj, materials=(groups[key],), parts=None))
     return dataclasses.replace(scene, objects=tuple(objects + views), lights=_soft_lights(scene.lights, rng))
 
 
-def _random_material(rng: np.random.Generator, pack: Any, textures: tuple[Any, ...],
-                     categories: list[str]) -> Material:
+def _random_material(rng: np.random.Generator, textures: list[Any], categories: list[str]) -> Material:
     category = categories[int(rng.integers(len(categories)))]
     choices = [e for e in textures if e.category == category]
     entry = choices[int(rng.integers(len(choices)))]

@@ -198,13 +198,14 @@ class RaytraceRenderer:
             factor = float(rng.uniform(*rt.ambient))
         draws = draw_response(rt.response, rng)
         h, w, spp = self.config.image_height, self.config.image_width, int(rt.samples_per_pixel)
+        slots = spp + int(rt.edge_samples)
         b = self._buffers
-        if b is None or (b.height, b.width, b.spp) != (h, w, spp):
-            b = self._buffers = allocate(h, w, spp, self.device)
+        if b is None or (b.height, b.width, b.spp) != (h, w, slots):
+            b = self._buffers = allocate(h, w, slots, self.device)
         cam = self.config.image_camera()
         irradiance = room.ambient * factor
         t0 = self._mark()
-        trace_primary(room.data, b, pose, (cam.fx, cam.fy, cam.cx, cam.cy), irradiance / np.pi, seeds[0],
+        trace_primary(room.data, b, pose, (cam.fx, cam.fy, cam.cx, cam.cy), irradiance / np.pi, seeds[0], spp,
                       self.device)
         t1 = self._mark("primary", t0)
         shade_lights(room.data, b, rt.shadow_samples, seeds[1], self.device)

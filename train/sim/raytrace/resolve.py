@@ -27,16 +27,18 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.kernel
 def split_light_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers):
-    """One thread splits camera ray ``k`` of pixel ``(x, y)`` (entry ``(y * W + x) * spp + k``) into ``rays.kd``,
-    ``rays.light`` and ``rays.add`` (vec3, linear; module docstring); ``kd`` and ``light`` are 0 where the ray found
-    no lit surface.
+    """One thread splits camera ray ``k`` of pixel ``(x, y)`` (entry ``(y * W + x) * spp + k``, ``spp`` ray slots per
+    pixel) into ``rays.kd``, ``rays.light`` and ``rays.add`` (vec3, linear; module docstring); ``kd`` and ``light``
+    are 0 where the ray found no lit surface, all three where there is no ray (flag -1).
 
     Launch dims ``(H, W, spp)``. ``ambient``: the ambient irradiance (vec3, this sample's); reads ``rays`` flag,
     normal, view, albedo, rough_metal, through, front, diffuse, specular, ao.
     """
     y, x, k = wp.tid()
     i = (y * width + x) * spp + k
-    add = rays.front[i]
+    add = wp.vec3(0.0, 0.0, 0.0)
+    if rays.flag[i] >= 0:
+        add = rays.front[i]
     kd = wp.vec3(0.0, 0.0, 0.0)
     light = wp.vec3(0.0, 0.0, 0.0)
     if rays.flag[i] == 1:
@@ -57,17 +59,21 @@ def split_light_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers)
 @wp.kernel
 def filter_light_kernel(width: int, height: int, spp: int, radius: int, rays: RayBuffers, pixels: PixelBuffers):
     """One thread writes pixel ``(x, y)``'s radiance ``pixels.radiance[y * W + x]`` (vec3, linear): the mean over its
-    rays of ``kd`` times the filtered ``light`` plus ``add`` (module docstring).
+    rays (those with flag >= 0) of ``kd`` times the filtered ``light`` plus ``add`` (module docstring).
 
-    Launch dims ``(H, W)``. ``radius``: the filter's half width in pixels (0: no filter). Reads ``rays`` flag, kd,
-    light, add, normal, depth.
+    Launch dims ``(H, W)``. ``spp``: ray slots per pixel; ``radius``: the filter's half width in pixels (0: no
+    filter). Reads ``rays`` flag, kd, light, add, normal, depth.
     """
     y, x = wp.tid()
     base = (y * width + x) * spp
     sigma2 = 2.0 * (0.5 * float(radius) + 0.5) * (0.5 * float(radius) + 0.5)
     out = wp.vec3(0.0, 0.0, 0.0)
+    count = int(0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
     for k in range(spp):
         i = base + k
+        if rays.flag[i] < 0:
+            continue
+        count += 1
         out += rays.add[i]
         if rays.flag[i] != 1:
             continue
@@ -98,7 +104,7 @@ def filter_light_kernel(width: int, height: int, spp: int, radius: int, rays: Ra
             if weight > 0.0:
                 light = total / weight
         out += wp.cw_mul(rays.kd[i], light)
-    pixels.radiance[y * width + x] = out / float(spp)
+    pixels.radiance[y * width + x] = out / float(wp.max(count, 1))
 
 
 def resolve(buffers: Buffers, ambient: np.ndarray, radius: int, device: str) -> None:
