@@ -89,13 +89,15 @@ def allocate(height: int, width: int, spp: int, device: str) -> Buffers:
     """Buffers for ``height x width`` images with ``spp`` ray slots per pixel on ``device``."""
     n, p = height * width * spp, height * width
     rays = RayBuffers()
-    for name, dtype in (("flag", wp.int32), ("material", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3), ("geometric", wp.vec3),
-                        ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2), ("through", wp.vec3),
-                        ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3), ("specular", wp.vec3),
-                        ("ao", wp.float32), ("kd", wp.vec3), ("light", wp.vec3), ("add", wp.vec3)):
+    for name, dtype in (("flag", wp.int32), ("material", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3),
+                        ("geometric", wp.vec3), ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2),
+                        ("through", wp.vec3), ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3),
+                        ("specular", wp.vec3), ("ao", wp.float32), ("kd", wp.vec3), ("light", wp.vec3),
+                        ("add", wp.vec3)):
         setattr(rays, name, wp.zeros(n, dtype=dtype, device=device))
     pixels = PixelBuffers()
-    for name, dtype in (("edge", wp.int32), ("radiance", wp.vec3), ("blurred", wp.vec3), ("image", wp.vec3ub)):
+    for name, dtype in (("edge", wp.int32), ("radiance", wp.vec3), ("blurred", wp.vec3),
+                        ("image", wp.vec3ub)):
         setattr(pixels, name, wp.zeros(p, dtype=dtype, device=device))
     pixels.meter = wp.zeros(height + 1, dtype=wp.float32, device=device)
     return Buffers(height, width, spp, rays, pixels)
