@@ -4,10 +4,12 @@
 In a closed room whose surfaces have mean albedo ``rho`` and receive mean direct irradiance ``E_d``, light that
 keeps bouncing adds the irradiance ``E_a = (mean(rho E_d) + pi mean(L_e)) / (1 - mean(rho))`` everywhere (the
 radiosity of a uniform enclosure; ``L_e``: what the room sees that shines by itself, the outdoor view through its
-windows and the sky). The means are taken over the surfaces that probe rays see from points above the room's free
-floor (:attr:`~fruxel.train.sim.scene.Scene.free_space`), at two heights, in uniform directions: a sunlit patch
-on the floor, a dark corner and a window count as much as they cover. ``E_a`` is coloured (a red room's ambient
-light is red) and is what the ambient-occlusion rays shade; each sample scales it by a random factor.
+windows and the sky). When the ambient and window rays bring that light to each surface directly
+(:mod:`.occlusion`), only its reflections are ambient: ``pi mean(L_e)`` becomes ``mean(rho) pi mean(L_e)``. The
+means are taken over the surfaces that probe rays see from points above the room's free floor
+(:attr:`~fruxel.train.sim.scene.Scene.free_space`), at two heights, in uniform directions: a sunlit patch on the
+floor, a dark corner and a window count as much as they cover. ``E_a`` is coloured (a red room's ambient light is
+red) and is what the ambient-occlusion rays shade; each sample scales it by a random factor.
 """
 
 from __future__ import annotations
@@ -81,13 +83,15 @@ def probe_origins(scene: Any) -> np.ndarray:
     return np.asarray(pts, dtype=np.float32)
 
 
-def estimate_ambient(scene: Any, data: Any, seed: int, device: str) -> np.ndarray:
+def estimate_ambient(scene: Any, data: Any, seed: int, emitters_direct: bool, device: str) -> np.ndarray:
     """The room's ambient irradiance ``E_a`` (module docstring): ``(3,)`` float64, linear RGB.
 
     Args:
         scene: the :class:`~fruxel.train.sim.scene.Scene` (its free floor places the probes).
         data: its ``SceneData`` on ``device``.
         seed: the probe rays' seed (the room's, so that every image of a room has the same ambient light).
+        emitters_direct: whether the images take the light of emitters and sky directly (ambient rays,
+            :mod:`.occlusion`): then only its reflections are ambient light (``pi mean(L_e)`` times ``mean(rho)``).
         device: Warp device.
     """
     origins = probe_origins(scene)
@@ -98,4 +102,4 @@ def estimate_ambient(scene: Any, data: Any, seed: int, device: str) -> np.ndarra
                       *out])
     reflected, albedo, emitted = (a.numpy().astype(np.float64).mean(axis=0) for a in out)
     rho = np.minimum(albedo, MAX_ALBEDO)
-    return (reflected + float(PI) * emitted) / (1.0 - rho)
+    return (reflected + float(PI) * emitted * (rho if emitters_direct else 1.0)) / (1.0 - rho)

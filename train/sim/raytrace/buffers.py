@@ -48,7 +48,9 @@ class RayBuffers:
     specular: wp.array(dtype=wp.vec3)
     """Specular radiance reflected from the lights (lighting kernel)."""
     ao: wp.array(dtype=wp.float32)
-    """Unoccluded share of the ambient light, in [0, 1] (occlusion kernel)."""
+    """Unoccluded share of the ambient light, in [0, 1] (:mod:`.occlusion`)."""
+    sky: wp.array(dtype=wp.vec3)
+    """Irradiance from emitters and sky reaching the surface (:mod:`.occlusion`)."""
     kd: wp.array(dtype=wp.vec3)
     """Diffuse albedo times the glass in front (:mod:`.resolve`)."""
     light: wp.array(dtype=wp.vec3)
@@ -92,8 +94,8 @@ def allocate(height: int, width: int, spp: int, device: str) -> Buffers:
     for name, dtype in (("flag", wp.int32), ("material", wp.int32), ("pos", wp.vec3), ("normal", wp.vec3),
                         ("geometric", wp.vec3), ("view", wp.vec3), ("albedo", wp.vec3), ("rough_metal", wp.vec2),
                         ("through", wp.vec3), ("front", wp.vec3), ("depth", wp.float32), ("diffuse", wp.vec3),
-                        ("specular", wp.vec3), ("ao", wp.float32), ("kd", wp.vec3), ("light", wp.vec3),
-                        ("add", wp.vec3)):
+                        ("specular", wp.vec3), ("ao", wp.float32), ("sky", wp.vec3), ("kd", wp.vec3),
+                        ("light", wp.vec3), ("add", wp.vec3)):
         setattr(rays, name, wp.zeros(n, dtype=dtype, device=device))
     pixels = PixelBuffers()
     for name, dtype in (("edge", wp.int32), ("radiance", wp.vec3), ("blurred", wp.vec3),

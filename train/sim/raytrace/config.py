@@ -50,7 +50,7 @@ class CameraResponseConfig:
     """False: every step neutral, whatever :attr:`steps` says (the generator is still drawn from)."""
     steps: tuple[str, ...] = RESPONSE_STEPS
     """The steps applied, a subset of :data:`RESPONSE_STEPS`."""
-    key: tuple[float, float] = (0.11, 0.24)
+    key: tuple[float, float] = (0.14, 0.32)
     """``exposure``: the grey level (linear, in [0, 1]) that auto-exposure maps the image's log-average luminance
     to; neutral 0.18 (a camera's meter)."""
     exposure_ev: tuple[float, float] = (-0.7, 0.7)
@@ -114,10 +114,11 @@ class RaytraceConfig:
     Per pixel, :attr:`samples_per_pixel` camera rays (stratified within the pixel) find their first opaque surface
     through up to :attr:`glass_layers` glass surfaces; pixels on an edge (whose rays, or whose neighbours' first
     rays, found different surfaces) get :attr:`edge_samples` more, continuing the same stratified sequence. At each
-    surface every light sends :attr:`shadow_samples` shadow rays to random points of the light (soft shadows), and
-    :attr:`ao_samples` short rays measure the ambient occlusion of the ambient light. The cost of an image grows
-    about as ``(samples_per_pixel + edge share * edge_samples) * (1 + lights * shadow_samples + ao_samples)`` rays
-    per pixel.
+    surface every light sends :attr:`shadow_samples` shadow rays to random points of the light (soft shadows),
+    :attr:`ao_samples` ambient rays measure the occlusion of the ambient light (and bring the sky's light), and
+    :attr:`window_samples` rays to random points of the glass bring the light of what lies behind the windows. The
+    cost of an image grows about as ``(samples_per_pixel + edge share * edge_samples) * (1 + lights *
+    shadow_samples + ao_samples + window_samples)`` rays per pixel.
     """
 
     pack: str = "assets/pack"
@@ -131,10 +132,15 @@ class RaytraceConfig:
     shadow_samples: int = 1
     """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft)."""
     ao_samples: int = 1
-    """Ambient-occlusion rays per camera ray, 0-16 (0: the ambient light is not occluded)."""
+    """Ambient rays per camera ray, 0-16: they occlude the ambient light and bring the light of emitters (the
+    outdoor view through windows) and the sky (0: no occlusion, and that light is part of the uniform ambient
+    light)."""
+    window_samples: int = 1
+    """Rays per camera ray to random points of the glass, for the light of what lies behind the windows, 0-16 (0:
+    the ambient rays find it, with more noise)."""
     ao_distance: float = 0.7
-    """Length of the ambient-occlusion rays, metres: how far a surface darkens another."""
-    ambient: tuple[float, float] = (0.8, 1.8)
+    """Metres over which an ambient ray's occlusion fades: how far a surface darkens another."""
+    ambient: tuple[float, float] = (1.0, 2.2)
     """Range of the factor (drawn per sample) on the room's ambient light, the estimate of its indirect light
     from its lights, surfaces and windows (see :mod:`.ambient`)."""
     sky: float = 0.6
@@ -161,6 +167,7 @@ class RaytraceConfig:
         _check_int("edge_samples", self.edge_samples, 0, 16 - self.samples_per_pixel)
         _check_int("shadow_samples", self.shadow_samples, 1, 16)
         _check_int("ao_samples", self.ao_samples, 0, 16)
+        _check_int("window_samples", self.window_samples, 0, 16)
         _check_int("glass_layers", self.glass_layers, 0, 8)
         _check_int("denoise_radius", self.denoise_radius, 0, 4)
         _check_int("texture_size", self.texture_size, 16, 1024)

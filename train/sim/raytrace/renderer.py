@@ -10,7 +10,7 @@ Per room (:meth:`RaytraceRenderer.set_scene`)
 Per image (:meth:`RaytraceRenderer.render`)
     the draws of the sample's generator, in this order: three kernel seeds (camera rays, lights, occlusion), the
     ambient factor, then the camera response's values (:func:`.response.draw_response`); then the camera rays
-    (:mod:`.primary`), the lights with their shadows (:mod:`.lights`), the ambient occlusion (:mod:`.occlusion`),
+    (:mod:`.primary`), the lights with their shadows (:mod:`.lights`), the ambient rays (:mod:`.occlusion`),
     the pixels (:mod:`.resolve`) and the camera response (:mod:`.response`). Without a generator the seeds are
     fixed, the ambient factor is its range's middle and the response is neutral.
 
@@ -35,7 +35,7 @@ from . import ambient as ambient_mod
 from .buffers import Buffers, allocate
 from .lights import shade_lights
 from .normals import corner_normals
-from .occlusion import trace_occlusion
+from .occlusion import trace_ambient
 from .primary import trace_primary
 from .resolve import resolve
 from .response import develop, draw_response
@@ -153,8 +153,12 @@ class RaytraceRenderer:
         data.layer_size, data.levels = layers.size, layers.levels
         data.glass_layers = int(rt.glass_layers)
         data.sky = wp.vec3(*self._sky(arrays).astype(np.float32))
+        data.portals = wp.array(arrays.portals, dtype=wp.int32, device=dev)
+        data.portal_cdf = wp.array(arrays.portal_cdf, dtype=wp.float32, device=dev)
+        data.portal_area = float(arrays.portal_area)
         t3 = self._mark("upload", t2)
-        ambient = ambient_mod.estimate_ambient(scene, data, int(scene.seed), dev)
+        direct = rt.ao_samples > 0 or (rt.window_samples > 0 and arrays.portal_area > 0)
+        ambient = ambient_mod.estimate_ambient(scene, data, int(scene.seed), direct, dev)
         self._mark("ambient", t3)
         self._room = _Room(scene, arrays, mesh, data, ambient)
 
@@ -210,7 +214,7 @@ class RaytraceRenderer:
         t1 = self._mark("primary", t0)
         shade_lights(room.data, b, rt.shadow_samples, seeds[1], self.device)
         t2 = self._mark("lights", t1)
-        trace_occlusion(room.data, b, rt.ao_samples, rt.ao_distance, seeds[2], self.device)
+        trace_ambient(room.data, b, rt.ao_samples, rt.window_samples, rt.ao_distance, seeds[2], self.device)
         t3 = self._mark("occlusion", t2)
         resolve(b, irradiance, rt.denoise_radius, self.device)
         t4 = self._mark("resolve", t3)

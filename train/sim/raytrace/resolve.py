@@ -4,8 +4,8 @@ same surface, multiplied back with its albedo and averaged over the pixel (:func
 image's linear radiance.
 
 A ray's radiance is ``kd * light + add``: ``kd = through (1 - metallic) albedo``, ``light = (E_lights + E_ambient
-ao) / pi`` (the diffuse lighting, which a few shadow and occlusion rays make noisy) and ``add = through (specular +
-ambient specular) + front`` (reflections, emitters, glass, sky). The filter replaces each ray's ``light`` by the
+ao + E_sky) / pi`` (the diffuse lighting, which a few shadow, ambient and window rays make noisy) and ``add =
+through (specular + ambient specular) + front`` (reflections, emitters, glass, sky). The filter replaces each ray's ``light`` by the
 weighted mean of the ``light`` of the rays of the ``(2 r + 1)^2`` pixels around it (all their samples), weighted by
 a Gaussian of the pixel distance, the depth difference relative to depth and the 8th power of the normals' cosine:
 rays on another surface (across an edge, a silhouette) get no weight, so a lit chair's edge takes no light from the
@@ -32,7 +32,7 @@ def split_light_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers)
     are 0 where the ray found no lit surface, all three where there is no ray (flag -1).
 
     Launch dims ``(H, W, spp)``. ``ambient``: the ambient irradiance (vec3, this sample's); reads ``rays`` flag,
-    normal, view, albedo, rough_metal, through, front, diffuse, specular, ao.
+    normal, view, albedo, rough_metal, through, front, diffuse, specular, ao, sky.
     """
     y, x, k = wp.tid()
     i = (y * width + x) * spp + k
@@ -47,7 +47,7 @@ def split_light_kernel(width: int, spp: int, ambient: wp.vec3, rays: RayBuffers)
         a = rays.albedo[i]
         ao = rays.ao[i]
         kd = wp.cw_mul(through, a) * (1.0 - rm[1])
-        light = (rays.diffuse[i] + ambient * ao) / PI
+        light = (rays.diffuse[i] + ambient * ao + rays.sky[i]) / PI
         n_v = wp.max(wp.dot(rays.normal[i], rays.view[i]), 0.0)
         env = wp.cw_mul(ambient_specular(specular_f0(a, rm[1]), n_v, rm[0]), ambient) * (ao / PI)
         add += wp.cw_mul(through, rays.specular[i] + env)

@@ -72,6 +72,12 @@ class SceneArrays:
     ``radius`` ``(L,)`` metres (radians for a directional light); ``shadows`` ``(L,)`` int32 0/1."""
     objects: np.ndarray
     """``(F,)`` int32: each face's object index in the scene (for masks in tests and tools)."""
+    portals: np.ndarray
+    """``(P,)`` int32: the faces of glass (opacity < 1): the windows the light of what lies behind comes through."""
+    portal_cdf: np.ndarray
+    """``(P,)`` float32: the portals' cumulative share of their total area (the last is 1), for sampling by area."""
+    portal_area: float
+    """The portals' total area, square metres (0: none)."""
 
 
 LayerLookup = Callable[[str, str], int]
@@ -118,13 +124,23 @@ def build_scene_arrays(scene: Any, layers: LayerLookup, tile_aspect: Callable[[s
         n_v += len(v)
     if not faces:
         raise SceneArraysError("the scene has no objects to draw")
+    all_v, all_f = np.concatenate(verts), np.concatenate(faces)
+    face_row = np.concatenate(face_mat)
+    opacity = np.asarray([r["opacity"] for r in rows], dtype=np.float64)
+    portals = np.nonzero(opacity[face_row] < 1.0)[0]
+    tri = all_v[all_f[portals]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    total = float(area.sum())
     return SceneArrays(
-        vertices=np.ascontiguousarray(np.concatenate(verts), dtype=np.float32),
-        faces=np.ascontiguousarray(np.concatenate(faces), dtype=np.int32),
-        face_material=np.ascontiguousarray(np.concatenate(face_mat), dtype=np.int32),
+        vertices=np.ascontiguousarray(all_v, dtype=np.float32),
+        faces=np.ascontiguousarray(all_f, dtype=np.int32),
+        face_material=np.ascontiguousarray(face_row, dtype=np.int32),
         materials={name: np.asarray([r[name] for r in rows]) for name in MATERIAL_FIELDS},
         lights=light_columns(scene.lights),
         objects=np.concatenate(objects),
+        portals=portals.astype(np.int32),
+        portal_cdf=(np.cumsum(area) / total if total > 0 else np.zeros(0)).astype(np.float32),
+        portal_area=total,
     )
 
 

@@ -86,11 +86,15 @@ class SceneData:
     levels: int
     glass_layers: int
     sky: wp.vec3
+    portals: wp.array(dtype=wp.int32)
+    portal_cdf: wp.array(dtype=wp.float32)
+    portal_area: float
 
 
 @wp.struct
 class Hit:
-    """What a ray found: ``kind`` 0 nothing opaque (it left the scene), 1 an opaque surface."""
+    """What a ray found: ``kind`` 0 nothing opaque (it left the scene), 1 an opaque surface; ``glass``: the glass
+    surfaces it passed."""
 
     kind: int
     face: int
@@ -102,6 +106,7 @@ class Hit:
     material: int
     through: wp.vec3
     front: wp.vec3
+    glass: int
 
 
 @wp.struct
@@ -236,6 +241,7 @@ def trace(scene: SceneData, origin: wp.vec3, d: wp.vec3, ambient: wp.vec3) -> Hi
     h.through = wp.vec3(1.0, 1.0, 1.0)
     h.front = wp.vec3(0.0, 0.0, 0.0)
     h.t = FAR
+    h.glass = 0
     t0 = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
     for layer in range(scene.glass_layers + 1):
         q = wp.mesh_query_ray(scene.mesh, origin + t0 * d, d, FAR - t0)
@@ -249,6 +255,7 @@ def trace(scene: SceneData, origin: wp.vec3, d: wp.vec3, ambient: wp.vec3) -> Hi
             seen = mat.opacity * mat.color + (1.0 - mat.opacity) * f * wp.vec3(1.0, 1.0, 1.0)
             h.front = h.front + wp.cw_mul(h.through, wp.cw_mul(seen, ambient))
             h.through = wp.cw_mul(h.through, glass_tint(mat.color)) * ((1.0 - mat.opacity) * (1.0 - f))
+            h.glass = h.glass + 1
             t0 = t0 + q.t + RAY_EPS
             continue
         h.kind = 1
@@ -283,24 +290,6 @@ def transmittance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float
             through = wp.cw_mul(through, glass_tint(mat.color)) * ((1.0 - mat.opacity) * (1.0 - f))
         t0 = t0 + q.t + RAY_EPS
     return through
-
-
-@wp.func
-def open_distance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float) -> float:
-    """How far unit ray ``origin + t d`` goes before an opaque, non-emitting surface, at most ``distance`` (glass and
-    emitters do not stop it; ambient light comes through windows)."""
-    t0 = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    for _ in range(4):
-        if t0 >= distance:
-            return distance
-        q = wp.mesh_query_ray(scene.mesh, origin + t0 * d, d, distance - t0)
-        if not q.result:
-            return distance
-        mat = scene.materials[scene.face_material[q.face]]
-        if mat.opacity >= 1.0 and mat.emission <= 0.0:
-            return t0 + q.t
-        t0 = t0 + q.t + RAY_EPS
-    return distance
 
 
 # ---------------------------------------------------------------------------------------------------- surfaces
