@@ -5,11 +5,11 @@ image's linear radiance.
 
 A ray's radiance is ``kd * light + add``: ``kd = through (1 - metallic) albedo``, ``light = (E_lights + E_ambient
 ao + E_sky) / pi`` (the diffuse lighting, which a few shadow, ambient and window rays make noisy) and ``add =
-through (specular + ambient specular) + front`` (reflections, emitters, glass, sky). The filter replaces each ray's ``light`` by the
-weighted mean of the ``light`` of the rays of the ``(2 r + 1)^2`` pixels around it (all their samples), weighted by
-a Gaussian of the pixel distance, the depth difference relative to depth and the 8th power of the normals' cosine:
-rays on another surface (across an edge, a silhouette) get no weight, so a lit chair's edge takes no light from the
-dark wall behind it, and the texture in ``kd`` stays sharp.
+through (specular + ambient specular) + front`` (reflections, emitters, glass, sky). The filter replaces each
+ray's ``light`` by the weighted mean of the ``light`` of the rays of the ``(2 r + 1)^2`` pixels around it (all
+their samples), weighted by a Gaussian of the pixel distance, the depth difference relative to depth and the 8th
+power of the normals' cosine: rays on another surface (across an edge, a silhouette) get no weight, so a lit
+chair's edge takes no light from the dark wall behind it, and the texture in ``kd`` stays sharp.
 """
 
 from __future__ import annotations
