@@ -202,6 +202,28 @@ def test_glass_shows_the_emissive_view_behind_it(pack_dir: Path) -> None:
     assert opaque.min() > 0.05 and np.ptp(opaque) < 1e-3 * opaque.min()
 
 
+def test_a_window_lights_the_room_in_front_of_it(pack_dir: Path) -> None:
+    """With no lamp and no ambient light, the light of an emitter behind a glazed opening reaches the floor in
+    front of the window (window rays), more near the window than far from it, and none without window rays."""
+    config = _config(pack_dir, 48, ambient=(0.0, 0.0))
+    v, f = slab_with_holes(6.0, 3.0, 0.2, [(2.0, 0.8, 4.0, 2.2)])
+    wall = SceneObject("wall", 1, trimesh.Trimesh(v + [-3.0, 0.0, 0.0], f, process=False), (0.8, 0.8, 0.8, 1.0),
+                       0.0, 0.8, materials=(Material((0.5, 0.5, 0.5)),))
+    floor = _box("floor", [-3.0, -6.0, -0.1], [3.0, 0.0, 0.0], Material((0.6, 0.6, 0.6)), label=2)
+    glass = _quad("glass", [[-1.0, 0.1, 0.8], [1.0, 0.1, 0.8], [1.0, 0.1, 2.2], [-1.0, 0.1, 2.2]],
+                  Material((1.0, 1.0, 1.0), opacity=0.1), label=3, solid=True)
+    view = _quad("outdoor", [[-5.0, 2.0, -2.0], [-5.0, 2.0, 5.0], [5.0, 2.0, 5.0], [5.0, 2.0, -2.0]],
+                 Material((1.0, 1.0, 1.0), emission=3.0))
+    scene = _scene([wall, floor, glass, view], [], size=(6.0, 6.0, 3.0))
+    pose = _look([0.0, -5.0, 2.0], [0.0, -1.0, 0.0])
+    near, far = _pixel(config, pose, [0.0, -0.8, 0.0]), _pixel(config, pose, [0.0, -3.5, 0.0])
+    lit = _radiance(config, scene, pose).mean(axis=-1)
+    assert _patch(lit, near) > 2.0 * _patch(lit, far) > 0.0
+    dark = _radiance(dataclasses.replace(config, raytrace=dataclasses.replace(config.raytrace, window_samples=0)),
+                     scene, pose).mean(axis=-1)
+    assert _patch(dark, near) < 1e-3 * _patch(lit, near)
+
+
 def test_an_image_reads_upright_and_unmirrored_from_either_side(pack_dir: Path) -> None:
     """A pack image stretched over an emissive rectangle that fills the view looks like the image itself, seen from
     the front or the back, and not like its mirror image or its upside-down."""

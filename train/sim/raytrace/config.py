@@ -115,7 +115,7 @@ class RaytraceConfig:
     through up to :attr:`glass_layers` glass surfaces; pixels on an edge (whose rays, or whose neighbours' first
     rays, found different surfaces) get :attr:`edge_samples` more, continuing the same stratified sequence. At each
     surface every light sends :attr:`shadow_samples` shadow rays to random points of the light (soft shadows),
-    :attr:`ao_samples` ambient rays measure the occlusion of the ambient light (and bring the sky's light), and
+    :attr:`ao_samples` short rays measure the occlusion of the ambient light, and
     :attr:`window_samples` rays to random points of the glass bring the light of what lies behind the windows. The
     cost of an image grows about as ``(samples_per_pixel + edge share * edge_samples) * (1 + lights *
     shadow_samples + ao_samples + window_samples)`` rays per pixel.
@@ -132,14 +132,12 @@ class RaytraceConfig:
     shadow_samples: int = 1
     """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft)."""
     ao_samples: int = 1
-    """Ambient rays per camera ray, 0-16: they occlude the ambient light and bring the light of emitters (the
-    outdoor view through windows) and the sky (0: no occlusion, and that light is part of the uniform ambient
-    light)."""
+    """Ambient-occlusion rays per camera ray, 0-16 (0: the ambient light is not occluded)."""
     window_samples: int = 1
     """Rays per camera ray to random points of the glass, for the light of what lies behind the windows, 0-16 (0:
-    the ambient rays find it, with more noise)."""
+    that light is part of the uniform ambient light)."""
     ao_distance: float = 0.7
-    """Metres over which an ambient ray's occlusion fades: how far a surface darkens another."""
+    """Length of the ambient-occlusion rays, metres: how far a surface darkens another."""
     ambient: tuple[float, float] = (1.0, 2.2)
     """Range of the factor (drawn per sample) on the room's ambient light, the estimate of its indirect light
     from its lights, surfaces and windows (see :mod:`.ambient`)."""

@@ -5,7 +5,7 @@ Per room (:meth:`RaytraceRenderer.set_scene`)
     every triangle of every object, solid or not, into one ``wp.Mesh`` (BVH) with each face's material, the
     material table, the lights (:mod:`.scene_arrays`), the textures and images the materials name (loaded from
     the asset pack once per process and kept on the device across rooms, :mod:`.textures`), and the room's
-    ambient light (:mod:`.ambient`).
+    ambient light and the radiance of its window panes (:mod:`.ambient`).
 
 Per image (:meth:`RaytraceRenderer.render`)
     the draws of the sample's generator, in this order: three kernel seeds (camera rays, lights, occlusion), the
@@ -156,9 +156,11 @@ class RaytraceRenderer:
         data.portals = wp.array(arrays.portals, dtype=wp.int32, device=dev)
         data.portal_cdf = wp.array(arrays.portal_cdf, dtype=wp.float32, device=dev)
         data.portal_area = float(arrays.portal_area)
+        data.portal_radiance = wp.zeros(len(arrays.portals), dtype=wp.vec3, device=dev)
         t3 = self._mark("upload", t2)
-        direct = rt.ao_samples > 0 or (rt.window_samples > 0 and arrays.portal_area > 0)
-        ambient = ambient_mod.estimate_ambient(scene, data, int(scene.seed), direct, dev)
+        ambient = ambient_mod.estimate_ambient(scene, data, int(scene.seed), rt.window_samples > 0, dev)
+        data.portal_radiance = wp.array(ambient_mod.measure_portals(data, len(arrays.portals), int(scene.seed), dev),
+                                        dtype=wp.vec3, device=dev)
         self._mark("ambient", t3)
         self._room = _Room(scene, arrays, mesh, data, ambient)
 

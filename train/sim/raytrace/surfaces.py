@@ -34,6 +34,8 @@ RAY_EPS = wp.constant(1.0e-4)
 """Metres a ray starts off a surface (or goes on past glass), against self-intersection in float32 rooms."""
 FAR = wp.constant(1.0e4)
 """Metres: a ray that meets nothing by then has left the scene."""
+EMITTER_ANGLE = wp.constant(0.05)
+"""Radians of the footprint that light gathered from an emitter reads its image with (a blurred view of it)."""
 
 
 @wp.struct
@@ -89,6 +91,7 @@ class SceneData:
     portals: wp.array(dtype=wp.int32)
     portal_cdf: wp.array(dtype=wp.float32)
     portal_area: float
+    portal_radiance: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -292,6 +295,24 @@ def transmittance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float
     return through
 
 
+@wp.func
+def open_distance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float) -> float:
+    """How far unit ray ``origin + t d`` goes before an opaque surface that does not shine, at most ``distance``
+    (glass and emitters do not stop it: ambient light comes through windows and past lamp shades)."""
+    t0 = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
+    for _ in range(4):
+        if t0 >= distance:
+            return distance
+        q = wp.mesh_query_ray(scene.mesh, origin + t0 * d, d, distance - t0)
+        if not q.result:
+            return distance
+        mat = scene.materials[scene.face_material[q.face]]
+        if mat.opacity >= 1.0 and mat.emission <= 0.0:
+            return t0 + q.t
+        t0 = t0 + q.t + RAY_EPS
+    return distance
+
+
 # ---------------------------------------------------------------------------------------------------- surfaces
 @wp.func
 def box_uv(p: wp.vec3, outward: wp.vec3, scale: wp.vec2, offset: wp.vec2) -> wp.vec2:
@@ -381,3 +402,15 @@ def surface_at(scene: SceneData, hit: Hit, d: wp.vec3, pixel_angle: float) -> Su
         s.emitted = mat.emission * albedo
     s.albedo = wp.min(albedo, wp.vec3(0.95, 0.95, 0.95))
     return s
+
+
+@wp.func
+def seen_light(scene: SceneData, hit: Hit, d: wp.vec3) -> wp.vec3:
+    """The radiance a ray brings from what shines by itself: the emitter it ended on (its image blurred), or the
+    sky, with what the glass on the way adds; 0 when it ended on a surface that does not shine."""
+    if hit.kind == 0:
+        return hit.front
+    s = surface_at(scene, hit, d, EMITTER_ANGLE)
+    if s.emitter == 0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    return hit.front + wp.cw_mul(hit.through, s.emitted)
