@@ -131,12 +131,12 @@ class RaytraceConfig:
     all."""
     shadow_samples: int = 1
     """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft)."""
-    ao_samples: int = 1
+    ao_samples: int = 2
     """Ambient-occlusion rays per camera ray, 0-16 (0: the ambient light is not occluded)."""
     window_samples: int = 1
     """Rays per camera ray to random points of the glass, for the light of what lies behind the windows, 0-16 (0:
     that light is part of the uniform ambient light)."""
-    ao_distance: float = 0.7
+    ao_distance: float = 0.4
     """Length of the ambient-occlusion rays, metres: how far a surface darkens another."""
     ambient: tuple[float, float] = (1.0, 2.2)
     """Range of the factor (drawn per sample) on the room's ambient light, the estimate of its indirect light
