@@ -4,7 +4,7 @@ of :mod:`fruxel.train.sim.raytrace.dressing`), each seen from a camera of its ow
 response drawn for the sample.
 
     python scripts/raytrace_sheet.py assets/pack --out out/raytrace.png [--rooms 8] [--size 256] [--seed 0]
-        [--committable-only] [--photos ../shared/real_photos] [--columns 4]
+        [--committable-only] [--credits out/credits.md] [--photos ../shared/real_photos] [--columns 2]
 
 ``--committable-only`` dresses with assets whose licence allows committing them (for sheets that go into docs/);
 ``--photos`` adds a last row of photos from a folder, centre-cropped to the same size, to compare by eye (never
@@ -37,8 +37,10 @@ def mount_pose(pose: np.ndarray, height: float, pitch: float, roll: float) -> np
     return out
 
 
-def render_rooms(pack_dir: str, rooms: int, size: int, seed: int, committable: bool) -> list[np.ndarray]:
-    """Per room, its image without and with the camera response side by side, ``(size, 2 size, 3)`` uint8."""
+def render_rooms(pack_dir: str, rooms: int, size: int, seed: int, committable: bool,
+                 used: set[str]) -> list[np.ndarray]:
+    """Per room, its image without and with the camera response side by side, ``(size, 2 size, 3)`` uint8; the ids
+    of the pack assets the rooms' materials name are added to ``used``."""
     from fruxel.grid import FruxelGrid
     from fruxel.train.sim.config import ImageConfig, SimConfig
     from fruxel.train.sim.raytrace import RaytraceConfig
@@ -62,6 +64,7 @@ def render_rooms(pack_dir: str, rooms: int, size: int, seed: int, committable: b
             continue
         pose = mount_pose(poses[int(rng.integers(4))], rng.uniform(0.3, 1.9), rng.uniform(-20, 40),
                           rng.uniform(-10, 10))
+        used.update(a for o in scene.objects for m in o.materials for a in (m.texture, m.image) if a is not None)
         renderer.set_scene(scene)
         plain = renderer.render(pose, None)
         out.append(np.concatenate([plain, renderer.render(pose, rng)], axis=1))
@@ -106,18 +109,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--columns", type=int, default=2, help="pairs per row")
     p.add_argument("--committable-only", action="store_true", help="only assets that may be committed")
     p.add_argument("--photos", type=Path, default=None, help="a folder of photos for a last row, to compare")
+    p.add_argument("--credits", type=Path, help="write a Markdown table of the pack assets' licences and credits")
     args = p.parse_args(argv)
-    from PIL import Image
+    from fruxel.render.images import write_image
+    from fruxel.train.sim.assetpack import AssetPack
 
-    from fruxel.io import atomic_path
-
-    tiles = render_rooms(args.pack, args.rooms, args.size, args.seed, args.committable_only)
+    used: set[str] = set()
+    tiles = render_rooms(args.pack, args.rooms, args.size, args.seed, args.committable_only, used)
     if args.photos is not None:
         tiles += photo_row(args.photos, args.size, args.columns)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(args.out) as tmp:
-        Image.fromarray(sheet(tiles, args.columns)).save(tmp, format="PNG", optimize=True)
+    write_image(args.out, sheet(tiles, args.columns))
     print(f"raytrace_sheet: wrote {args.out}")
+    if args.credits:
+        pack = AssetPack(args.pack, verify=False)
+        rows = ["| asset | source | licence | credit |", "| --- | --- | --- | --- |"]
+        rows += [f"| {e.id} | {e.source.package} {e.source.version} | {e.licence} | {e.credit} |"
+                 for e in (pack.entry(i) for i in sorted(used))]
+        args.credits.write_text("\n".join(rows) + "\n")
+        print(f"raytrace_sheet: wrote {args.credits}")
     return 0
 
 

@@ -8,7 +8,8 @@
 * :mod:`.robot` — the mobile robot of SPEC section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
 * :mod:`.renderer` — what draws the camera images: the renderer protocol and the registry of renderers by name
-  (:class:`.images.SceneRenderer`, pyrender, is the default), chosen by ``SimConfig.renderer``;
+  (:class:`.images.SceneRenderer`, pyrender, is the default; :mod:`.raytrace`, ray-traced in Warp with textures,
+  soft shadows and a camera response, is ``"raytrace"``), chosen by ``SimConfig.renderer``;
 * ground truth: :func:`fruxel.kernels.fruxelize` labels a grid from the scene's solids; what the grid's own
   camera sees of them is ``fruxel.kernels.first_hit(labels, grid, grid.camera())``;
 * data sets: :mod:`.sample` (a sample and its maker), :mod:`.shards` (shard files), :mod:`.manifest` (the data
