@@ -287,6 +287,35 @@ def test_a_texture_tiles_a_wall_of_known_width_every_tile_m(pack_dir: Path, tile
     assert round(2.0 / (best / px_per_tile * tile_m)) == round(2.0 / tile_m)
 
 
+def test_faces_take_the_material_their_part_names(pack_dir: Path) -> None:
+    """A box whose -y faces are part 1 (blue) and the rest part 0 (red): seen from -y it is blue, from +y red."""
+    v, f = boxes([[-0.5, -0.5, 0.0]], [[0.5, 0.5, 1.0]])
+    normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    parts = (normals[:, 1] < -0.5).astype(np.int32)
+    box = SceneObject("box", 4, trimesh.Trimesh(v, f, process=False), (0.8, 0.8, 0.8, 1.0), 0.0, 0.8,
+                      materials=(Material((1.0, 0.0, 0.0), emission=1.0), Material((0.0, 0.0, 1.0), emission=1.0)),
+                      parts=parts)
+    config = _config(pack_dir, 32, **NO_AMBIENT)
+    for side, want in ((-1.0, (0.0, 0.0, 1.0)), (1.0, (1.0, 0.0, 0.0))):
+        pose = _look([0.0, 3.0 * side, 0.5], [0.0, 0.0, 0.5])
+        seen = _patch(_radiance(config, _scene([box], []), pose), _pixel(config, pose, [0.0, 0.5 * side, 0.5]))
+        np.testing.assert_allclose(seen, want, atol=1e-4)
+
+
+def test_distant_texture_is_filtered_not_aliased(pack_dir: Path) -> None:
+    """A floor tiled every 10 cm with a brick texture, seen at a grazing angle: where a pixel covers many tiles it
+    shows their mean colour (mip levels), not a random texel of them; near the camera the texture shows."""
+    floor = _box("floor", [-20.0, 0.0, -0.1], [20.0, 60.0, 0.0],
+                 Material((1.0, 1.0, 1.0), texture=BRICK, tile_m=0.1, emission=1.0), label=2)
+    config = _config(pack_dir, 96, **NO_AMBIENT)
+    pose = _look([0.0, 0.0, 1.0], [0.0, 4.0, 0.0])
+    img = _radiance(config, _scene([floor], []), pose).mean(axis=-1)
+    near, far = _pixel(config, pose, [0.0, 1.2, 0.0])[0], _pixel(config, pose, [0.0, 30.0, 0.0])[0]
+    rough = lambda row: float(np.abs(np.diff(img[row, 20:76])).mean())  # noqa: E731 - pixel-to-pixel change
+    assert rough(near) > 4.0 * rough(far)
+    assert np.isclose(img[far, 20:76].mean(), img[near, 20:76].mean(), rtol=0.25)
+
+
 def test_ambient_occlusion_darkens_a_concave_corner_not_an_open_wall(pack_dir: Path) -> None:
     """Only ambient light reaches a corner of two walls and the floor (a spot light lights the far floor):
     occlusion rays darken the corner and leave the middle of an open wall as it was."""
