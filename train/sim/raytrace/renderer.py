@@ -185,7 +185,8 @@ class RaytraceRenderer:
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
-            rng: the sample's generator (None: fixed seeds, neutral camera response).
+            rng: the sample's generator (None, or ``config.image.augment.enabled`` False: fixed seeds, neutral
+                camera response).
 
         Returns:
             ``(S * H / W, S, 3)`` uint8 RGB image.
@@ -197,6 +198,8 @@ class RaytraceRenderer:
             raise RuntimeError("RaytraceRenderer.render() needs a room: call set_scene() first")
         room, rt = self._room, self.config.raytrace
         pose = check_pose(pose)
+        if not self.config.image.augment.enabled:
+            rng = None  # an image "without augmentation" (fruxel-sim --no-augment): no random camera response
         if rng is None:
             seeds, factor = (1, 2, 3), float(np.mean(rt.ambient))
         else:
