@@ -12,8 +12,9 @@ Modes (``--mode``, comma-separated):
 * ``profile`` — one process, the renderer's ``profile`` switch on (the device synchronised after every stage):
   per room ``arrays`` (the room flattened on the host), ``textures`` (pack textures decoded and uploaded, only the
   first time a process meets them), ``bvh``, ``upload`` (materials, lights, smoothed normals) and ``ambient``
-  (probe rays); per image ``primary`` (camera rays, textures), ``lights`` (shadow rays), ``occlusion``,
-  ``resolve`` (the lighting filter) and ``response`` (camera response, download, JPEG). The first room is a
+  (probe rays, window panes); per image ``primary`` (camera rays, textures), ``lights`` (shadow rays), ``occlusion``,
+  ``resolve`` (the lighting filter) and ``response`` (camera response, download, JPEG); ``occlusion`` holds the
+  ambient-occlusion and the window rays (:mod:`fruxel.train.sim.raytrace.occlusion`). The first room is a
   warm-up (kernel loading); textures are counted from the second.
 * ``throughput`` — ``--processes`` spawned processes, each rendering its own rooms (16 images a room, as the
   simulator's samples) without profiling for ``--seconds``: images per second of all together, the rate the
@@ -179,7 +180,8 @@ def section(runs: list[dict[str, Any]]) -> str:
         lines.append(f"- **{run['tag']}**: {m['cpu']}{gpu}; run {run['date']}; Python {m['python']}, Warp "
                      f"{m.get('warp')}; load average before the run {m.get('load_before', float('nan')):.2f}; "
                      f"settings {run['settings']}.")
-    lines += ["", "Milliseconds per image by stage (`--mode profile`, the device synchronised after each stage):", "",
+    lines += ["", "Milliseconds per image by stage (`--mode profile`, the device synchronised after each stage; "
+              "occlusion: the ambient-occlusion and window rays):", "",
               "| machine | device | image | " + " | ".join(IMAGE_STAGES) + " | total | images/s (one process) |",
               "| --- | --- | ---: | " + " | ".join("---:" for _ in IMAGE_STAGES) + " | ---: | ---: |"]
     profiles = [(run, r) for run in runs for r in run["results"] if r["mode"] == "profile"]
@@ -245,8 +247,9 @@ def main(argv: list[str] | None = None) -> None:
     for size in (int(s) for s in args.sizes.split(",")):
         config = make_config(size, args.pack, args.spp, args.shadow_samples, args.ao_samples)
         rt = config.raytrace
-        settings = (f"{rt.samples_per_pixel} samples per pixel, {rt.shadow_samples} shadow ray(s) per light, "
-                    f"{rt.ao_samples} occlusion ray(s), filter radius {rt.denoise_radius}")
+        settings = (f"{rt.samples_per_pixel} camera rays per pixel (+{rt.edge_samples} on edges), "
+                    f"{rt.shadow_samples} shadow ray(s) per light, {rt.ao_samples} occlusion and "
+                    f"{rt.window_samples} window ray(s) per camera ray, filter radius {rt.denoise_radius}")
         for mode in modes:
             if mode == "profile":
                 print(f"bench_render: {args.tag} profile {size}^2 ...", file=sys.stderr, flush=True)
