@@ -287,6 +287,36 @@ def test_a_texture_tiles_a_wall_of_known_width_every_tile_m(pack_dir: Path, tile
     assert round(2.0 / (best / px_per_tile * tile_m)) == round(2.0 / tile_m)
 
 
+def test_normal_maps_tilt_the_shading_the_way_the_map_says(pack_dir: Path) -> None:
+    """A brick wall lit at a grazing angle from its right, then from its left: where the pack's normal map tilts
+    towards +u (right), the first light is the brighter one (albedo cancels in the ratio), texel by texel."""
+    from fruxel.train.sim.assetpack import AssetPack
+    from fruxel.train.sim.raytrace.scene_arrays import tile_offset
+
+    wall = _quad("wall", [[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 2.0], [-1.0, 0.0, 2.0]],
+                 Material((0.8, 0.8, 0.8), texture=BRICK, tile_m=2.0), solid=True)  # faces -y; u = x / 2
+    config = _config(pack_dir, 96, denoise_radius=0, **NO_AMBIENT)
+    pose = _look([0.0, -2.0, 1.0], [0.0, 0.0, 1.0])
+
+    def lit(direction: list[float]) -> np.ndarray:
+        sun = Light("directional", (1.0, 1.0, 1.0), 3.0, _look([0, 0, 0], [-c for c in direction]), shadows=False)
+        return _radiance(config, _scene([wall], [sun]), pose).mean(axis=-1)
+
+    ratio = np.log(np.maximum(lit([-1.0, 1.0, 0.0]), 1e-6) / np.maximum(lit([1.0, 1.0, 0.0]), 1e-6))
+    cam = config.image_camera(pose)
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+    d = np.stack([(xs + 0.5 - cam.cx) / cam.fx, (ys + 0.5 - cam.cy) / cam.fy, np.ones_like(xs, float)], -1)
+    d = d @ pose[:3, :3].T
+    hit = pose[:3, 3] + d * (2.0 / d[..., 1:2])  # on the wall's plane y = 0
+    on_wall = (np.abs(hit[..., 0]) < 0.95) & (hit[..., 2] > 0.05) & (hit[..., 2] < 1.95)
+    off = tile_offset("wall", 0)
+    u, v = (hit[..., 0] / 2.0 + off[0]) % 1.0, (hit[..., 2] / 2.0 + off[1]) % 1.0
+    normal = AssetPack(pack_dir).texture(BRICK).normal
+    h, w = normal.shape[:2]
+    tilt_u = normal[((1.0 - v) * h).astype(int) % h, (u * w).astype(int) % w, 0]
+    assert np.corrcoef(ratio[on_wall], tilt_u[on_wall])[0, 1] > 0.5
+
+
 def test_faces_take_the_material_their_part_names(pack_dir: Path) -> None:
     """A box whose -y faces are part 1 (blue) and the rest part 0 (red): seen from -y it is blue, from +y red."""
     v, f = boxes([[-0.5, -0.5, 0.0]], [[0.5, 0.5, 1.0]])

@@ -155,7 +155,6 @@ def _flat_material(obj: Any) -> Any:
 def _material_row(name: str, index: int, mat: Any, v: np.ndarray, part_faces: np.ndarray, layers: LayerLookup,
                   tile_aspect: Callable[[str], float]) -> dict[str, Any]:
     """One row of the material table (columns :data:`MATERIAL_FIELDS`)."""
-    crc = zlib.crc32(f"{name}/{index}".encode())
     row: dict[str, Any] = {
         "color": np.clip(np.asarray(mat.color, dtype=np.float32), 0.0, 1.0),
         "roughness": np.float32(np.clip(mat.roughness, 0.0, 1.0)),
@@ -164,7 +163,7 @@ def _material_row(name: str, index: int, mat: Any, v: np.ndarray, part_faces: np
         "emission": np.float32(max(float(mat.emission), 0.0)),
         "mode": np.int32(PLAIN), "albedo_layer": np.int32(-1), "normal_layer": np.int32(-1),
         "scale": np.ones(2, np.float32),
-        "offset": np.array([(crc & 0xFFFF) / 65536.0, (crc >> 16) / 65536.0], np.float32),
+        "offset": tile_offset(name, index),
         "origin": np.zeros(3, np.float32), "axis_u": np.zeros(3, np.float32), "axis_v": np.zeros(3, np.float32),
         "axis_n": np.zeros(3, np.float32),
     }
@@ -180,6 +179,12 @@ def _material_row(name: str, index: int, mat: Any, v: np.ndarray, part_faces: np
         row.update(mode=np.int32(TEXTURE), albedo_layer=np.int32(albedo), normal_layer=np.int32(normal),
                    scale=np.array([1.0 / mat.tile_m, 1.0 / height], np.float32))
     return row
+
+
+def tile_offset(name: str, index: int) -> np.ndarray:
+    """``(2,)`` float32 in [0, 1): the tile offset of material ``index`` of object ``name`` (module docstring)."""
+    crc = zlib.crc32(f"{name}/{index}".encode())
+    return np.array([(crc & 0xFFFF) / 65536.0, (crc >> 16) / 65536.0], np.float32)
 
 
 def image_frame(v: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -378,7 +378,7 @@ def surface_at(scene: SceneData, hit: Hit, d: wp.vec3, pixel_angle: float) -> Su
         lod = wp.log2(wp.max(footprint * wp.max(mat.scale[0], mat.scale[1]) * size, 1.0e-6))
         albedo = wp.cw_mul(albedo, sample_albedo(scene.albedo_texels, scene.srgb, mat.albedo_layer,
                                                  scene.layer_size, scene.levels, uv, lod, 1))
-        tn = sample_normal(scene.normal_texels, mat.normal_layer, scene.layer_size, scene.levels, uv, lod)
+        tn = sample_normal(scene.normal_texels, scene.srgb, mat.normal_layer, scene.layer_size, scene.levels, uv, lod)
         t = box_tangent(hit.outward)
         t = wp.normalize(t - wp.dot(t, n) * n)
         b = wp.cross(n, t)

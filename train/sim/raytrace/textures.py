@@ -182,9 +182,10 @@ def _texel_index(layer: int, size: int, level: int, x: int, y: int, wrap: int) -
 
 
 @wp.func
-def _albedo_level(texels: wp.array(dtype=wp.vec4ub), srgb: wp.array(dtype=wp.float32), layer: int, size: int,
-                  level: int, uv: wp.vec2, wrap: int) -> wp.vec3:
-    """Bilinear linear-light colour of one mip level at ``uv`` (u right, v up, one tile per unit)."""
+def _level(texels: wp.array(dtype=wp.vec4ub), srgb: wp.array(dtype=wp.float32), layer: int, size: int, level: int,
+           uv: wp.vec2, wrap: int, normal: int) -> wp.vec3:
+    """Bilinear value of one mip level at ``uv`` (u right, v up, one tile per unit): the linear-light colour of
+    sRGB texels, or with ``normal`` set the tangent-space normal (not renormalised) of ``(n + 1) / 2`` texels."""
     s = float(size >> level)
     fx = uv[0] * s - 0.5
     fy = (1.0 - uv[1]) * s - 0.5
@@ -197,26 +198,10 @@ def _albedo_level(texels: wp.array(dtype=wp.vec4ub), srgb: wp.array(dtype=wp.flo
         for dx in range(2):
             t = texels[_texel_index(layer, size, level, x0 + dx, y0 + dy, wrap)]
             w = wp.where(dx == 1, ax, 1.0 - ax) * wp.where(dy == 1, ay, 1.0 - ay)
-            out += w * wp.vec3(srgb[int(t[0])], srgb[int(t[1])], srgb[int(t[2])])
-    return out
-
-
-@wp.func
-def _normal_level(texels: wp.array(dtype=wp.vec4ub), layer: int, size: int, level: int, uv: wp.vec2) -> wp.vec3:
-    """Bilinear tangent-space normal (not renormalised) of one mip level at ``uv``, repeating the tile."""
-    s = float(size >> level)
-    fx = uv[0] * s - 0.5
-    fy = (1.0 - uv[1]) * s - 0.5
-    x0 = int(wp.floor(fx))
-    y0 = int(wp.floor(fy))
-    ax = fx - float(x0)
-    ay = fy - float(y0)
-    out = wp.vec3(0.0, 0.0, 0.0)
-    for dy in range(2):
-        for dx in range(2):
-            t = texels[_texel_index(layer, size, level, x0 + dx, y0 + dy, 1)]
-            w = wp.where(dx == 1, ax, 1.0 - ax) * wp.where(dy == 1, ay, 1.0 - ay)
-            out += w * (wp.vec3(float(t[0]), float(t[1]), float(t[2])) / 127.5 - wp.vec3(1.0, 1.0, 1.0))
+            if normal != 0:
+                out += w * (wp.vec3(float(t[0]), float(t[1]), float(t[2])) / 127.5 - wp.vec3(1.0, 1.0, 1.0))
+            else:
+                out += w * wp.vec3(srgb[int(t[0])], srgb[int(t[1])], srgb[int(t[2])])
     return out
 
 
@@ -230,24 +215,24 @@ def sample_albedo(texels: wp.array(dtype=wp.vec4ub), srgb: wp.array(dtype=wp.flo
     l0 = int(wp.floor(level))
     l1 = wp.min(l0 + 1, levels - 1)
     a = level - float(l0)
-    c0 = _albedo_level(texels, srgb, layer, size, l0, uv, wrap)
+    c0 = _level(texels, srgb, layer, size, l0, uv, wrap, 0)
     if a <= 0.0:
         return c0
-    return (1.0 - a) * c0 + a * _albedo_level(texels, srgb, layer, size, l1, uv, wrap)
+    return (1.0 - a) * c0 + a * _level(texels, srgb, layer, size, l1, uv, wrap, 0)
 
 
 @wp.func
-def sample_normal(texels: wp.array(dtype=wp.vec4ub), layer: int, size: int, levels: int, uv: wp.vec2,
-                  lod: float) -> wp.vec3:
-    """Trilinear unit tangent-space normal of a layer at ``uv`` and ``lod`` (tile repeated)."""
+def sample_normal(texels: wp.array(dtype=wp.vec4ub), srgb: wp.array(dtype=wp.float32), layer: int, size: int,
+                  levels: int, uv: wp.vec2, lod: float) -> wp.vec3:
+    """Trilinear unit tangent-space normal of a layer at ``uv`` and ``lod`` (tile repeated; ``srgb`` unused)."""
     top = float(levels - 1)
     level = wp.clamp(lod, 0.0, top)
     l0 = int(wp.floor(level))
     l1 = wp.min(l0 + 1, levels - 1)
     a = level - float(l0)
-    n = _normal_level(texels, layer, size, l0, uv)
+    n = _level(texels, srgb, layer, size, l0, uv, 1, 1)
     if a > 0.0:
-        n = (1.0 - a) * n + a * _normal_level(texels, layer, size, l1, uv)
+        n = (1.0 - a) * n + a * _level(texels, srgb, layer, size, l1, uv, 1, 1)
     length = wp.length(n)
     if length < 1.0e-6:
         return wp.vec3(0.0, 0.0, 1.0)
