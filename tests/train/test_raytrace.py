@@ -222,6 +222,10 @@ def test_a_window_lights_the_room_in_front_of_it(pack_dir: Path) -> None:
     dark = _radiance(dataclasses.replace(config, raytrace=dataclasses.replace(config.raytrace, window_samples=0)),
                      scene, pose).mean(axis=-1)
     assert _patch(dark, near) < 1e-3 * _patch(lit, near)
+    # A pane of two faces (a thin box of glass) lets in about as much light as one face, not twice as much.
+    pane = _box("glass", [-1.0, 0.08, 0.8], [1.0, 0.12, 2.2], Material((1.0, 1.0, 1.0), opacity=0.1), label=3)
+    double = _radiance(config, _scene([wall, floor, pane, view], [], size=(6.0, 6.0, 3.0)), pose).mean(axis=-1)
+    assert 0.75 < _patch(double, near, 2) / _patch(lit, near, 2) < 1.0
 
 
 def test_an_image_reads_upright_and_unmirrored_from_either_side(pack_dir: Path) -> None:

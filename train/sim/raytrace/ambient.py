@@ -23,7 +23,18 @@ import numpy as np
 from fruxel.kernels.wp.runtime import warp
 
 from .lights import direct_light
-from .surfaces import PI, RAY_EPS, SceneData, cosine_direction, seen_light, sphere_direction, surface_at, trace
+from .surfaces import (
+    PI,
+    RAY_EPS,
+    SceneData,
+    cosine_direction,
+    glass_tint,
+    schlick,
+    seen_light,
+    sphere_direction,
+    surface_at,
+    trace,
+)
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
@@ -81,8 +92,9 @@ def probe_room_kernel(scene: SceneData, origins: wp.array(dtype=wp.vec3), rays_p
 @wp.kernel
 def measure_portals_kernel(scene: SceneData, rays_per_side: int, seed: int, radiance: wp.array(dtype=wp.vec3)):
     """One thread sends probe ray ``r`` from the centre of portal ``p`` to side ``s`` of it (0: along its normal,
-    1: against it), cosine-weighted, through the glass; writes what shines there (vec3, linear, 0 for a surface that
-    does not shine) to entry ``(p * 2 + s) * R + r`` of ``radiance``.
+    1: against it), cosine-weighted, through the glass; writes what shines there, times what the portal's own glass
+    lets through (vec3, linear, 0 for a surface that does not shine), to entry ``(p * 2 + s) * R + r`` of
+    ``radiance``.
 
     Launch dims ``(P, 2, R)``; ``scene.portals`` ``(P,)`` the glass faces; ``seed``: the room's.
     """
@@ -93,7 +105,10 @@ def measure_portals_kernel(scene: SceneData, rays_per_side: int, seed: int, radi
     d = cosine_direction(normal, wp.randf(rng), wp.randf(rng))
     start = wp.mesh_eval_position(scene.mesh, face, 0.3333333, 0.3333333) + RAY_EPS * normal
     hit = trace(scene, start, d, wp.vec3(0.0, 0.0, 0.0))
-    radiance[(p * 2 + side) * rays_per_side + r] = seen_light(scene, hit, d)
+    # What comes through the pane itself too (the probe starts past it).
+    mat = scene.materials[scene.face_material[face]]
+    own = glass_tint(mat.color) * ((1.0 - mat.opacity) * (1.0 - schlick(0.04, wp.dot(normal, d))))
+    radiance[(p * 2 + side) * rays_per_side + r] = wp.cw_mul(own, seen_light(scene, hit, d))
 
 
 def measure_portals(data: Any, portals: int, seed: int, device: str) -> np.ndarray:

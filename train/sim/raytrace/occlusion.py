@@ -7,9 +7,11 @@ lets ``min(t / ao_distance, 1)`` of the ambient light through, so that a surface
 closer it is (a concave corner, the floor under a table) while an open wall keeps all of it.
 
 Each of ``window_samples`` window rays goes to a random point of the glass (the windows as portals, sampled by
-area); unless something opaque stands in between, the radiance of the portal (the mean of what shines behind it,
-the outdoor view or the sky, measured once per room: :func:`.ambient.measure_portals`) times ``cos cos' A / d^2``
-(``A``: all the glass's area; ``d`` at least 22 cm) is the window's irradiance. A window thus
+area); unless anything stands in between (an opaque surface, or nearer glass: each direction counts only the first
+glass it meets, so the two sides of a pane count once), the radiance of the portal (the mean of what shines behind
+it, the outdoor view or the sky, through the rest of the glass, measured once per room:
+:func:`.ambient.measure_portals`) times ``cos cos' A / d^2`` (``A``: all the glass's area; ``d`` at least 22 cm) is
+the window's irradiance. A window thus
 lights the floor and walls in front of it, more the nearer, and furniture casts soft shadows away from it. (Rays
 sent in random directions rarely find a window: its light came out as speckle.) Light of emitters not behind glass
 (a lamp shade, an open sky) is part of the ambient light (:mod:`.ambient`).
@@ -22,7 +24,7 @@ from typing import Any
 from fruxel.kernels.wp.runtime import warp
 
 from .buffers import Buffers, RayBuffers
-from .surfaces import SceneData, cosine_direction, open_distance, stratified, transmittance
+from .surfaces import SceneData, cosine_direction, open_distance, stratified
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
@@ -112,10 +114,14 @@ def trace_ambient_kernel(scene: SceneData, width: int, spp: int, ao_samples: int
         cos_p = wp.dot(n, w)
         if cos_p <= 0.0 or wp.dot(g, w) <= 0.0:
             continue
-        through = transmittance(scene, start, w, dist - 1.0e-3)
+        if wp.mesh_query_ray_anyhit(scene.mesh, start, w, dist - 1.0e-3):
+            # Something stands between: an opaque surface, or glass nearer on the same ray (the room side of a
+            # pane hides its outdoor side): each direction counts the first glass it meets, so a window of two
+            # panes counts once.
+            continue
         cos_g = wp.abs(wp.dot(q.normal, w))
-        sky += wp.cw_mul(through, scene.portal_radiance[q.index]) * (
-            cos_p * cos_g * scene.portal_area / (wp.max(d2, 0.05) * float(window_samples)))
+        sky += scene.portal_radiance[q.index] * (cos_p * cos_g * scene.portal_area
+                                                 / (wp.max(d2, 0.05) * float(window_samples)))
     rays.sky[i] = sky
 
 
