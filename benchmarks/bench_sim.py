@@ -51,6 +51,9 @@ import common  # noqa: E402
 CHART = common.RESULTS / "sim.png"
 SECTION = "## Simulator"
 
+VARIANT_DEFAULTS = {"camera": "robot", "renderer": "pyrender", "world": "flat"}
+"""What a case is made with unless ``--camera``, ``--renderer`` or ``--world`` say otherwise (results record only
+the choices that differ)."""
 TARGETS = {("cpu", "256x64"): 10.0, ("cpu", "512x128"): 2.0, ("h100", "128x64"): 150.0}
 """Samples per second asked for, by (machine tag, case)."""
 TARGET_MODES = {"cpu": ("generate",), "h100": ("streaming",)}
@@ -65,26 +68,29 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
     return int(m.group(1)), int(m.group(2)), int(m.group(3)) if m.group(3) else None
 
 
-def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True, camera: str = "robot"
-                ) -> Any:
+def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True, camera: str = "robot",
+                renderer: str = "pyrender", world: str = "flat") -> Any:
     """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels, the cameras
-    named ``camera`` (``fruxel.train.sim.cameras.CAMERAS``)."""
+    named ``camera`` (``fruxel.train.sim.cameras.CAMERAS``), drawn by ``renderer`` in ``world`` (the home world's
+    classes, :data:`fruxel.classes.HOME_CLASSES`)."""
+    from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES
     from fruxel.grid import FruxelGrid
     from fruxel.train.sim.cameras import camera_named
     from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
 
     return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
-                     shard_size=shard_size, splits=(("train", samples),), camera=camera_named(camera))
+                     shard_size=shard_size, splits=(("train", samples),), camera=camera_named(camera),
+                     renderer=renderer, world=world, classes=HOME_CLASSES if world == "home" else DEFAULT_CLASSES)
 
 
 # ---------------------------------------------------------------------------------------------------- measuring
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
-                   device: str | None, camera: str = "robot") -> dict[str, Any]:
+                   device: str | None, **variant: str) -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
     from fruxel.train.sim.writer import generate
 
-    cfg = make_config(image, grid, samples, shard_size, camera=camera)
+    cfg = make_config(image, grid, samples, shard_size, **variant)
     marks: list[tuple[float, int]] = []
     with tempfile.TemporaryDirectory(prefix="bench_sim_") as out:
         t0 = time.perf_counter()
@@ -97,12 +103,12 @@ def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size
 
 
 def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None,
-                    camera: str = "robot") -> dict[str, Any]:
+                    **variant: str) -> dict[str, Any]:
     """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
     it) with ``workers`` DataLoader workers."""
     from fruxel.train.samples import Batches, BlockPlan, BlockStream
 
-    cfg = make_config(image, grid, samples, 64, camera=camera)
+    cfg = make_config(image, grid, samples, 64, **variant)
     plan = BlockPlan(0, samples, cfg.samples_per_scene, None)
     blocks = -(-samples // cfg.samples_per_scene)
 
@@ -139,12 +145,12 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
 
 
 def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None,
-                  camera: str = "robot") -> dict[str, Any]:
+                  **variant: str) -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
     from fruxel.train.sim.sample import STAGES, SampleMaker
     from fruxel.train.sim.shards import ShardSpec, encode_shard
 
-    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps(), camera=camera)
+    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps(), **variant)
     sps = cfg.samples_per_scene
     with SampleMaker(cfg, 0, backend=backend, device=device) as maker:
         for i in range(sps):
@@ -234,9 +240,13 @@ def section(runs: list[dict[str, Any]]) -> str:
             if r["mode"] == "profile":
                 continue
             case = f"{r['image']}x{r['grid']}"
-            target = _target(run["tag"], case, r["mode"]) if r.get("camera", "robot") == "robot" else None
+            plain = all(r.get(k, v) == v for k, v in VARIANT_DEFAULTS.items())
+            target = _target(run["tag"], case, r["mode"]) if plain else None
             met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
-            lines.append(f"| {run['tag']} | {r['mode']} | {_image(r)} | {r['grid']}^3 | {r['workers']} | "
+            extra = ", ".join(str(r[k]) for k in ("world", "renderer") if r.get(k, VARIANT_DEFAULTS[k]) !=
+                              VARIANT_DEFAULTS[k])
+            mode = r["mode"] + (f" ({extra})" if extra else "")
+            lines.append(f"| {run['tag']} | {mode} | {_image(r)} | {r['grid']}^3 | {r['workers']} | "
                          f"{r['samples']} | {r['steady_sps']:.1f} | {r['end_to_end_sps']:.1f} | "
                          f"{'' if target is None else f'>= {target:g}'} | {met} |")
     profiles = [(run["tag"], r) for run in runs for r in run["results"] if r["mode"] == "profile"]
@@ -296,6 +306,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--backend", default="warp", help="fruxelize backend of generate and profile (default warp; "
                    "streaming uses the engine's, warp)")
     p.add_argument("--device", default=None, help="Warp device (default: CUDA when present, else CPU)")
+    p.add_argument("--renderer", default="pyrender", help="the renderer of the images (default pyrender; raytrace: "
+                   "the ray-traced one)")
+    p.add_argument("--world", default="flat", choices=("flat", "home"),
+                   help="the rooms: the flat world (default) or the furnished home world (needs the asset pack)")
     p.add_argument("--note", action="append", default=[], help="a note to print under the table (repeatable)")
     p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md or the chart")
     p.add_argument("--report", action="store_true", help="only rebuild the section and chart from the JSON files")
@@ -310,6 +324,7 @@ def main(argv: list[str] | None = None) -> None:
         print(section(runs))
         return
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
+    variant = {"camera": args.camera, "renderer": args.renderer, "world": args.world}
     info = machine()
     results: list[dict[str, Any]] = []
     guess = {64: 12.0, 128: 3.0}
@@ -321,16 +336,14 @@ def main(argv: list[str] | None = None) -> None:
             print(f"bench_sim: {args.tag} {mode} {image}^2 / {grid}^3 ...", file=sys.stderr, flush=True)
             if mode == "generate":
                 shard = max(16, min(64, n // (2 * max(1, args.workers)) // 16 * 16))
-                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device, args.camera)
+                r = bench_generate(image, grid, n, args.workers, shard, args.backend, args.device, **variant)
             elif mode == "streaming":
-                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device, args.camera)
+                r = bench_streaming(image, grid, n // 8 * 8, args.workers, 8, args.device, **variant)
             elif mode == "profile":
-                r = bench_profile(image, grid, min(n, 64), args.backend, args.device, args.camera)
+                r = bench_profile(image, grid, min(n, 64), args.backend, args.device, **variant)
             else:
                 raise SystemExit(f"bench_sim: unknown mode {mode!r}")
-            r.update(image=image, grid=grid)
-            if args.camera != "robot":
-                r["camera"] = args.camera
+            r.update(image=image, grid=grid, **{k: v for k, v in variant.items() if v != VARIANT_DEFAULTS[k]})
             results.append(r)
             print(json.dumps(r), flush=True)
     run = {"tag": args.tag, "date": dt.date.today().isoformat(), "machine": info, "results": results,

@@ -25,11 +25,6 @@ SH3F = SOURCES / "debian/sweethome3d-furniture-1.8-1/usr/share/sweethome3d/furni
 
 
 @pytest.fixture()
-def pack_dir(tiny_pack: Path) -> Path:
-    return tiny_pack
-
-
-@pytest.fixture()
 def pack_copy(pack_dir: Path, tmp_path: Path) -> Path:
     dest = tmp_path / "pack"
     shutil.copytree(pack_dir, dest)

@@ -124,7 +124,8 @@ def test_the_default_renderer_keeps_configs_and_digests_of_data_sets_made_before
 def test_registry_errors(labels_renderer: str) -> None:
     named = _config(labels_renderer)
     assert named.digest() != _config().digest()
-    with pytest.raises(ConfigError, match=r"unknown renderer 'nope'; renderers are \['labels', 'pyrender'\]"):
+    with pytest.raises(ConfigError,
+                       match=r"unknown renderer 'nope'; renderers are \['labels', 'pyrender', 'raytrace'\]"):
         _config("nope")
     with pytest.raises(ConfigError, match="unknown renderer 'nope'"):
         SimConfig.from_dict({**named.to_dict(), "renderer": "nope"})

@@ -8,7 +8,8 @@
 * :mod:`.robot` — the mobile robot of conventions section 7 (:func:`simulate`), its camera mount, and collision-free
   random or scripted trajectories giving one camera pose per frame;
 * :mod:`.renderer` — what draws the camera images: the renderer protocol and the registry of renderers by name
-  (:class:`.images.SceneRenderer`, pyrender, is the default), chosen by ``SimConfig.renderer``;
+  (:class:`.images.SceneRenderer`, pyrender, is the default; :mod:`.raytrace`, ray-traced in Warp with textures,
+  soft shadows and a camera response, is ``"raytrace"``), chosen by ``SimConfig.renderer``;
 * :mod:`.cameras` — the camera each trajectory draws (``SimConfig.camera``: the robot's own mount, or any height,
   pitch, roll and field of view), its render framed onto the grid's view, and each sample's camera record;
   :mod:`.testsets` — the held-out test sets as named configs;

@@ -46,6 +46,7 @@ from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
 from .cameras import ROBOT_CAMERA, CameraConfig, check_camera
+from .raytrace.config import RaytraceConfig
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
 from .rooms.config import HomeConfig
@@ -218,7 +219,10 @@ class SimConfig:
     """``(name, samples)`` per split, in file order; names are lower-case letters, digits, '_' or '-'."""
     renderer: str = DEFAULT_RENDERER
     """The renderer that draws the camera images, by its name in the registry of :mod:`fruxel.train.sim.renderer`
-    (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials."""
+    (which says how to add one); ``pyrender`` is offscreen OpenGL with PBR materials, ``raytrace`` the ray-traced
+    renderer of :mod:`.raytrace`."""
+    raytrace: RaytraceConfig = field(default_factory=RaytraceConfig)
+    """Settings of the ``raytrace`` renderer (sampling, camera response); other renderers ignore them."""
     camera: CameraConfig = ROBOT_CAMERA
     """The camera each trajectory draws (:mod:`.cameras`): its height, pitch, roll and field of view. The default,
     :data:`~.cameras.ROBOT_CAMERA`, is the robot's own mount (``trajectory.mount``, the grid's field of view)."""
@@ -230,12 +234,15 @@ class SimConfig:
     """Ranges the furnished rooms draw from (the ``home`` world), the material sampling, and which pack split
     test rooms draw their assets from."""
     assets: str | None = None
-    """The asset pack folder of the ``home`` world; None: the ``FRUXEL_ASSETS`` environment variable, else the
-    repository's ``assets/pack`` (:func:`fruxel.train.sim.rooms.resolve_pack`; ``make assets`` builds it). The
-    pack is named by its folder: ``make assets`` gives the same pack from the same pinned sources on any machine."""
+    """The asset pack folder of the ``home`` world and of the ``raytrace`` renderer's textures; None: the
+    ``FRUXEL_ASSETS`` environment variable, else the repository's ``assets/pack`` (:func:`fruxel.train.sim.rooms.
+    resolve_pack`; ``make assets`` builds it). The pack is named by its folder: ``make assets`` gives the same pack
+    from the same pinned sources on any machine."""
 
     def __post_init__(self) -> None:
         check_renderer(self.renderer)
+        if not isinstance(self.raytrace, RaytraceConfig):
+            raise ConfigError(f"raytrace must be a RaytraceConfig, got {type(self.raytrace).__name__}")
         if not isinstance(self.camera, CameraConfig):
             raise ConfigError(f"camera must be a CameraConfig, got {type(self.camera).__name__}")
         self._check_world()
@@ -318,9 +325,10 @@ class SimConfig:
         :data:`CONFIG_VERSION`.
 
         ``"renderer"``, ``"camera"``, ``"world"``, ``"home"`` and ``"assets"`` are left out when they are the
-        defaults (``home`` is written whenever the world is ``home``): data sets made before renderers, cameras and
-        worlds had names record none of them, and their configs keep their digests (:meth:`digest`, in every manifest
-        and shard).
+        defaults (``home`` is written whenever the world is ``home``), and ``"raytrace"`` unless the ``raytrace``
+        renderer draws or its settings are not the defaults: data sets made before renderers, cameras and worlds had
+        names record none of them, and their configs keep their digests (:meth:`digest`, in every manifest and
+        shard).
         """
         out = {
             "version": CONFIG_VERSION,
@@ -335,6 +343,8 @@ class SimConfig:
         }
         if self.renderer != DEFAULT_RENDERER:
             out["renderer"] = self.renderer
+        if self.renderer == "raytrace" or self.raytrace != RaytraceConfig():
+            out["raytrace"] = _plain(self.raytrace)
         if self.camera != ROBOT_CAMERA:
             out["camera"] = _plain(self.camera)
         if self.world != DEFAULT_WORLD:
@@ -357,7 +367,7 @@ class SimConfig:
             raise ConfigError(f"config must be a JSON object, got {type(d).__name__}")
         names = ("version", "grid", "image", "room", "trajectory", "classes", "samples_per_scene", "shard_size",
                  "splits")
-        _expect_keys("config", d, names, optional=("renderer", "camera", "world", "home", "assets"))
+        _expect_keys("config", d, names, optional=("renderer", "raytrace", "camera", "world", "home", "assets"))
         if d["version"] != CONFIG_VERSION:
             raise ConfigError(f"config version {d['version']!r} is not this generator's version {CONFIG_VERSION}")
         try:
@@ -380,6 +390,8 @@ class SimConfig:
                 world=d.get("world", DEFAULT_WORLD),
                 home=_from_plain(HomeConfig, d["home"], "home") if "home" in d else HomeConfig(),
                 assets=d.get("assets"),
+                raytrace=_from_plain(RaytraceConfig, d["raytrace"], "raytrace") if "raytrace" in d
+                else RaytraceConfig(),
             )
         except (GridError, ClassTableError, SceneError, TypeError) as e:
             raise ConfigError(f"invalid config: {e}") from None

@@ -38,7 +38,9 @@ Registry
     :data:`RENDERERS` maps a name to a factory: a class (or any callable) taking the config, or the
     ``"module:attribute"`` path of one, imported when a renderer is first made, so that naming a renderer in a
     config imports nothing (``fruxel-sim --help`` stays instant; a config is checked without pyrender).
-    ``"pyrender"`` (:class:`~.images.SceneRenderer`, offscreen OpenGL with PBR materials) is the default.
+    ``"pyrender"`` (:class:`~.images.SceneRenderer`, offscreen OpenGL with PBR materials) is the default;
+    ``"raytrace"`` (:class:`~.raytrace.renderer.RaytraceRenderer`, NVIDIA Warp, textures, soft shadows, a camera
+    response) draws rooms like photographs.
 
 Adding a renderer
     Write one class with the three methods above and an ``__init__(self, config)``, and register it: in this
@@ -91,6 +93,7 @@ RendererFactory = Callable[["SimConfig"], Renderer]
 
 RENDERERS: dict[str, RendererFactory | str] = {
     DEFAULT_RENDERER: "fruxel.train.sim.images:SceneRenderer",
+    "raytrace": "fruxel.train.sim.raytrace.renderer:RaytraceRenderer",
 }
 """The renderers by name: a factory, or the ``"module:attribute"`` path of one (imported when first used)."""
 
