@@ -63,9 +63,9 @@ def make_config(size: int, pack: str, spp: int | None, shadow: int | None, ao: i
 
     changes = {k: v for k, v in (("samples_per_pixel", spp), ("shadow_samples", shadow), ("ao_samples", ao))
                if v is not None}
-    rt = dataclasses.replace(RaytraceConfig(pack=pack), **changes)
+    rt = dataclasses.replace(RaytraceConfig(), **changes)
     return SimConfig(grid=FruxelGrid(64, 64, 64, 0.5, 8.0, 60.0), image=ImageConfig(size=size), renderer="raytrace",
-                     room=RoomConfig(ceiling=True), raytrace=rt)
+                     room=RoomConfig(ceiling=True), assets=pack, raytrace=rt)
 
 
 def rooms(config: Any, first: int, count: int) -> list[tuple[Any, Any]]:
@@ -75,7 +75,7 @@ def rooms(config: Any, first: int, count: int) -> list[tuple[Any, Any]]:
     from fruxel.train.sim.robot import TrajectoryError, random_trajectory
     from fruxel.train.sim.scene import make_scene
 
-    pack = open_pack(config.raytrace.pack)
+    pack = open_pack(config.assets)
     out, seed = [], first
     while len(out) < count:
         scene = dress_scene(make_scene(seed, config.room, config.classes), pack, seed)

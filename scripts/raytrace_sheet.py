@@ -50,7 +50,7 @@ def render_rooms(pack_dir: str, rooms: int, size: int, seed: int, committable: b
     from fruxel.train.sim.scene import RoomConfig, make_scene
 
     config = SimConfig(grid=FruxelGrid(64, 64, 64, 0.5, 8.0, 60.0), image=ImageConfig(size=size),
-                       renderer="raytrace", room=RoomConfig(ceiling=True), raytrace=RaytraceConfig(pack=pack_dir))
+                       renderer="raytrace", room=RoomConfig(ceiling=True), assets=pack_dir, raytrace=RaytraceConfig())
     pack = open_pack(pack_dir)
     renderer = RaytraceRenderer(config)
     out, room = [], seed

@@ -71,7 +71,7 @@ def _look(eye: list[float], target: list[float]) -> np.ndarray:
 def _config(pack: Path, size: int = 48, grid: FruxelGrid | None = None, **raytrace: object) -> SimConfig:
     grid = grid or FruxelGrid(16, 16, 16, 0.5, 8.0, 60.0)
     return SimConfig(grid=grid, image=ImageConfig(size=size), renderer="raytrace",
-                     raytrace=RaytraceConfig(pack=str(pack), **raytrace))
+                     assets=str(pack), raytrace=RaytraceConfig(**raytrace))
 
 
 def _renderer(config: SimConfig):  # noqa: ANN202 - the class is imported with Warp
@@ -557,8 +557,7 @@ def test_bad_scenes_are_refused_in_one_line(pack_dir: Path, tmp_path: Path) -> N
 
     textured = _box("box", [0, 0, 0], [1, 1, 1], Material(texture=BRICK))
     missing = _config(tmp_path / "nowhere")
-    with _renderer(missing) as r, pytest.raises(AssetPackError, match="nowhere: asset pack folder not found.*make "
-                                                "assets"):
+    with _renderer(missing) as r, pytest.raises(ConfigError, match="nowhere: no asset pack there.*make assets"):
         r.set_scene(_scene([textured], []))
     with _renderer(_config(pack_dir)) as r:
         with pytest.raises(AssetPackError, match="no asset 'nope/none'"):

@@ -121,6 +121,34 @@ def test_the_default_renderer_keeps_configs_and_digests_of_data_sets_made_before
     assert isinstance(make_renderer(config), SceneRenderer) and isinstance(SceneRenderer(config), Renderer)
 
 
+class DeviceRenderer(LabelRenderer):
+    """The label renderer with a ``device`` argument, which it records in :attr:`made_on`."""
+
+    made_on: list[str | None] = []
+
+    def __init__(self, config: SimConfig, device: str | None = None) -> None:
+        super().__init__(config)
+        self.device = device
+        DeviceRenderer.made_on.append(device)
+
+
+def test_a_renderer_taking_a_device_gets_the_sample_makers(labels_renderer: str) -> None:
+    """A factory with a ``device`` argument is handed the device its process computes on (each training rank's
+    data workers draw on their own GPU), and one without it is made from the config alone."""
+    register_renderer("device-labels", DeviceRenderer)
+    try:
+        config = _config("device-labels")
+        assert make_renderer(config, "cpu").device == "cpu"
+        assert make_renderer(config).device is None
+        assert isinstance(make_renderer(_config(labels_renderer), "cpu"), LabelRenderer)
+        DeviceRenderer.made_on.clear()
+        with SampleMaker(config, SEED, device="cpu") as maker:
+            maker.make("train", 0)
+        assert DeviceRenderer.made_on == ["cpu"]
+    finally:
+        RENDERERS.pop("device-labels")
+
+
 def test_registry_errors(labels_renderer: str) -> None:
     named = _config(labels_renderer)
     assert named.digest() != _config().digest()

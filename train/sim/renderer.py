@@ -6,8 +6,10 @@ named by :attr:`SimConfig.renderer <.config.SimConfig.renderer>` (:func:`make_re
 come from the renderer its config names, and the config (recorded in its manifest) says which.
 
 Protocol (:class:`Renderer`)
-    A renderer is made by its factory from the data set's :class:`~.config.SimConfig`, ``factory(config)``, and
-    then used as
+    A renderer is made by its factory from the data set's :class:`~.config.SimConfig`, ``factory(config)``, or
+    ``factory(config, device=device)`` when the factory takes a ``device`` argument and the process asks for a
+    device (a training rank's data workers draw on that rank's GPU: the Warp device name ``"cuda:N"`` or
+    ``"cpu"``); it is then used as
 
     * ``set_scene(scene)``: the room to draw, its objects (meshes in the world frame, z up, metres, with their
       colours and PBR factors) and lights; :class:`~.sample.SampleMaker` calls it before every ``render``, so
@@ -154,22 +156,35 @@ def renderer_factory(name: str) -> RendererFactory:
         raise ConfigError(f"renderer {name!r} ({entry}) cannot be imported: {e}") from None
 
 
-def make_renderer(config: SimConfig) -> Renderer:
+def make_renderer(config: SimConfig, device: str | None = None) -> Renderer:
     """A new renderer of the kind ``config.renderer`` names, made for ``config``.
+
+    Args:
+        config: the simulator config.
+        device: the Warp device (``"cpu"``, ``"cuda:N"``) the process computes on, handed to factories that take a
+            ``device`` argument (module docstring); None: the renderer's own choice.
 
     Raises:
         ConfigError: an unknown renderer, or one that does not import.
     """
-    return renderer_factory(config.renderer)(config)
+    factory = renderer_factory(config.renderer)
+    if device is not None and _takes(factory, "device"):
+        return factory(config, device=device)
+    return factory(config)
 
 
 def takes_camera(renderer: Any) -> bool:
     """Whether ``renderer.render`` takes the optional ``camera`` argument (module docstring)."""
+    return _takes(renderer.render, "camera")
+
+
+def _takes(function: Any, argument: str) -> bool:
+    """Whether ``function`` can be called with the keyword ``argument``."""
     try:
-        params = inspect.signature(renderer.render).parameters
+        params = inspect.signature(function).parameters
     except (TypeError, ValueError):
         return False
-    return "camera" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    return argument in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
 def _describe(entry: RendererFactory | str) -> str:

@@ -243,7 +243,7 @@ class SampleMaker:
         """
         cfg = self.config
         if self._renderer is None:
-            self._renderer = make_renderer(cfg)
+            self._renderer = make_renderer(cfg, self.device)
         self._renderer.set_scene(room.scene)
         if not cameras.is_framed(cfg, room.mount.hfov):
             return self._renderer.render(pose, rng)

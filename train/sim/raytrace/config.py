@@ -121,9 +121,6 @@ class RaytraceConfig:
     shadow_samples + ao_samples + window_samples)`` rays per pixel.
     """
 
-    pack: str = "assets/pack"
-    """The asset pack folder (``make assets``) whose textures and images the scenes' materials name; read only when
-    a scene names one."""
     samples_per_pixel: int = 2
     """Camera rays per pixel (anti-aliasing, and the samples of shadows and occlusion), 1-16."""
     edge_samples: int = 2
@@ -159,8 +156,6 @@ class RaytraceConfig:
     """The camera response applied to every image."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.pack, str) or not self.pack:
-            raise ConfigError(f"raytrace.pack must be a folder name, got {self.pack!r}")
         _check_int("samples_per_pixel", self.samples_per_pixel, 1, 16)
         _check_int("edge_samples", self.edge_samples, 0, 16 - self.samples_per_pixel)
         _check_int("shadow_samples", self.shadow_samples, 1, 16)

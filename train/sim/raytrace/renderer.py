@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,20 +54,20 @@ _PACKS: dict[str, Any] = {}
 """Asset packs opened in this process, by resolved folder."""
 
 
-def open_pack(folder: str) -> Any:
-    """The :class:`~fruxel.train.sim.assetpack.AssetPack` at ``folder``, opened (and checked) once per process.
+def open_pack(folder: str | None) -> Any:
+    """The :class:`~fruxel.train.sim.assetpack.AssetPack` the simulator config's ``assets`` names (resolved as the
+    rooms resolve it: the folder, else ``$FRUXEL_ASSETS``, else the repository's), opened once per process.
 
     Raises:
-        AssetPackError: no pack there (the message names the folder and says how to build it).
+        ConfigError: no pack there (the message names the folder and says how to build it).
+        AssetPackError: a pack whose manifest or files are broken.
     """
-    from ..assetpack import AssetPack, AssetPackError
+    from ..assetpack import AssetPack
+    from ..rooms.library import resolve_pack
 
-    key = str(Path(folder).resolve())
+    key = str(resolve_pack(folder).resolve())
     if key not in _PACKS:
-        try:
-            _PACKS[key] = AssetPack(folder)
-        except AssetPackError as e:
-            raise AssetPackError(f"{e} (raytrace.pack of the simulator config; `make assets` builds one)") from None
+        _PACKS[key] = AssetPack(key)
     return _PACKS[key]
 
 
@@ -127,7 +126,7 @@ class RaytraceRenderer:
         def lookup(role: str, asset_id: str) -> int:
             t = time.perf_counter()
             if layers.pack is None:
-                layers.pack = open_pack(rt.pack)
+                layers.pack = open_pack(self.config.assets)
             layer = layers.layer(role, asset_id)
             loading[0] += time.perf_counter() - t
             return layer
