@@ -540,27 +540,39 @@ def test_test_sets_camera_side() -> None:
         assert s.camera == ANY_CAMERA and s.world == "home"
         cams = s.config(base, camera_only=True)
         assert cams == base.replace(camera=ANY_CAMERA)
-        if not testsets.ASSET_SIDE_CONNECTED:
-            with pytest.raises(ConfigError, match=f"test set '{name}' needs the room world"):
-                s.config(base)
+        with pytest.raises(ConfigError, match=f"test set '{name}': world 'home' labels"):
+            s.config(base)  # the flat world's six classes have no ceiling or object
     assert testsets.test_set("any-camera").assets == "train" and testsets.test_set("any-camera-test-assets").assets \
         == "test"
     with pytest.raises(ConfigError, match="unknown test set 'hand-held'"):
         testsets.test_set("hand-held")
 
 
-@pytest.mark.skipif(not testsets.ASSET_SIDE_CONNECTED, reason="the world and asset side of the test sets "
-                    "(SimConfig.world, the home world's held-out assets) comes with the room generator of branch "
-                    "rooms38, connected in testsets._world when it is merged")
-def test_test_sets_world_and_assets() -> None:
-    assert testsets.ASSET_SIDE_CONNECTED
-    base = ANY.replace(splits=(("test", 32),))
+def test_test_sets_world_and_assets(tiny_pack: Path) -> None:
+    """The room-world sets draw furnished rooms with the ray tracer, their test rooms furnished from the set's asset
+    split only (checked on the rooms their sample maker makes); the robot set is the flat world of its renderer."""
+    from fruxel.classes import HOME_CLASSES
+    from fruxel.train.sim.assetpack import AssetPack
+    from fruxel.train.sim.sample import make_room
+
+    base = ANY.replace(splits=(("test", 32),), classes=HOME_CLASSES, world="home", renderer="raytrace",
+                       assets=str(tiny_pack))
     a, b, r = (testsets.test_set(n).config(base) for n in ("any-camera", "any-camera-test-assets", "robot"))
-    assert (a.world, b.world, r.world) == ("home", "home", "flat")  # type: ignore[attr-defined]
+    assert (a.world, b.world, r.world) == ("home", "home", "flat")
+    assert (a.renderer, b.renderer, r.renderer) == ("raytrace", "raytrace", "pyrender")
     assert (a.camera, b.camera, r.camera) == (ANY_CAMERA, ANY_CAMERA, ROBOT_CAMERA)
-    # TO CONNECT: a's rooms are furnished from the training assets and b's from the held-out test assets only
-    # (SimConfig.home's choice); check it on the configs and on the assets of a few of b's rooms.
-    raise AssertionError("the asset split of the test sets is not checked yet")
+    assert a.replace(home=b.home) == b and a.digest() != b.digest()
+    pack = AssetPack(tiny_pack)
+    for config, split in ((a, "train"), (b, "test")):
+        used: set[str] = set()
+        for seed in range(3):
+            scene = make_room(config, seed, "test")
+            used |= {o.asset for o in scene.objects if o.asset is not None}
+            used |= {i for o in scene.objects for m in o.materials for i in (m.texture, m.image) if i is not None}
+        assert used and {pack.entry(i).split for i in used} == {split}
+    # Training rooms keep the training assets whatever the set.
+    train_scene = make_room(b, 0, "train")
+    assert {pack.entry(o.asset).split for o in train_scene.objects if o.asset is not None} == {"train"}
 
 
 def test_streamed_samples_take_the_source_camera() -> None:

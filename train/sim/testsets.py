@@ -13,24 +13,23 @@ augmentation and split: :func:`fruxel.train.samples.sim_config`) into the test s
 the rooms come from the evaluation's seed and split as always (``test``: seeds that training never uses). The
 ``robot`` set leaves that config as it is, so its samples are exactly those earlier reports were measured on.
 
-The camera side is defined here. The world and asset side (``SimConfig.world``, ``"flat"`` or ``"home"``, and the
-home world's choice of held-out assets) comes with the room generator (branch ``rooms38``): :func:`_world` is the
-one place where it is connected, and :data:`ASSET_SIDE_CONNECTED` says whether it is. Until then the two sets of
-the room world are refused by :meth:`TestSet.config`, and their camera side alone is had with
-``camera_only=True`` (in the flat world).
+The ``robot`` set is the flat world drawn by its own renderer (``pyrender``) from the robot's mount; the two sets of
+the room world are furnished rooms drawn by their renderer (``raytrace``), whose test rooms take their meshes,
+textures and pictures from the pack split the set names (``HomeConfig.test_assets``). A room-world set needs a model
+whose classes include ``ceiling`` and ``object`` (:data:`fruxel.classes.HOME_CLASSES`); the config refuses others in
+one line.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from fruxel.errors import ConfigError
 
 from .cameras import ANY_CAMERA, ROBOT_CAMERA, CameraConfig
-from .config import SimConfig
+from .config import WORLD_RENDERERS, SimConfig
 
-ASSET_SIDE_CONNECTED = False
-"""Whether :func:`_world` applies the world and the asset split (True once the room generator is merged)."""
 
 
 @dataclass(frozen=True)
@@ -54,11 +53,11 @@ class EvaluationSet:
 
         Args:
             base: the config to start from (its camera, and world where there is one, are replaced).
-            camera_only: apply the camera alone and keep ``base``'s world (for evaluating the cameras before the
-                room world is connected; not the test set itself).
+            camera_only: apply the camera alone and keep ``base``'s world, renderer and assets (the cameras of the
+                set in another world; not the test set itself).
 
         Raises:
-            ConfigError: a set of the room world while the world side is not connected (:data:`ASSET_SIDE_CONNECTED`).
+            ConfigError: a set of the room world for classes without ``ceiling`` and ``object``.
         """
         config = base.replace(camera=self.camera)
         return config if camera_only else _world(config, self)
@@ -87,16 +86,12 @@ def test_set(name: str) -> EvaluationSet:
 
 
 def _world(config: SimConfig, test_set: EvaluationSet) -> SimConfig:
-    """``config`` in the test set's world, furnished from its asset split.
-
-    TO CONNECT (lead, when merging rooms38): set ``SimConfig.world`` to ``test_set.world`` and, for the home world,
-    choose the held-out assets when ``test_set.assets == "test"`` (``SimConfig.home``'s choice), training assets
-    otherwise; then set :data:`ASSET_SIDE_CONNECTED`, which runs ``test_test_sets_world_and_assets`` of
-    ``tests/train/test_cameras.py`` (its asset check is to be written then). The flat world is today's only world,
-    so the ``robot`` set needs nothing.
-    """
-    if test_set.world == "flat":
-        return config
-    raise ConfigError(f"test set {test_set.name!r} needs the room world with {test_set.assets} assets, which this "
-                      "fruxel does not have yet (the room generator is not merged); camera_only=True gives its cameras "
-                      "in the flat world")
+    """``config`` in the test set's world, drawn by that world's renderer, its test rooms furnished from the set's
+    asset split (the flat world has no assets)."""
+    changes: dict = {"world": test_set.world, "renderer": WORLD_RENDERERS[test_set.world]}
+    if test_set.assets is not None:
+        changes["home"] = dataclasses.replace(config.home, test_assets=test_set.assets)
+    try:
+        return config.replace(**changes)
+    except ConfigError as e:
+        raise ConfigError(f"test set {test_set.name!r}: {e}") from None
