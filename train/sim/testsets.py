@@ -31,7 +31,6 @@ from .cameras import ANY_CAMERA, ROBOT_CAMERA, CameraConfig
 from .config import WORLD_RENDERERS, SimConfig
 
 
-
 @dataclass(frozen=True)
 class EvaluationSet:
     """One held-out test set (module docstring)."""
