@@ -494,6 +494,38 @@ def test_same_seed_same_bytes_and_no_nan_in_a_dressed_room(pack_dir: Path) -> No
     assert images[0].std() > 5
 
 
+def test_a_camera_of_another_field_of_view_draws_as_the_config_of_that_camera(pack_dir: Path) -> None:
+    """``render(pose, rng, camera=...)`` draws with the camera's intrinsics and size: the image of the config's own
+    camera when given it, and the image a config of that field of view and size draws (so the simulator's cameras
+    of any field of view work with this renderer, and the default home world from any camera makes samples)."""
+    from fruxel.classes import HOME_CLASSES
+    from fruxel.train.sim.cameras import ANY_CAMERA
+    from fruxel.train.sim.renderer import takes_camera
+    from fruxel.train.sim.raytrace.dressing import dress_scene
+    from fruxel.train.sim.raytrace.renderer import open_pack
+    from fruxel.train.sim.sample import SampleMaker
+    from fruxel.train.sim.scene import RoomConfig
+
+    scene = dress_scene(make_scene(5, RoomConfig(ceiling=True)), open_pack(str(pack_dir)), 5)
+    pose = _look([1.0, 1.0, 1.2], [3.0, 2.0, 1.0])
+    config = _config(pack_dir, 24)
+    wide = _config(pack_dir, 40, FruxelGrid(16, 12, 16, 0.5, 8.0, 78.0))
+    with _renderer(config) as r, _renderer(wide) as w:
+        assert takes_camera(r)
+        r.set_scene(scene)
+        w.set_scene(scene)
+        own = r.render(pose, None)
+        assert r.render(pose, None, camera=config.image_camera()).tobytes() == own.tobytes()
+        other = r.render(pose, None, camera=wide.image_camera())
+        assert other.shape == (30, 40, 3) and other.tobytes() == w.render(pose, None).tobytes()
+    home = SimConfig(grid=FruxelGrid(16, 16, 16, 0.5, 8.0, 60.0), image=ImageConfig(size=24), renderer="raytrace",
+                     world="home", camera=ANY_CAMERA, classes=HOME_CLASSES, assets=str(pack_dir), samples_per_scene=2,
+                     splits=(("train", 2),))
+    with SampleMaker(home, 3, device="cpu") as maker:
+        sample = maker.make("train", 1)
+    assert sample.image.shape == (24, 24, 3) and sample.camera.hfov != 60.0
+
+
 def test_sample_maker_and_a_spawned_data_worker_draw_with_raytrace() -> None:
     """``SimConfig(renderer="raytrace")`` makes SampleMaker's images with this renderer (labels as with any
     renderer), and a spawned DataLoader worker makes the same bytes as this process."""

@@ -179,16 +179,18 @@ class RaytraceRenderer:
         return self._room.ambient.copy()
 
     # ------------------------------------------------------------------ images
-    def render(self, pose: Any, rng: np.random.Generator | None = None) -> np.ndarray:
+    def render(self, pose: Any, rng: np.random.Generator | None = None, camera: Any = None) -> np.ndarray:
         """The image of the current room from camera-to-world ``pose``.
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
             rng: the sample's generator (None, or ``config.image.augment.enabled`` False: fixed seeds, neutral
                 camera response).
+            camera: a :class:`fruxel.Camera` whose intrinsics and image size are drawn with (its pose is
+                ignored); None: the robot camera of ``config.image_camera()``.
 
         Returns:
-            ``(S * H / W, S, 3)`` uint8 RGB image.
+            ``(H, W, 3)`` uint8 RGB image: ``(S * H / W, S)`` of the config, or the size of ``camera``.
 
         Raises:
             RuntimeError: no room was set.
@@ -205,12 +207,12 @@ class RaytraceRenderer:
             seeds = tuple(int(s) for s in rng.integers(0, 2**31, size=3))
             factor = float(rng.uniform(*rt.ambient))
         draws = draw_response(rt.response, rng)
-        h, w, spp = self.config.image_height, self.config.image_width, int(rt.samples_per_pixel)
+        cam = self.config.image_camera() if camera is None else camera
+        h, w, spp = int(cam.height), int(cam.width), int(rt.samples_per_pixel)
         slots = spp + int(rt.edge_samples)
         b = self._buffers
         if b is None or (b.height, b.width, b.spp) != (h, w, slots):
             b = self._buffers = allocate(h, w, slots, self.device)
-        cam = self.config.image_camera()
         irradiance = room.ambient * factor
         t0 = self._mark()
         trace_primary(room.data, b, pose, (cam.fx, cam.fy, cam.cx, cam.cy), irradiance / np.pi, seeds[0], spp,
