@@ -443,10 +443,6 @@ class BlockStream(IterableDataset):
             close()
 
 
-WORKER_NICENESS = 5
-"""How much lower the scheduling priority of the simulator's data workers is than their training process's."""
-
-
 def _init_worker(_: int) -> None:
     """Set up a DataLoader worker process: one llvmpipe thread each when there are several, and an exit that skips
     the interpreter's teardown."""
@@ -455,9 +451,6 @@ def _init_worker(_: int) -> None:
         # Each worker renders with one llvmpipe thread (the workers already use the cores); read when the
         # renderer's context is made. NVIDIA's EGL ignores it.
         os.environ.setdefault("LP_NUM_THREADS", "1")
-        # Below the training processes: when every core has a worker, a rank's kernel launches (one Python thread
-        # each) must not wait behind the simulator for a core, or the GPU idles between kernels.
-        os.nice(WORKER_NICENESS)
     # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
     # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
     # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream

@@ -500,9 +500,9 @@ def test_a_camera_of_another_field_of_view_draws_as_the_config_of_that_camera(pa
     of any field of view work with this renderer, and the default home world from any camera makes samples)."""
     from fruxel.classes import HOME_CLASSES
     from fruxel.train.sim.cameras import ANY_CAMERA
-    from fruxel.train.sim.renderer import takes_camera
     from fruxel.train.sim.raytrace.dressing import dress_scene
     from fruxel.train.sim.raytrace.renderer import open_pack
+    from fruxel.train.sim.renderer import takes_camera
     from fruxel.train.sim.sample import SampleMaker
     from fruxel.train.sim.scene import RoomConfig
 

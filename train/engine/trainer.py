@@ -176,9 +176,8 @@ class Trainer:
             from torch.nn.parallel import DistributedDataParallel as DDP
 
             ids = [dev.index] if dev.type == "cuda" else None
-            # Gradients as views of the all-reduce buckets: no copy into the buckets and back after each step.
-            model = DDP(model, device_ids=ids, gradient_as_bucket_view=True)
-            d_model = DDP(d_model, device_ids=ids, gradient_as_bucket_view=True) if d_model is not None else None
+            model = DDP(model, device_ids=ids)
+            d_model = DDP(d_model, device_ids=ids) if d_model is not None else None
         if c.run.compile:
             model = torch.compile(model)
         return state, Step(model, d_model, None, self.autocast, self.timer)
