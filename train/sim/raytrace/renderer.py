@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from fruxel.camera import check_pose
+from fruxel.camera import Camera, check_pose
 from fruxel.kernels.wp.runtime import resolve_device, warp
 
 from . import ambient as ambient_mod
@@ -179,16 +179,19 @@ class RaytraceRenderer:
         return self._room.ambient.copy()
 
     # ------------------------------------------------------------------ images
-    def render(self, pose: Any, rng: np.random.Generator | None = None) -> np.ndarray:
+    def render(self, pose: Any, rng: np.random.Generator | None = None, camera: Camera | None = None) -> np.ndarray:
         """The image of the current room from camera-to-world ``pose``.
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
             rng: the sample's generator (None, or ``config.image.augment.enabled`` False: fixed seeds, neutral
                 camera response).
+            camera: the intrinsics and image size to draw with (its pose is ignored: ``pose`` places it); None: the
+                network image's camera (:meth:`SimConfig.image_camera`). The simulator asks for another one when
+                the config's cameras draw other fields of view (:mod:`..cameras`).
 
         Returns:
-            ``(S * H / W, S, 3)`` uint8 RGB image.
+            ``(S * H / W, S, 3)`` uint8 RGB image, or ``camera``'s ``(height, width, 3)``.
 
         Raises:
             RuntimeError: no room was set.
@@ -205,12 +208,12 @@ class RaytraceRenderer:
             seeds = tuple(int(s) for s in rng.integers(0, 2**31, size=3))
             factor = float(rng.uniform(*rt.ambient))
         draws = draw_response(rt.response, rng)
-        h, w, spp = self.config.image_height, self.config.image_width, int(rt.samples_per_pixel)
+        cam = self.config.image_camera() if camera is None else camera
+        h, w, spp = int(cam.height), int(cam.width), int(rt.samples_per_pixel)
         slots = spp + int(rt.edge_samples)
         b = self._buffers
         if b is None or (b.height, b.width, b.spp) != (h, w, slots):
             b = self._buffers = allocate(h, w, slots, self.device)
-        cam = self.config.image_camera()
         irradiance = room.ambient * factor
         t0 = self._mark()
         trace_primary(room.data, b, pose, (cam.fx, cam.fy, cam.cx, cam.cy), irradiance / np.pi, seeds[0], spp,
