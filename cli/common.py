@@ -611,6 +611,31 @@ def check_photo(path: str | Path) -> tuple[int, int]:
     return w, h
 
 
+# ---------------------------------------------------------------------------------------------------- asset pack
+def add_assets_option(parser: Any, what: str = "the furnished rooms") -> None:
+    """Add ``--assets DIR``: the asset pack folder (``SimConfig.assets``; None when not given)."""
+    parser.add_argument("--assets", default=None, type=path_name, metavar="DIR",
+                        help=f"the asset pack folder of {what} (default: $FRUXEL_ASSETS, else the repository's "
+                        "assets/pack, which `make assets` builds)")
+
+
+def check_asset_pack(config: Any) -> None:
+    """Check, before any slow work, that the asset pack a simulator config needs is there: the ``home`` world
+    furnishes its rooms from it; other configs need none.
+
+    Args:
+        config: the :class:`fruxel.train.sim.config.SimConfig`; its ``assets`` comes from ``--assets``.
+
+    Raises:
+        ConfigError: no pack in the folder (one line naming it, where it came from and ``make assets``).
+    """
+    if config.world != "home":
+        return
+    from fruxel.train.sim.rooms.library import resolve_pack
+
+    resolve_pack(config.assets, option="--assets")
+
+
 # ---------------------------------------------------------------------------------------------------- models
 def add_model_options(parser: Any) -> None:
     """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.

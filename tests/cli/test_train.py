@@ -36,7 +36,7 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     out = tmp_path_factory.mktemp("data")
     assert sim(["generate", "--out", str(out), "--split", "train=16,test=4", "--grid", "16", "--image", "32",
-                "--samples-per-scene", "4", "--shard-size", "4", "-q"]) == 0
+                "--samples-per-scene", "4", "--shard-size", "4", "--world", "flat", "--camera", "robot", "-q"]) == 0
     return out
 
 
