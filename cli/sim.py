@@ -179,39 +179,22 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from fruxel.kernels import first_hit
     from fruxel.render.images import image_format, save_image
-    from fruxel.render.raycast import RaycastStyle, raycast_image
-    from fruxel.train.sim.images import contact_sheet, second_camera
+    from fruxel.train.sim.images import camera_text, contact_sheet, preview_panels
     from fruxel.train.sim.sample import SampleMaker
 
     # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
     fmt = image_format(args.out)
     check_output_file(args.out, "--out")
     config = _config(args, ((args.split, args.index + args.count),))
-    classes = config.classes
-    palette = classes.palette()
-    grid = config.grid
     rows, titles = [], []
     with SampleMaker(config, args.seed, backend=args.backend) as maker:
         for i in range(args.index, args.index + args.count):
             s = maker.make(args.split, i)
-            own = first_hit(s.labels, grid, grid.camera(), backend=args.raycast_backend)
-            cam = second_camera(own.depth, config, config.image_width)
-            shaded, _ = raycast_image(s.labels, grid, cam, palette, backend=args.raycast_backend,
-                                      style=RaycastStyle(fog=True))
-            rows.append({
-                "camera image": s.image,
-                "ground truth, own view": classes.colour_of(np.asarray(own.label)),
-                "ground truth, second pose": shaded,
-            })
-            c = s.camera
+            rows.append(preview_panels(s, config, backend=args.raycast_backend))
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
-                          f"grid {_grid_text(config)}; camera {c.height:.2f} m, pitch {c.pitch:.1f}, "
-                          f"roll {c.roll:.1f}, {c.hfov:.1f} deg across")
-    sheet = contact_sheet(rows, classes.names, palette, titles)
+                          f"grid {_grid_text(config)}; {camera_text(s)}")
+    sheet = contact_sheet(rows, config.classes.names, config.classes.palette(), titles)
     write_outputs([(args.out, lambda tmp: save_image(tmp, sheet, fmt))])
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")
     return 0
