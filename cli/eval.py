@@ -10,8 +10,8 @@ The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training chec
 name (``ssz64``, ``ssz128``); by default the model shipped with fruxel (``ssz64``). Samples are the first N of a
 data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid, image size and
 classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split streamed for
-the model's grid and image size (default 256, ``--seed``): by default those the model's own streaming makes for
-evaluation (the flat world from the robot's mount, as earlier reports), with ``--test-set NAME`` those of a held-out
+the model's grid and image size (default 256, ``--seed``): by default the flat world from the robot's mount (the
+samples of earlier reports, as ``--test-set robot`` gives them), with ``--test-set NAME`` those of a held-out
 test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and ``any-camera-test-assets``, furnished rooms
 from any camera with training or held-out assets, from the asset pack ``--assets`` names; ``robot``, the robot's
 mount in the flat world). A room-world set needs a model whose classes include ``ceiling`` and ``object``. The same
