@@ -5,10 +5,13 @@ with them.
     fruxel-calibrate MODEL --data data/set --split train --out CALIBRATED.safetensors
     fruxel-calibrate MODEL --seed 100 --samples 2048 --device cuda --workers 14 --fill --first-hit-label
         --flip-average --out CALIBRATED.safetensors
+    fruxel-calibrate MODEL --test-set any-camera [--assets DIR] --out CALIBRATED.safetensors
 
 Predicts ``--samples`` samples of ``--split`` (default ``train``: never the test split the model is evaluated on;
 without ``--data``, the simulator's split streamed with data seed ``--seed``, so that calibration can draw rooms no
-training run drew) once, counts mIoU, completion IoU, own-view and novel-view first-hit accuracy (the novel views
+training run drew; with ``--test-set NAME``, the split of a held-out test set's stream,
+:data:`fruxel.train.sim.testsets.TEST_SETS`, whose rooms of the ``train`` split training never drew either) once,
+counts mIoU, completion IoU, own-view and novel-view first-hit accuracy (the novel views
 unless ``--no-novel``) at every ``--offsets`` value added to the empty logit (with ``--fill``: and
 ``fill_columns`` after it at every ``--thresholds`` value; with ``--first-hit-label``, ``first_hit_label`` last in
 every pair; with ``--flip-average``, every prediction the average of the image's and its mirror image's), prints
@@ -25,7 +28,17 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from .common import OneLineParser, UsageError, device_name, non_negative_int, positive_int, run
+from .common import (
+    OneLineParser,
+    UsageError,
+    add_test_set_options,
+    check_stream,
+    check_test_set_options,
+    device_name,
+    non_negative_int,
+    positive_int,
+    run,
+)
 
 PROG = "fruxel-calibrate"
 DEFAULT_OFFSETS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
@@ -43,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", default=None, help="data set folder (fruxel-sim generate) holding --split (default: "
                    "stream the simulator's --split with data seed --seed)")
     p.add_argument("--split", default="train", help="split to calibrate on (default train)")
+    add_test_set_options(p)
     p.add_argument("--seed", type=non_negative_int, default=None, metavar="S",
                    help="data seed of streamed samples (without --data; default 0)")
     p.add_argument("--workers", type=non_negative_int, default=0, metavar="K",
@@ -76,14 +90,18 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError(f"--out {args.out}: must end in .safetensors")
     if args.data is not None and args.seed is not None:
         raise UsageError("--seed picks streamed samples; a data set (--data) has its own")
+    check_test_set_options(args)
 
 
 def _samples(args: argparse.Namespace, config: Any) -> tuple[Any, int]:
-    """``(source, count)``: where the samples come from and how many there are."""
+    """``(source, count)``: where the samples come from and how many there are, checked against the model
+    (:func:`fruxel.cli.common.check_stream`)."""
     from fruxel.train.samples import SampleSource, check_data_set, split_size
 
     if args.data is None:
-        return SampleSource(seed=args.seed or 0), args.samples
+        source = SampleSource(seed=args.seed or 0, assets=str(args.assets or ""), test_set=args.test_set or "")
+        check_stream(source, config)
+        return source, args.samples
     source = SampleSource("shards", args.data, check_data_set(args.data, config).seed)
     return source, min(args.samples, split_size(source, config, args.split))
 
@@ -140,7 +158,8 @@ def _main(args: argparse.Namespace) -> None:
     sweep = {(f"{r[0]:g}/{r[1]:g}" if args.fill else f"{r[0]:g}"):
              {k: round(s[k], 3) for k in ("miou", "completion_iou", "own_view_accuracy", "novel_view_accuracy")
               if s[k] is not None} for r, s in summaries.items()}
-    calibration = {"data": args.data or f"stream:seed={source.seed}", "split": args.split, "samples": count,
+    stream = f"stream:seed={source.seed}" + (f",test-set={source.test_set}" if source.test_set else "")
+    calibration = {"data": args.data or stream, "split": args.split, "samples": count,
                    "rules": rules.to_dict(), "sweep": sweep}
     # Stored as the file stored them: the weights written back are the weights read.
     save_model(args.out, m.network.cpu(), m.config, rules, {**m.training, "calibration": calibration}, half=m.half)

@@ -611,6 +611,84 @@ def check_photo(path: str | Path) -> tuple[int, int]:
     return w, h
 
 
+# ---------------------------------------------------------------------------------------------------- asset pack
+def add_assets_option(parser: Any, what: str = "the furnished rooms") -> None:
+    """Add ``--assets DIR``: the asset pack folder (``SimConfig.assets``; None when not given)."""
+    parser.add_argument("--assets", default=None, type=path_name, metavar="DIR",
+                        help=f"the asset pack folder of {what} (default: $FRUXEL_ASSETS, else the repository's "
+                        "assets/pack, which `make assets` builds)")
+
+
+def check_asset_pack(config: Any) -> None:
+    """Check, before any slow work, that the asset pack a simulator config needs is there: the ``home`` world
+    furnishes its rooms from it; other configs need none.
+
+    Args:
+        config: the :class:`fruxel.train.sim.config.SimConfig`; its ``assets`` comes from ``--assets``.
+
+    Raises:
+        ConfigError: no pack in the folder (one line naming it, where it came from and ``make assets``).
+    """
+    if config.world != "home":
+        return
+    from fruxel.train.sim.rooms.library import resolve_pack
+
+    resolve_pack(config.assets, option="--assets")
+
+
+# ---------------------------------------------------------------------------------------------------- test sets
+def add_test_set_options(parser: Any) -> None:
+    """Add ``--test-set NAME`` (:data:`fruxel.train.sim.testsets.TEST_SETS`; None when not given) and ``--assets
+    DIR`` (:func:`add_assets_option`): streamed samples of a held-out test set."""
+    from fruxel.train.sim.testsets import TEST_SETS
+
+    parser.add_argument("--test-set", default=None, choices=tuple(TEST_SETS), metavar="NAME",
+                        help="stream the samples of a held-out test set instead of the model's own: "
+                        + "; ".join(f"{s.name}: {s.description}" for s in TEST_SETS.values())
+                        + " (the first two need a model with the classes ceiling and object)")
+    add_assets_option(parser, "the room-world test sets")
+
+
+def check_test_set_options(args: argparse.Namespace) -> None:
+    """Refuse ``--test-set`` with ``--data`` and ``--assets`` without ``--test-set``, before any work.
+
+    Raises:
+        UsageError: the options that do not go together, named.
+    """
+    if args.test_set is not None and args.data is not None:
+        raise UsageError(f"--test-set {args.test_set} streams the test set's samples; a data set (--data) has its own; "
+                         "give one of them")
+    if args.assets is not None and args.test_set is None:
+        raise UsageError("--assets names the asset pack of a --test-set's furnished rooms; give --test-set NAME")
+
+
+def check_stream(source: Any, model: Any) -> None:
+    """Check, before any slow work, that a streamed sample source fits a model: a test set of the room world needs
+    the model's classes to include the ones that world labels, and its asset pack (:func:`check_asset_pack`).
+
+    Args:
+        source: the :class:`fruxel.train.samples.SampleSource` (shards pass unchecked).
+        model: the model's config (grid, image size, classes).
+
+    Raises:
+        UsageError: a room-world test set for a model without its classes (one line naming them).
+        ConfigError: no asset pack there, or another config the simulator refuses.
+    """
+    if source.source != "stream":
+        return
+    from fruxel.train.samples import sim_config
+    from fruxel.train.sim.rooms import CLASS_NAMES
+    from fruxel.train.sim.testsets import TEST_SETS
+
+    if source.test_set and TEST_SETS[source.test_set].world == "home":
+        missing = [n for n in CLASS_NAMES if n not in model.classes.names]
+        if missing:
+            raise UsageError(f"--test-set {source.test_set} is a set of furnished rooms, labelled with "
+                             f"{', '.join(CLASS_NAMES)}; the model's classes lack {', '.join(missing)} (it learnt "
+                             "another world; --test-set robot fits it)")
+    check_asset_pack(sim_config(model, source, (("test", 1),)))
+
+
 # ---------------------------------------------------------------------------------------------------- models
 def add_model_options(parser: Any) -> None:
     """Add ``--checkpoint FILE`` and ``--device cpu|cuda[:N]``: the trained SSZ model a command runs, and where.

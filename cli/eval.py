@@ -2,15 +2,20 @@
 
 Usage::
 
-    fruxel-eval [--checkpoint FILE] [--data DIR [--split test]] [--samples N] [--seed S] [--no-augment]
-                [--prior-samples N] [--out DIR] [--batch B] [--workers K] [--device cpu|cuda[:N]]
-                [--backend NAME] [--examples N] [-q]
+    fruxel-eval [--checkpoint FILE] [--data DIR [--split test] | --test-set NAME [--assets DIR]] [--samples N]
+                [--seed S] [--no-augment] [--prior-samples N] [--out DIR] [--batch B] [--workers K]
+                [--device cpu|cuda[:N]] [--backend NAME] [--examples N] [-q]
 
 The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's
 name (``ssz64``, ``ssz128``); by default the model shipped with fruxel (``ssz64``). Samples are the first N of a
 data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid, image size and
 classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split streamed for
-the model's grid and image size (default 256, ``--seed``). The same samples are predicted by
+the model's grid and image size (default 256, ``--seed``): by default the flat world from the robot's mount (the
+samples of earlier reports, as ``--test-set robot`` gives them), with ``--test-set NAME`` those of a held-out
+test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and ``any-camera-test-assets``, furnished rooms
+from any camera with training or held-out assets, from the asset pack ``--assets`` names; ``robot``, the robot's
+mount in the flat world). A room-world set needs a model whose classes include ``ceiling`` and ``object``. The same
+samples are predicted by
 
 * the model (argmax of its logits),
 * the **per-cell prior**: each cell's most frequent label over ``--prior-samples`` samples of the training split
@@ -26,7 +31,7 @@ and every metric is counted over all of them together: IoU per class, mIoU over 
 IoU, own- and novel-view first-hit accuracy and novel-view depth error.
 
 Outputs, written together into ``--out`` (default ``out/``): ``report.md`` (tables, the command line, model file,
-samples, data source and machine), ``report.json`` (the same numbers with the confusion matrices and counts
+samples, data source, test set and machine), ``report.json`` (the same numbers with the confusion matrices and counts
 behind them) and ``examples.png`` (image | truth and prediction from the grid's own camera | truth and prediction
 from a novel pose; not written with ``--examples 0``). Errors are one line ``fruxel-eval: error: ...`` with exit
 status 2 (:func:`fruxel.cli.common.run`).
@@ -50,7 +55,10 @@ from .common import (
     OneLineParser,
     UsageError,
     add_model_options,
+    add_test_set_options,
     check_output_folder,
+    check_stream,
+    check_test_set_options,
     non_negative_int,
     path_name,
     positive_int,
@@ -86,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=path_name, default=None, metavar="DIR",
                    help="a data set folder made by fruxel-sim generate (default: stream samples from the simulator)")
     p.add_argument("--split", default="test", metavar="NAME", help="the data set's split to evaluate on (default test)")
+    add_test_set_options(p)
     p.add_argument("--samples", type=positive_int, default=None, metavar="N",
                    help=f"evaluate on the first N samples (default: the whole split of --data, else {STREAM_SAMPLES} "
                    "streamed test samples)")
@@ -113,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_options(args: argparse.Namespace) -> None:
     """Options that do not go together, found before any work."""
+    check_test_set_options(args)
     if args.data is None:
         if args.split != "test":
             raise UsageError("--split names a split of a data set: give --data DIR (streamed samples are the test "
@@ -237,11 +247,15 @@ def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Ite
 
 
 def _source(args: argparse.Namespace, mc: Any) -> tuple[Any, int]:
-    """``(source, count)``: where the samples come from and how many are evaluated."""
+    """``(source, count)``: where the samples come from and how many are evaluated, checked against the model
+    (:func:`fruxel.cli.common.check_stream`)."""
     from fruxel.train.samples import DataError, SampleSource, check_data_set, split_size
 
     if args.data is None:
-        return SampleSource(seed=args.seed or 0, augment=args.augment), args.samples or STREAM_SAMPLES
+        source = SampleSource(seed=args.seed or 0, augment=args.augment, assets=str(args.assets or ""),
+                              test_set=args.test_set or "")
+        check_stream(source, mc)
+        return source, args.samples or STREAM_SAMPLES
     source = SampleSource("shards", args.data, check_data_set(args.data, mc).seed)
     available = split_size(source, mc, args.split)
     count = args.samples or available
@@ -319,10 +333,19 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
                "image_size": list(mc.image_size), "training": m.training, "inference_rules": m.rules.to_dict()},
         data={"source": source.describe(), "kind": source.source, "root": source.root or None, "seed": source.seed,
               "augment": source.augment if source.source == "stream" else None, "split": args.split,
-              "samples": count, "indices": f"indices 0..{count - 1}"},
+              "samples": count, "indices": f"indices 0..{count - 1}", "test_set": _test_set(source)},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
         seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None)
     return _write(args, report, kept, mc, count)
+
+
+def _test_set(source: Any) -> dict[str, str] | None:
+    """The report's record of the source's test set: its name and description (None without one)."""
+    from fruxel.train.sim.testsets import TEST_SETS
+
+    if not source.test_set:
+        return None
+    return {"name": source.test_set, "description": TEST_SETS[source.test_set].description}
 
 
 def _write(args: argparse.Namespace, report: dict[str, Any], kept: list[Any], mc: Any, count: int) -> int:

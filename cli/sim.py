@@ -1,10 +1,10 @@
 """``fruxel-sim``: make simulated data sets and preview samples.
 
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
-                        [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--renderer pyrender]
-                        [--camera robot|any]
+                        [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--world home|flat]
+                        [--camera any|robot] [--renderer NAME] [--assets DIR]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
-                       [--camera robot|any]
+                       [--world home|flat] [--camera any|robot] [--renderer NAME] [--assets DIR]
     fruxel-sim assets [--sources assets/cache] [--out assets/pack] [--offline] [--replace] [--workers K]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
@@ -14,8 +14,16 @@ packages into the cache folder (no root needed), processes them and writes the p
 manifest, refusing a pack over its size budget. ``preview`` writes a contact sheet: per sample the
 camera's image (framed onto the grid's view, grey where a narrower camera saw nothing), the own-view ground-truth
 labels in the class colours, and a ray-cast render of the ground-truth volume from a second camera beside the
-camera's, with a class legend; each row's title gives the camera (height, pitch, roll, field of view). ``--camera``
-chooses the cameras (:data:`fruxel.train.sim.cameras.CAMERAS`: the robot's own mount, or any camera).
+camera's, with a class legend; each row's title gives the camera (height, pitch, roll, field of view).
+
+The samples of ``generate`` and ``preview`` are by default the furnished rooms (``--world home``: rooms from the
+asset pack, labelled with :data:`fruxel.classes.HOME_CLASSES`, drawn by the ray tracer) from any camera
+(``--camera any``: 0.3 to 1.9 m, pitch -20 to 40 degrees, roll within 10, 50 to 80 degrees across). The first data
+sets' style stays reachable: ``--world flat --camera robot`` gives the flat-coloured rooms from the robot's own mount,
+drawn by pyrender, labelled with the default classes. ``--renderer`` names another renderer than the world's own
+(:data:`fruxel.train.sim.config.WORLD_RENDERERS`); ``--assets`` names the pack folder (default: ``$FRUXEL_ASSETS``,
+else the repository's ``assets/pack``). A missing pack is one error line naming the folder and ``make assets``,
+found before any sample is made or any folder written.
 
 Errors print one line on stderr and exit with status 2 (130 when interrupted; :func:`fruxel.cli.common.run`).
 Defaults come from the simulator's config dataclasses (:mod:`fruxel.train.sim.config`). Heavy modules are
@@ -30,15 +38,18 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES
 from fruxel.train.sim.assetpack.build import PackConfig
 from fruxel.train.sim.cameras import CAMERAS
-from fruxel.train.sim.config import DEFAULT_GRID, AugmentConfig, ImageConfig, SimConfig
+from fruxel.train.sim.config import DEFAULT_GRID, WORLD_RENDERERS, WORLDS, AugmentConfig, ImageConfig, SimConfig
 from fruxel.train.sim.renderer import renderer_names
 
 from .common import (
     OneLineParser,
     UsageError,
+    add_assets_option,
     add_grid_options,
+    check_asset_pack,
     check_output_file,
     check_output_folder,
     config_option,
@@ -61,10 +72,16 @@ def _config_options(p: argparse.ArgumentParser, image: ImageConfig) -> None:
     add_grid_options(p, DEFAULT_GRID)
     config_option(p, SimConfig, "samples_per_scene", type=positive_int, metavar="N")
     config_option(p, AugmentConfig, "enabled", "--no-augment", help="render without appearance augmentation")
-    config_option(p, SimConfig, "renderer", choices=renderer_names())
-    p.add_argument("--camera", default="robot", choices=tuple(CAMERAS),
-                   help="the cameras the trajectories draw: robot (the robot's own mount) or any (0.3 to 1.9 m, "
-                   "pitch -20 to 40 degrees, roll within 10, 50 to 80 degrees across) (default: robot)")
+    p.add_argument("--world", default="home", choices=WORLDS,
+                   help="the rooms: home (furnished rooms from the asset pack, classes with ceiling and object) or "
+                   "flat (the first data sets' flat-coloured rooms, the default classes) (default: home)")
+    p.add_argument("--camera", default="any", choices=tuple(CAMERAS),
+                   help="the cameras the trajectories draw: any (0.3 to 1.9 m, pitch -20 to 40 degrees, roll within "
+                   "10, 50 to 80 degrees across) or robot (the robot's own mount) (default: any)")
+    p.add_argument("--renderer", default=None, choices=renderer_names(),
+                   help="the renderer of the camera images (default: the world's own: "
+                   + ", ".join(f"{r} for {w}" for w, r in WORLD_RENDERERS.items()) + ")")
+    add_assets_option(p, "the home world")
     p.add_argument("--seed", type=non_negative_int, default=0, help="base seed (default 0)")
     p.add_argument("--backend", default="warp", choices=("warp", "warp-cpu", "warp-cuda"),
                    help="fruxelize backend (default warp: CUDA when present, else CPU)")
@@ -122,9 +139,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _config(args: argparse.Namespace, splits: Any) -> SimConfig:
+    """The simulator config of the options; the asset pack it needs is checked to be there (before any slow
+    work)."""
     image = ImageConfig(**config_values(args, ImageConfig, augment=AugmentConfig(**config_values(args, AugmentConfig))))
-    return SimConfig(**config_values(args, SimConfig, grid=grid_from_args(args, DEFAULT_GRID), image=image,
-                                     splits=splits, camera=CAMERAS[args.camera]))
+    config = SimConfig(**config_values(
+        args, SimConfig, grid=grid_from_args(args, DEFAULT_GRID), image=image, splits=splits,
+        camera=CAMERAS[args.camera], world=args.world, renderer=args.renderer or WORLD_RENDERERS[args.world],
+        classes=HOME_CLASSES if args.world == "home" else DEFAULT_CLASSES,
+        assets=None if args.assets is None else str(args.assets)))
+    check_asset_pack(config)
+    return config
 
 
 def _generate(args: argparse.Namespace) -> int:
@@ -155,39 +179,22 @@ def _grid_text(config: Any) -> str:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from fruxel.kernels import first_hit
     from fruxel.render.images import image_format, save_image
-    from fruxel.render.raycast import RaycastStyle, raycast_image
-    from fruxel.train.sim.images import contact_sheet, second_camera
+    from fruxel.train.sim.images import camera_text, contact_sheet, preview_panels
     from fruxel.train.sim.sample import SampleMaker
 
     # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
     fmt = image_format(args.out)
     check_output_file(args.out, "--out")
     config = _config(args, ((args.split, args.index + args.count),))
-    classes = config.classes
-    palette = classes.palette()
-    grid = config.grid
     rows, titles = [], []
     with SampleMaker(config, args.seed, backend=args.backend) as maker:
         for i in range(args.index, args.index + args.count):
             s = maker.make(args.split, i)
-            own = first_hit(s.labels, grid, grid.camera(), backend=args.raycast_backend)
-            cam = second_camera(own.depth, config, config.image_width)
-            shaded, _ = raycast_image(s.labels, grid, cam, palette, backend=args.raycast_backend,
-                                      style=RaycastStyle(fog=True))
-            rows.append({
-                "camera image": s.image,
-                "ground truth, own view": classes.colour_of(np.asarray(own.label)),
-                "ground truth, second pose": shaded,
-            })
-            c = s.camera
+            rows.append(preview_panels(s, config, backend=args.raycast_backend))
             titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
-                          f"grid {_grid_text(config)}; camera {c.height:.2f} m, pitch {c.pitch:.1f}, "
-                          f"roll {c.roll:.1f}, {c.hfov:.1f} deg across")
-    sheet = contact_sheet(rows, classes.names, palette, titles)
+                          f"grid {_grid_text(config)}; {camera_text(s)}")
+    sheet = contact_sheet(rows, config.classes.names, config.classes.palette(), titles)
     write_outputs([(args.out, lambda tmp: save_image(tmp, sheet, fmt))])
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")
     return 0

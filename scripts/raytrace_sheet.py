@@ -112,7 +112,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--credits", type=Path, help="write a Markdown table of the pack assets' licences and credits")
     args = p.parse_args(argv)
     from fruxel.render.images import write_image
-    from fruxel.train.sim.assetpack import AssetPack
 
     used: set[str] = set()
     tiles = render_rooms(args.pack, args.rooms, args.size, args.seed, args.committable_only, used)
@@ -121,13 +120,20 @@ def main(argv: list[str] | None = None) -> int:
     write_image(args.out, sheet(tiles, args.columns))
     print(f"raytrace_sheet: wrote {args.out}")
     if args.credits:
-        pack = AssetPack(args.pack, verify=False)
-        rows = ["| asset | source | licence | credit |", "| --- | --- | --- | --- |"]
-        rows += [f"| {e.id} | {e.source.package} {e.source.version} | {e.licence} | {e.credit} |"
-                 for e in (pack.entry(i) for i in sorted(used))]
-        args.credits.write_text("\n".join(rows) + "\n")
+        args.credits.write_text(credits_table(args.pack, used))
         print(f"raytrace_sheet: wrote {args.credits}")
     return 0
+
+
+def credits_table(pack_dir: str | Path, used: set[str]) -> str:
+    """A Markdown table of the licence and credit of each pack asset in ``used`` (ids), sorted by id."""
+    from fruxel.train.sim.assetpack import AssetPack
+
+    pack = AssetPack(pack_dir, verify=False)
+    rows = ["| asset | source | licence | credit |", "| --- | --- | --- | --- |"]
+    rows += [f"| {e.id} | {e.source.package} {e.source.version} | {e.licence} | {e.credit} |"
+             for e in (pack.entry(i) for i in sorted(used))]
+    return "\n".join(rows) + "\n"
 
 
 if __name__ == "__main__":

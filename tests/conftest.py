@@ -1,14 +1,18 @@
 """Session-wide test settings (headless OpenGL and quiet Warp, set before any test imports pyrender or warp) and
-fixtures shared by the test folders."""
+fixtures shared by the test folders (the tiny asset pack, torch on one thread)."""
 
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 # pyrender picks its OpenGL platform at import time; tests never have a display.
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("PYGLET_HEADLESS", "true")
+
+ASSETPACK_SOURCES = Path(__file__).resolve().parent / "data" / "assetpack_sources"
+"""The tiny committed sources of the asset pack (scripts/make_assetpack_fixture.py)."""
 
 
 @pytest.fixture
@@ -20,3 +24,14 @@ def torch_one_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def tiny_pack(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny asset pack, built once per session by the real builder from :data:`ASSETPACK_SOURCES` (no network);
+    tests that change it work on a copy."""
+    from fruxel.train.sim.assetpack.build import build_pack
+
+    out = tmp_path_factory.mktemp("pack") / "pack"
+    build_pack(ASSETPACK_SOURCES, out)
+    return out

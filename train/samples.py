@@ -89,14 +89,21 @@ class SampleSource:
     """The renderer of streamed samples; "" takes the world's own (:data:`fruxel.train.sim.config.WORLD_RENDERERS`)."""
     assets: str = ""
     """The asset pack folder of the home world ("": the default one, :func:`fruxel.train.sim.rooms.resolve_pack`)."""
+    test_set: str = ""
+    """A held-out test set (:data:`fruxel.train.sim.testsets.TEST_SETS`) whose config streamed samples take: its
+    camera, world, renderer and asset split replace the source's own; "" for none."""
 
     def __post_init__(self) -> None:
         from fruxel.train.sim.cameras import CAMERAS
+        from fruxel.train.sim.testsets import TEST_SETS
 
         if self.source not in DATA_SOURCES:
             raise DataError(f"sample source must be one of {', '.join(DATA_SOURCES)}, got {self.source!r}")
         if self.camera not in CAMERAS:
             raise DataError(f"sample source camera must be one of {', '.join(CAMERAS)}, got {self.camera!r}")
+        if self.test_set and (self.test_set not in TEST_SETS or self.source != "stream"):
+            raise DataError(f"sample source test set must be one of {', '.join(TEST_SETS)} and streamed, got "
+                            f"{self.test_set!r} ({self.source})")
 
     @classmethod
     def of(cls, data: DataConfig) -> SampleSource:
@@ -108,23 +115,33 @@ class SampleSource:
         """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
         if self.source == "shards":
             return f"data set {self.root}"
-        camera = "" if self.camera == "robot" else f", {self.camera} camera"
-        world = "" if self.world == "flat" else f", {self.world} world"
+        if self.test_set:
+            what = f", test set {self.test_set}"
+        else:
+            what = ("" if self.camera == "robot" else f", {self.camera} camera") + \
+                ("" if self.world == "flat" else f", {self.world} world")
         return (f"simulator stream, seed {self.seed}, {self.samples_per_scene} samples per room, "
-                f"{'augmented' if self.augment else 'no augmentation'}{camera}{world}")
+                f"{'augmented' if self.augment else 'no augmentation'}{what}")
 
 
 def sim_config(model: ModelConfig, source: SampleSource, splits: tuple[tuple[str, int], ...]) -> Any:
     """The simulator settings that make ``model``'s samples from a streamed ``source``: its grid, class table and
     image size, the source's rooms, camera and augmentation, and ``splits`` (a streamed sample depends on the seed, the
-    split's name and its index, never on the split's size)."""
+    split's name and its index, never on the split's size); with a test set, that config turned into the test set's
+    (:meth:`fruxel.train.sim.testsets.EvaluationSet.config`).
+
+    Raises:
+        ConfigError: a test set of the room world for a model whose classes lack ``ceiling`` and ``object``.
+    """
     from fruxel.train.sim.cameras import camera_named
     from fruxel.train.sim.config import WORLD_RENDERERS, AugmentConfig, ImageConfig, SimConfig
+    from fruxel.train.sim.testsets import TEST_SETS
 
-    return SimConfig(grid=model.grid, classes=model.classes, samples_per_scene=source.samples_per_scene,
-                     image=ImageConfig(size=model.image_size[1], augment=AugmentConfig(enabled=source.augment)),
-                     splits=splits, camera=camera_named(source.camera), world=source.world,
-                     renderer=source.renderer or WORLD_RENDERERS[source.world], assets=source.assets or None)
+    config = SimConfig(grid=model.grid, classes=model.classes, samples_per_scene=source.samples_per_scene,
+                       image=ImageConfig(size=model.image_size[1], augment=AugmentConfig(enabled=source.augment)),
+                       splits=splits, camera=camera_named(source.camera), world=source.world,
+                       renderer=source.renderer or WORLD_RENDERERS[source.world], assets=source.assets or None)
+    return TEST_SETS[source.test_set].config(config) if source.test_set else config
 
 
 def check_data_set(root: str, model: ModelConfig) -> Any:

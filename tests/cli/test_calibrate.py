@@ -73,6 +73,8 @@ def test_calibrate_writes_the_chosen_rules(tmp_path: Path, capsys: pytest.Captur
     (["--fill", "--thresholds", "1.5"], "--thresholds must be numbers in (0, 1]"),
     (["--fill", "--thresholds", "nan"], "--thresholds must be numbers in (0, 1]"),
     (["--offsets", "inf"], "--offsets must be finite numbers"),
+    (["--test-set", "robot"], "--test-set robot streams the test set's samples; a data set (--data) has its own"),
+    (["--assets", "pack"], "--assets names the asset pack of a --test-set"),
 ])
 def test_bad_options_give_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
                                    words: str) -> None:
@@ -80,3 +82,17 @@ def test_bad_options_give_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["ssz64", "--data", str(tmp_path), *argv, *out]) == 2
     err = capsys.readouterr().err
     assert words in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_calibrate_on_a_test_set_stream(home_model: Path, tiny_pack: Path, tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """--test-set: the set's stream (here the furnished rooms from any camera, from the pack --assets names), said
+    in the output and recorded in the calibration; a room-world set for a model without its classes is one line."""
+    out = tmp_path / "cal.safetensors"
+    assert main([str(home_model), "--test-set", "any-camera", "--assets", str(tiny_pack), "--samples", "2",
+                 "--offsets", "0.5", "--no-novel", "--batch", "2", "--out", str(out)]) == 0
+    assert "test set any-camera split train" in capsys.readouterr().out
+    assert read_model_file(out).training["calibration"]["data"] == "stream:seed=0,test-set=any-camera"
+    assert main(["ssz64", "--test-set", "any-camera", "--out", str(tmp_path / "no.safetensors")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ceiling, object" in err[0] and not (tmp_path / "no.safetensors").exists()

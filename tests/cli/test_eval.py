@@ -27,15 +27,19 @@ from fruxel.train.eval.report import rules_text  # noqa: E402
 from fruxel.train.model_files import load_model  # noqa: E402
 from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig  # noqa: E402
 from fruxel.train.sim.sample import SampleMaker  # noqa: E402
+from fruxel.train.sim.testsets import TEST_SETS  # noqa: E402
 from fruxel.train.sim.writer import generate  # noqa: E402
 
 BATCH = 2
 
 
-def streamed(split: str, count: int, seed: int = 0) -> list[Any]:
-    """The first ``count`` samples of a split of the stream the command makes for the small model."""
+def streamed(split: str, count: int, seed: int = 0, test_set: str = "", **changes: Any) -> list[Any]:
+    """The first ``count`` samples of a split of the stream the command makes for the small model (``changes``: of
+    its config, e.g. its classes; ``test_set``: a held-out test set's stream made from that config)."""
     config = SimConfig(grid=SMALL_GRID, image=ImageConfig(size=64, augment=AugmentConfig(enabled=True)),
-                       samples_per_scene=16, splits=((split, count),))
+                       samples_per_scene=16, splits=((split, count),), **changes)
+    if test_set:
+        config = TEST_SETS[test_set].config(config)
     with SampleMaker(config, seed, backend="warp", device="cpu") as maker:
         return [maker.make(split, i) for i in range(count)]
 
@@ -160,6 +164,75 @@ def test_the_prior_is_cached_by_what_makes_it(shipped_model: Path, tmp_path: Pat
     assert evaluate("again")["results"]["prior"] == first["results"]["prior"]
     np.testing.assert_array_equal(fruxel.load(entry).labels, mode)
     assert [p.name for p in entry.parent.iterdir() if p.suffix != ".npz"] == [], "temporary files left behind"
+
+
+def test_the_robot_test_set_is_the_stream_of_earlier_reports(shipped_model: Path, tmp_path: Path,
+                                                              cache_folder: Path) -> None:
+    """``--test-set robot`` evaluates the samples (and counts the prior of) the model's own stream of the flat world
+    from the robot's mount, as before test sets had names; the report names the set and says what it is."""
+    def evaluate(name: str, *extra: str) -> dict[str, Any]:
+        argv = ["--checkpoint", str(shipped_model), "--samples", "2", "--prior-samples", "2", "--batch", str(BATCH),
+                "--examples", "0", "--device", "cpu", "--out", str(tmp_path / name), "-q", *extra]
+        assert eval_cli.main(argv) == 0
+        return json.loads((tmp_path / name / "report.json").read_text())
+
+    plain, robot = evaluate("plain"), evaluate("robot", "--test-set", "robot")
+    assert robot["results"] == plain["results"] and len(list(cache_folder.rglob("*.npz"))) == 1
+    assert plain["data"]["test_set"] is None and "test set" not in (tmp_path / "plain" / "report.md").read_text()
+    description = TEST_SETS["robot"].description
+    assert robot["data"]["test_set"] == {"name": "robot", "description": description}
+    assert "test set robot" in robot["data"]["source"]
+    assert f"| test set | `robot`: {description} |" in (tmp_path / "robot" / "report.md").read_text()
+
+
+def test_a_room_world_test_set_is_evaluated_and_its_prior_keyed_by_it(home_model: Path, tiny_pack: Path,
+                                                                       tmp_path: Path, cache_folder: Path) -> None:
+    """``--test-set any-camera-test-assets`` evaluates the furnished rooms of the held-out assets from any camera,
+    drawn by the ray tracer from the pack --assets names: every number of the report is the count made here from
+    that set's samples, and the per-cell prior is counted on (and cached under) that set's training split, not the
+    model's own stream's."""
+    from fruxel.classes import HOME_CLASSES
+    from fruxel.cli.eval import prior_cache_path
+    from fruxel.train.samples import SampleSource
+
+    out = tmp_path / "report"
+    name = "any-camera-test-assets"
+    assert eval_cli.main(["--checkpoint", str(home_model), "--test-set", name, "--assets", str(tiny_pack),
+                          "--samples", "3", "--prior-samples", "2", "--batch", str(BATCH), "--examples", "3",
+                          "--device", "cpu", "--out", str(out), "-q"]) == 0
+    made = {"test_set": name, "classes": HOME_CLASSES, "assets": str(tiny_pack)}
+    tests, train = streamed("test", 3, **made), streamed("train", 2, **made)
+    report = check_report(out, expected(home_model, tests, [s.labels for s in train]), 3, 3)
+    assert report["data"]["test_set"]["name"] == name
+    assert report["class_share"]["ceiling"] > 0 or report["class_share"]["object"] > 0, report["class_share"]
+    config = load_model(home_model).config
+    keys = {prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=t), config, 2)
+            for t in ("", "any-camera", name)}
+    assert len(keys) == 3 and [p.name for p in cache_folder.rglob("*.npz")] == [
+        prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=name), config, 2).name]
+
+
+def test_test_sets_that_do_not_fit_are_refused_in_one_line(shipped_model: Path, home_model: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """--test-set with --data, --assets without --test-set, a room-world set for a model without its classes, a
+    missing pack: one line each, before any sample is made or the output folder is."""
+    out = tmp_path / "out"
+
+    def refused(model: Path, *argv: str) -> str:
+        assert eval_cli.main(["--checkpoint", str(model), "--out", str(out), "--device", "cpu", *argv]) == 2
+        assert not out.exists()
+        return error_line(capsys, "fruxel-eval")
+
+    line = refused(shipped_model, "--test-set", "robot", "--data", str(tmp_path))
+    assert "--test-set robot" in line and "--data" in line
+    assert "--assets" in refused(shipped_model, "--assets", str(tmp_path))
+    line = refused(shipped_model, "--test-set", "any-camera")
+    assert "--test-set any-camera" in line and "ceiling, object" in line and "--test-set robot" in line
+    line = refused(home_model, "--test-set", "any-camera", "--assets", str(tmp_path / "nowhere"))
+    assert "nowhere: no asset pack there (--assets)" in line and "`make assets`" in line
+    with pytest.raises(SystemExit) as e:
+        eval_cli.main(["--checkpoint", str(shipped_model), "--test-set", "kitchen", "--out", str(out)])
+    assert e.value.code == 2 and "--test-set" in error_line(capsys, "fruxel-eval")
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fruxel.classes import DEFAULT_CLASSES
+from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES
 from fruxel.cli.sim import main
 
 TINY = ["--image", "32", "--grid", "16", "--samples-per-scene", "2"]
+FLAT = ["--world", "flat", "--camera", "robot"]
+"""The first data sets' style: flat-coloured rooms from the robot's mount, drawn by pyrender (fast, and no pack)."""
 
 
 def test_help_is_instant_and_lists_the_commands() -> None:
@@ -36,7 +38,7 @@ def test_help_is_instant_and_lists_the_commands() -> None:
 
 def test_generate_and_resume(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "ds"
-    args = ["generate", "--out", str(out), "--samples", "5", "--shard-size", "2", "--seed", "3", "-q", *TINY]
+    args = ["generate", "--out", str(out), "--samples", "5", "--shard-size", "2", "--seed", "3", "-q", *FLAT, *TINY]
     assert main(args) == 0
     m = json.loads((out / "manifest.json").read_text())
     assert m["complete"] and {k: v["samples"] for k, v in m["splits"].items()} == {"train": 4, "test": 1}
@@ -83,7 +85,7 @@ def test_argparse_errors_are_one_line(argv: list[str], capsys: pytest.CaptureFix
 def test_output_that_is_a_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     f = tmp_path / "file"
     f.write_text("x")
-    assert main(["generate", "--out", str(f), "--samples", "2", "-q", *TINY]) == 2
+    assert main(["generate", "--out", str(f), "--samples", "2", "-q", *FLAT, *TINY]) == 2
     assert "not a folder" in capsys.readouterr().err
 
 
@@ -105,6 +107,7 @@ def test_an_output_under_a_file_is_refused_before_any_sample(command: str, tmp_p
     (tmp_path / "file").write_text("x")
     out = tmp_path / "file" / ("data" if command == "generate" else "sheet.png")
     extra = ["--samples", "2", "-q", *TINY] if command == "generate" else ["--image", "32", "--grid", "16"]
+    extra += FLAT
     assert main([command, "--out", str(out), *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--out" in err[0] and "is a file, not a folder" in err[0], err
@@ -113,7 +116,8 @@ def test_an_output_under_a_file_is_refused_before_any_sample(command: str, tmp_p
 
 def test_preview_writes_a_contact_sheet(tmp_path: Path) -> None:
     png = tmp_path / "sheet.png"
-    assert main(["preview", "--out", str(png), "--seed", "1", "--count", "2", "--image", "64", "--grid", "32"]) == 0
+    assert main(["preview", "--out", str(png), "--seed", "1", "--count", "2", "--image", "64", "--grid", "32",
+                 *FLAT]) == 0
     img = np.asarray(Image.open(png).convert("RGB"))
     assert img.shape[0] > 2 * 64 and img.shape[1] >= 3 * 64
     flat = img.reshape(-1, 3)
@@ -130,13 +134,14 @@ def test_preview_writes_the_format_its_name_asks_for(tmp_path: Path, capsys: pyt
     """--out x.jpg is a JPEG (it used to hold PNG bytes); a suffix that is no image format is refused before any
     sample is made, in one line."""
     jpg = tmp_path / "sub" / "sheet.jpg"
-    assert main(["preview", "--out", str(jpg), "--image", "32", "--grid", "16", "--samples-per-scene", "2"]) == 0
+    assert main(["preview", "--out", str(jpg), "--image", "32", "--grid", "16", "--samples-per-scene", "2",
+                 *FLAT]) == 0
     with Image.open(jpg) as im:
         assert im.format == "JPEG"
     assert sorted(p.name for p in jpg.parent.iterdir()) == ["sheet.jpg"]
     capsys.readouterr()
     t = time.perf_counter()
-    assert main(["preview", "--out", str(tmp_path / "sheet.xyz"), "--image", "32", "--grid", "16"]) == 2
+    assert main(["preview", "--out", str(tmp_path / "sheet.xyz"), "--image", "32", "--grid", "16", *FLAT]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sheet.xyz" in err[0] and ".png" in err[0]
     assert time.perf_counter() - t < 5 and not (tmp_path / "sheet.xyz").exists()
@@ -161,20 +166,86 @@ def test_contact_sheet_titles_fit_their_panels() -> None:
 
 
 def test_camera_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """``--camera any`` makes data sets and sheets of any camera, recorded in the config; the robot's is the
-    default and records nothing (configs as before cameras varied)."""
+    """``--camera robot`` makes data sets and sheets of the robot's own mount, which records nothing (configs as
+    before cameras varied); ``--camera any``, the default, records its ranges."""
     robot, anyc = tmp_path / "robot", tmp_path / "any"
-    assert main(["generate", "--out", str(robot), "--samples", "2", "-q", *TINY]) == 0
-    assert main(["generate", "--out", str(anyc), "--samples", "2", "-q", "--camera", "any", *TINY]) == 0
+    assert main(["generate", "--out", str(robot), "--samples", "2", "-q", *FLAT, *TINY]) == 0
+    assert main(["generate", "--out", str(anyc), "--samples", "2", "-q", "--world", "flat", *TINY]) == 0
     assert "camera" not in json.loads((robot / "manifest.json").read_text())["config"]
     m = json.loads((anyc / "manifest.json").read_text())
     assert m["version"] == 3 and m["config"]["camera"] == {"height": [0.3, 1.9], "pitch": [-20.0, 40.0],
                                                            "roll": [-10.0, 10.0], "hfov": [50.0, 80.0]}
     png = tmp_path / "sheet.png"
-    assert main(["preview", "--out", str(png), "--camera", "any", "--count", "2", *TINY]) == 0
+    assert main(["preview", "--out", str(png), "--world", "flat", "--count", "2", *TINY]) == 0
     assert Image.open(png).size[0] >= 3 * 32
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
         main(["preview", "--out", str(png), "--camera", "phone"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--camera" in err[0]
+
+
+def test_the_old_style_records_what_data_sets_made_before_recorded(tmp_path: Path) -> None:
+    """``--world flat --camera robot``: the flat world drawn by pyrender with the default classes, a config with no
+    world, camera or renderer in it (the digest of data sets made before the furnished rooms)."""
+    out = tmp_path / "ds"
+    assert main(["generate", "--out", str(out), "--samples", "2", "-q", *FLAT, *TINY]) == 0
+    config = json.loads((out / "manifest.json").read_text())["config"]
+    assert not {"world", "camera", "renderer", "home", "assets", "raytrace"} & set(config)
+    assert config["classes"] == DEFAULT_CLASSES.to_dict()
+
+
+def _class_ids(folder: Path) -> set[int]:
+    """The label values of a data set's shards (read without pickle)."""
+    ids: set[int] = set()
+    for shard in folder.glob("*.npz"):
+        with np.load(shard, allow_pickle=False) as z:
+            for key in (k for k in z.files if k.startswith("labels_")):
+                ids |= set(np.unique(z[key]).tolist())
+    return ids
+
+
+def test_the_furnished_rooms_from_any_camera_are_the_default(tiny_pack: Path, tmp_path: Path) -> None:
+    """Without --world and --camera: the home world's rooms from the pack --assets names, from any camera, drawn by
+    the ray tracer, labelled with the home classes (the ceiling and object among the labels); the preview's label
+    panels are drawn in the home classes' colours."""
+    out = tmp_path / "ds"
+    assert main(["generate", "--out", str(out), "--samples", "4", "-q", "--assets", str(tiny_pack), *TINY]) == 0
+    config = json.loads((out / "manifest.json").read_text())["config"]
+    assert config["world"] == "home" and config["renderer"] == "raytrace" and config["assets"] == str(tiny_pack)
+    assert config["camera"]["hfov"] == [50.0, 80.0] and config["classes"] == HOME_CLASSES.to_dict()
+    ids = _class_ids(out)
+    names = HOME_CLASSES.names
+    assert {names.index("wall"), names.index("floor")} <= ids and names.index("object") in ids, ids
+    # --renderer names another than the world's own.
+    other = tmp_path / "pyrender"
+    assert main(["generate", "--out", str(other), "--samples", "2", "-q", "--assets", str(tiny_pack),
+                 "--renderer", "pyrender", *TINY]) == 0
+    config = json.loads((other / "manifest.json").read_text())["config"]
+    assert config["world"] == "home" and "renderer" not in config  # pyrender: the default of SimConfig
+    png = tmp_path / "sheet.png"
+    assert main(["preview", "--out", str(png), "--assets", str(tiny_pack), "--image", "48", "--grid", "24"]) == 0
+    flat = np.asarray(Image.open(png).convert("RGB")).reshape(-1, 3)
+    palette = HOME_CLASSES.palette()
+    counts = {n: int((flat == palette[c]).all(axis=1).sum()) for c, n in enumerate(names)}
+    assert counts["wall"] > 50 and counts["floor"] > 50, counts
+
+
+@pytest.mark.parametrize("command", ["generate", "preview"])
+def test_a_missing_asset_pack_is_one_line_before_anything_is_made(command: str, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The home world without its pack: one line naming the folder and ``make assets``, before any sample is made
+    and before the output folder is made; from --assets or from $FRUXEL_ASSETS alike."""
+    out = tmp_path / "new" / ("ds" if command == "generate" else "sheet.png")
+    extra = ["--samples", "2", "-q"] if command == "generate" else []
+    t = time.perf_counter()
+    assert main([command, "--out", str(out), "--assets", str(tmp_path / "nowhere"), *extra, *TINY]) == 2
+    monkeypatch.setenv("FRUXEL_ASSETS", str(tmp_path / "elsewhere"))
+    assert main([command, "--out", str(out), *extra, *TINY]) == 2
+    assert time.perf_counter() - t < 5
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(e.startswith("fruxel-sim: error:") and "`make assets`" in e for e in err), err
+    assert "nowhere: no asset pack there (--assets)" in err[0]
+    assert "elsewhere: no asset pack there ($FRUXEL_ASSETS)" in err[1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

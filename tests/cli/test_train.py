@@ -30,13 +30,15 @@ CONFIG: dict[str, Any] = {
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A data set of 16 training samples (4 rooms) and 4 test samples, 16^3 grids from 32^2 images."""
+def data(tmp_path_factory: pytest.TempPathFactory, tiny_pack: Path) -> Path:
+    """A data set of 16 training samples (4 rooms) and 4 test samples, 16^3 grids from 32^2 images: fruxel-sim's
+    default, the furnished rooms of the tiny pack from any camera, labelled with the classes of the models' default
+    (HOME_CLASSES)."""
     from fruxel.cli.sim import main as sim
 
     out = tmp_path_factory.mktemp("data")
     assert sim(["generate", "--out", str(out), "--split", "train=16,test=4", "--grid", "16", "--image", "32",
-                "--samples-per-scene", "4", "--shard-size", "4", "-q"]) == 0
+                "--samples-per-scene", "4", "--shard-size", "4", "--assets", str(tiny_pack), "-q"]) == 0
     return out
 
 

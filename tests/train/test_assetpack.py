@@ -19,7 +19,8 @@ from fruxel.train.sim.assetpack.build import PackConfig, build_pack
 from fruxel.train.sim.assetpack.licences import ALLOWED, COMMITTABLE, lookup_copyright, parse_debian_copyright
 from fruxel.train.sim.assetpack.manifest import MANIFEST_NAME, assign_splits
 
-from .conftest import ASSETPACK_SOURCES as SOURCES
+SOURCES = Path(__file__).resolve().parents[1] / "data" / "assetpack_sources"
+"""The tiny committed sources of the asset pack (scripts/make_assetpack_fixture.py; tests/conftest.py builds them)."""
 
 SH3F = SOURCES / "debian/sweethome3d-furniture-1.8-1/usr/share/sweethome3d/furniture/BlendSwap-CC-0.sh3f"
 

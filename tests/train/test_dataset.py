@@ -128,7 +128,7 @@ def test_samples_take_their_label_ids_from_the_class_table() -> None:
 def test_resume_after_a_killed_run(reference: Path, tmp_path: Path) -> None:
     cfg = CONFIG.replace(splits=(("train", 24), ("test", 2)), shard_size=3)
     args = ["--split", "train=24,test=2", "--shard-size", "3", "--image", "64", "--grid", "16",
-            "--samples-per-scene", "3", "--seed", str(SEED)]
+            "--samples-per-scene", "3", "--seed", str(SEED), "--world", "flat", "--camera", "robot"]
     out = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, "-m", "fruxel.cli.sim", "generate", "--out", str(out), "-q", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -100,11 +100,9 @@ def _patch(img: np.ndarray, rc: tuple[int, int], r: int = 1) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- geometry
-def test_textured_box_lands_in_the_pixels_and_cells_fruxelize_gives_it(pack_dir: Path) -> None:
-    """A floor, a back wall and a box, each a pack texture tinted one primary colour: every pixel's dominant
-    channel names what it sees, which must be the own-view label of its grid column (S = W); shifting the image by
-    one pixel breaks the agreement, so the test sees a misalignment."""
-    grid = FruxelGrid(width=32, height=24, depth=256, z_near=0.5, z_far=8.0, hfov=70.0)
+def _primary_boxes() -> tuple[Scene, np.ndarray]:
+    """A floor, a back wall and a box, each a pack texture tinted one primary colour (blue, green, red: labels 2, 1,
+    4), and a camera pose 1 m above the floor looking at the box."""
     red, green, blue = (1.0, 0.03, 0.03), (0.03, 1.0, 0.03), (0.03, 0.03, 1.0)
     objects = [
         _box("floor", [-1.0, -6.0, -0.1], [8.0, 6.0, 0.0], Material(blue, texture=PLASTER, tile_m=0.5), label=2),
@@ -113,7 +111,23 @@ def test_textured_box_lands_in_the_pixels_and_cells_fruxelize_gives_it(pack_dir:
     ]
     sun = Light("directional", (1.0, 1.0, 1.0), 3.0, _look([0, 0, 0], [-0.3, 0.2, 1.0]), radius=0.02)
     scene = _scene(objects, [sun, _point([1.0, -1.0, 2.5])], size=(6.0, 6.0, 3.0))
-    pose = _look([0.0, 0.0, 1.0], [1.0, 0.0, 1.0])
+    return scene, _look([0.0, 0.0, 1.0], [1.0, 0.0, 1.0])
+
+
+def _primary_labels(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pure, label)`` of an image of :func:`_primary_boxes`: ``(h, w)`` bool, one channel clearly dominant, and
+    ``(h, w)`` the label its dominant channel names."""
+    rgb = img.astype(float)
+    order = np.sort(rgb, axis=-1)
+    return order[..., 2] > 1.3 * order[..., 1] + 8, np.array([4, 1, 2])[rgb.argmax(axis=-1)]
+
+
+def test_textured_box_lands_in_the_pixels_and_cells_fruxelize_gives_it(pack_dir: Path) -> None:
+    """A floor, a back wall and a box, each a pack texture tinted one primary colour: every pixel's dominant
+    channel names what it sees, which must be the own-view label of its grid column (S = W); shifting the image by
+    one pixel breaks the agreement, so the test sees a misalignment."""
+    grid = FruxelGrid(width=32, height=24, depth=256, z_near=0.5, z_far=8.0, hfov=70.0)
+    scene, pose = _primary_boxes()
     config = _config(pack_dir, 32, grid)
     with _renderer(config) as r:
         r.set_scene(scene)
@@ -121,10 +135,7 @@ def test_textured_box_lands_in_the_pixels_and_cells_fruxelize_gives_it(pack_dir:
     assert img.shape == (24, 32, 3) and img.dtype == np.uint8
     view = np.asarray(first_hit(fruxelize(scene.labelled_meshes(), grid, pose), grid, grid.camera()).label)
     assert {1, 2, 4} == set(np.unique(view).tolist())
-    rgb = img.astype(float)
-    order = np.sort(rgb, axis=-1)
-    pure = order[..., 2] > 1.3 * order[..., 1] + 8  # one channel clearly dominant
-    pixel_label = np.array([4, 1, 2])[rgb.argmax(axis=-1)]
+    pure, pixel_label = _primary_labels(img)
     assert pure.mean() > 0.8
     # Away from edges every pixel sees what its column holds. On an edge a pixel blends the two sides by their
     # brightness as much as by their share of it (two samples, one surface lit more), so it may take either.
@@ -139,6 +150,32 @@ def test_textured_box_lands_in_the_pixels_and_cells_fruxelize_gives_it(pack_dir:
     for axis in (0, 1):
         for shift in (1, -1):
             assert (np.roll(pixel_label, shift, axis=axis) == view)[pure].mean() < agree - 0.015
+
+
+def test_another_camera_draws_its_own_size_and_field_of_view(pack_dir: Path) -> None:
+    """``render(pose, rng, camera=...)``: the network image's own camera gives the bytes of ``camera=None``; a camera
+    of the same focal length and a larger image sees the same things in its middle and more around them (what the
+    simulator frames onto the grid's view for a camera of a wider field of view)."""
+    from fruxel.camera import Camera
+
+    grid = FruxelGrid(width=32, height=24, depth=16, z_near=0.5, z_far=8.0, hfov=70.0)
+    scene, pose = _primary_boxes()
+    config = _config(pack_dir, 32, grid)
+    own = config.image_camera()
+    wide = Camera(fx=own.fx, fy=own.fy, cx=24.0, cy=20.0, width=48, height=40, pose=np.eye(4))
+    with _renderer(config) as r:
+        r.set_scene(scene)
+        img = r.render(pose, None)
+        assert np.array_equal(r.render(pose, None, camera=own), img)
+        big = r.render(pose, None, camera=wide)
+        assert r.render(pose, None).shape == (24, 32, 3)  # the buffers follow the camera back
+    assert big.shape == (40, 48, 3) and big.dtype == np.uint8
+    pure, label = _primary_labels(img)
+    big_pure, big_label = _primary_labels(big)
+    middle = big_label[8:32, 8:40]
+    assert (middle == label)[pure & big_pure[8:32, 8:40]].mean() > 0.95
+    # Below the small view's bottom edge the wider one sees more floor.
+    assert (big_label[32:][big_pure[32:]] == 2).mean() > 0.9
 
 
 def test_a_light_behind_an_occluder_casts_a_soft_shadow_where_geometry_puts_it(pack_dir: Path) -> None:

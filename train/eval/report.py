@@ -66,7 +66,9 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary),
             optionally ``inference_rules`` (``{"fill_columns": bool, "empty_offset": float, "fill_threshold":
             float, "first_hit_label": bool, "flip_average": bool}``).
-        data: the samples: ``source`` (in words), ``split``, ``samples``, and anything else worth keeping.
+        data: the samples: ``source`` (in words), ``split``, ``samples``, optionally ``test_set`` (``{"name",
+            "description"}`` of a held-out test set, :data:`fruxel.train.sim.testsets.TEST_SETS`), and anything else
+            worth keeping.
         prior: how the per-cell prior was made (``split``, ``samples``), None when it was not.
         machine: where it ran (CPU, GPU, versions, device, kernel backend).
         command: the command line.
@@ -150,6 +152,8 @@ def markdown_report(report: Mapping[str, Any]) -> str:
                                 else "") + (f"; trained: {trained}" if trained else "")],
         ["samples", f"{d['samples']} samples of split `{d['split']}` ({d.get('indices', '')}), {d['source']}"],
     ]
+    if d.get("test_set"):
+        about.append(["test set", f"`{d['test_set']['name']}`: {d['test_set']['description']}"])
     if report.get("prior"):
         p = report["prior"]
         about.append(["per-cell prior", f"mode of {p['samples']} samples of split `{p['split']}` of the same source"])

@@ -313,6 +313,41 @@ def second_camera(view_depth: Any, config: SimConfig, size: int) -> Camera:
                         height=height, hfov=grid.hfov)
 
 
+def preview_panels(sample: Any, config: SimConfig, *, second_view: bool = True, backend: str | None = None
+                   ) -> dict[str, np.ndarray]:
+    """The panels of a sample's preview (``fruxel-sim preview``): its camera image, the ground truth's own-view
+    first-hit labels in the class colours (the grid's camera, whose view the image is framed onto), and, with
+    ``second_view``, a ray-cast render of the ground-truth volume from :func:`second_camera`.
+
+    Args:
+        sample: a :class:`.sample.Sample`: ``image`` ``(h, w, 3)`` uint8 RGB, ``labels`` ``(D, H, W)`` uint8 in the
+            grid frame.
+        config: its simulator config (grid, classes, image size).
+        second_view: add the render from the second camera.
+        backend: the ``first_hit`` backend (None: the best available).
+
+    Returns:
+        ``{title: (h, w, 3) uint8 RGB}`` in column order, a row of :func:`contact_sheet`.
+    """
+    from fruxel.kernels import first_hit
+    from fruxel.render.raycast import RaycastStyle, raycast_image
+
+    grid, classes = config.grid, config.classes
+    own = first_hit(sample.labels, grid, grid.camera(), backend=backend)
+    panels = {"camera image": sample.image, "ground truth, own view": classes.colour_of(np.asarray(own.label))}
+    if second_view:
+        cam = second_camera(own.depth, config, config.image_width)
+        panels["ground truth, second pose"], _ = raycast_image(sample.labels, grid, cam, classes.palette(),
+                                                               backend=backend, style=RaycastStyle(fog=True))
+    return panels
+
+
+def camera_text(sample: Any) -> str:
+    """A sample's camera in words: its height, pitch, roll and field of view."""
+    c = sample.camera
+    return f"camera {c.height:.2f} m, pitch {c.pitch:.1f}, roll {c.roll:.1f}, {c.hfov:.1f} deg across"
+
+
 def contact_sheet(rows: Sequence[dict[str, np.ndarray]], names: Sequence[str], palette: Any,
                   titles: Sequence[str]) -> np.ndarray:
     """Compose preview panels into one image: a title row, one row per sample, a class legend.

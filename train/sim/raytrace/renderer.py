@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from fruxel.camera import check_pose
+from fruxel.camera import Camera, check_pose
 from fruxel.kernels.wp.runtime import resolve_device, warp
 
 from . import ambient as ambient_mod
@@ -179,18 +179,19 @@ class RaytraceRenderer:
         return self._room.ambient.copy()
 
     # ------------------------------------------------------------------ images
-    def render(self, pose: Any, rng: np.random.Generator | None = None, camera: Any = None) -> np.ndarray:
+    def render(self, pose: Any, rng: np.random.Generator | None = None, camera: Camera | None = None) -> np.ndarray:
         """The image of the current room from camera-to-world ``pose``.
 
         Args:
             pose: ``(4, 4)`` camera-to-world transform, OpenCV axes, world frame (z up), metres.
             rng: the sample's generator (None, or ``config.image.augment.enabled`` False: fixed seeds, neutral
                 camera response).
-            camera: a :class:`fruxel.Camera` whose intrinsics and image size are drawn with (its pose is
-                ignored); None: the robot camera of ``config.image_camera()``.
+            camera: the intrinsics and image size to draw with (its pose is ignored: ``pose`` places it); None: the
+                network image's camera (:meth:`SimConfig.image_camera`). The simulator asks for another one when
+                the config's cameras draw other fields of view (:mod:`..cameras`).
 
         Returns:
-            ``(H, W, 3)`` uint8 RGB image: ``(S * H / W, S)`` of the config, or the size of ``camera``.
+            ``(S * H / W, S, 3)`` uint8 RGB image, or ``camera``'s ``(height, width, 3)``.
 
         Raises:
             RuntimeError: no room was set.

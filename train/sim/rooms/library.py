@@ -42,22 +42,26 @@ REPOSITORY_PACK = Path(__file__).resolve().parents[3] / "assets" / "pack"
 """The pack ``make assets`` builds in the repository (``assets/pack``)."""
 
 
-def resolve_pack(path: str | os.PathLike[str] | None) -> Path:
+def resolve_pack(path: str | os.PathLike[str] | None, *, option: str = "SimConfig.assets") -> Path:
     """The asset pack folder (module docstring): ``path``, else ``$FRUXEL_ASSETS``, else the repository's.
+
+    Args:
+        path: the folder the config names, or None.
+        option: what names ``path`` to the user (``"--assets"`` in a command), for the message.
 
     Raises:
         ConfigError: the folder does not exist or has no ``manifest.json`` (one line: where it looked, and
             ``make assets``).
     """
     if path is not None and str(path):
-        root, where = Path(path), "SimConfig.assets"
+        root, where = Path(path), option
     elif os.environ.get(ASSETS_ENV):
         root, where = Path(os.environ[ASSETS_ENV]), f"${ASSETS_ENV}"
     else:
         root, where = REPOSITORY_PACK, "the repository's default"
     if not (root / "manifest.json").is_file():
         raise ConfigError(f"{root}: no asset pack there ({where}); build it with `make assets` (or set "
-                          f"{ASSETS_ENV} / SimConfig.assets to a pack folder)")
+                          f"{ASSETS_ENV} / {option} to a pack folder)")
     return root
 
 
