@@ -139,7 +139,7 @@ def _platform_devices() -> tuple[tuple[Any, ...], str]:
     try:
         platforms = cl.get_platforms()
     except Exception as e:  # noqa: BLE001 - any ICD loader failure means "no device"
-        return (), f"no OpenCL platform found ({_one_line(str(e))})"
+        return (), f"no OpenCL platform found ({one_line_message(str(e))})"
     devs = []
     for p in platforms:
         try:
@@ -177,7 +177,7 @@ def quiet_build() -> Iterator[None]:
             os.close(saved)
 
 
-def _one_line(message: str, limit: int = 400) -> str:
+def one_line_message(message: str, limit: int = 400) -> str:
     """A compiler's or driver's message as one line: its error lines (else all of it), joined, shortened."""
     lines = [ln.strip() for ln in message.splitlines() if ln.strip()]
     errors = [ln for ln in lines if "error" in ln.lower() and not ln.startswith("clBuildProgram failed")]
@@ -185,7 +185,7 @@ def _one_line(message: str, limit: int = 400) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _probe(device: Any) -> str | None:
+def probe_device(device: Any) -> str | None:
     """Build and run :data:`PROBE_SOURCE` on ``device`` (in its runtime, which is kept): None when it works, else
     why not."""
     try:
@@ -203,7 +203,7 @@ def _probe(device: Any) -> str | None:
         cl.enqueue_copy(rt.queue, out, buf)  # blocking: the probe's only synchronisation
         rt.lanes = int(lanes[0])
     except Exception as e:  # noqa: BLE001 - whatever the driver raises, the device is unusable
-        return _one_line(str(e)) or type(e).__name__
+        return one_line_message(str(e)) or type(e).__name__
     want = (np.arange(4, dtype=np.float32) + 1 + 4) / np.float32(3)
     if not np.array_equal(out, want):
         return f"the probe kernel ran but computed {out.tolist()} instead of {want.tolist()}"
@@ -231,7 +231,7 @@ def _status_of(index: int) -> DeviceStatus:
     st = _status.get(index)
     if st is None:
         dev = _platform_devices()[0][index]
-        st = DeviceStatus(device=dev, kind=_kind(dev), error=_probe(dev))
+        st = DeviceStatus(device=dev, kind=_kind(dev), error=probe_device(dev))
         _status[index] = st
     return st
 
@@ -353,7 +353,7 @@ class Runtime:
     program it reloaded from its cache.)"""
     writes_in_place: bool = False
     """True when the device's kernels write a USE_HOST_PTR buffer straight into its host array (seen by the probe,
-    :func:`_probe`, as PoCL does on the CPU): results then need only the queue's completion, no map."""
+    :func:`probe_device`, as PoCL does on the CPU): results then need only the queue's completion, no map."""
     _programs: dict[tuple[str, tuple[str, ...]], Any] = field(default_factory=dict)
     _kernels: dict[tuple[int, str], Any] = field(default_factory=dict)
     _pool: dict[str, Any] = field(default_factory=dict)

@@ -173,8 +173,9 @@ _COMMAND_CACHE_SIZE = 256
 """Prepared launches kept per thread (one per kernel overload, device, launch dimensions and buffer shapes)."""
 
 
-def _commands() -> OrderedDict:
-    """This thread's cache of prepared launches, least recently used first."""
+def prepared_launches() -> OrderedDict:
+    """This thread's cache of prepared launches, least recently used first: keyed by kernel, device, launch
+    dimensions and buffer shapes (tests count and clear it)."""
     cache = getattr(_local, "commands", None)
     if cache is None:
         cache = _local.commands = OrderedDict()
@@ -350,7 +351,7 @@ class Workspace:
         dim = tuple(int(x) for x in dim)
         if math.prod(dim) == 0:
             return
-        cache = _commands()
+        cache = prepared_launches()
         key = (kernel, self.device, block_dim, dim, *(_arg_key(a) for a in args))
         prepared = cache.get(key)
         if prepared is None:

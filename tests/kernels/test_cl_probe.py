@@ -55,15 +55,15 @@ def _with_devices(monkeypatch: pytest.MonkeyPatch, devices: list, broken: list) 
     ``broken`` fails with :data:`ZEN5`, the others' probes run for real (stand-ins must not be probed for real)."""
     real_list = runtime._platform_devices.__wrapped__()[0]
     monkeypatch.setattr(runtime, "_platform_devices", lambda: (tuple(runtime.rank([*devices, *real_list])), ""))
-    real_probe = runtime._probe
+    real_probe = runtime.probe_device
 
     def probe(device: object) -> str | None:
         if any(device is b for b in broken):
-            return runtime._one_line(ZEN5)
+            return runtime.one_line_message(ZEN5)
         assert not isinstance(device, types.SimpleNamespace), "a working stand-in was probed for real"
         return real_probe(device)
 
-    monkeypatch.setattr(runtime, "_probe", probe)
+    monkeypatch.setattr(runtime, "probe_device", probe)
 
 
 def test_a_device_that_cannot_build_is_skipped_for_one_that_can(fresh: pytest.MonkeyPatch) -> None:
@@ -82,7 +82,7 @@ def test_a_device_that_cannot_build_is_skipped_for_one_that_can(fresh: pytest.Mo
 def test_no_working_device_fails_with_the_cause_and_the_fix(fresh: pytest.MonkeyPatch) -> None:
     fake = _fake_cpu("3.0-rc2")
     fresh.setattr(runtime, "_platform_devices", lambda: ((fake,), ""))
-    fresh.setattr(runtime, "_probe", lambda device: runtime._one_line(ZEN5))
+    fresh.setattr(runtime, "probe_device", lambda device: runtime.one_line_message(ZEN5))
     assert not cl.is_available() and not cl.cpu_available()
     assert "opencl" not in available_backends()
     with pytest.raises(BackendUnavailable) as err:
@@ -106,7 +106,7 @@ def test_best_available_falls_back_to_warp_with_one_warning(fresh: pytest.Monkey
         pytest.skip("with a GPU, Warp on CUDA is chosen before OpenCL is considered")
     fake = _fake_cpu("3.0-rc2")
     fresh.setattr(runtime, "_platform_devices", lambda: ((fake,), ""))
-    fresh.setattr(runtime, "_probe", lambda device: runtime._one_line(ZEN5))
+    fresh.setattr(runtime, "probe_device", lambda device: runtime.one_line_message(ZEN5))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         mod, dev = reg.resolve(None, None)

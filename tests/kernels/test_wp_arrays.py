@@ -69,7 +69,7 @@ def test_packed_camera_equals_warps_struct() -> None:
 def test_replayed_launches_read_each_calls_buffers(device: str) -> None:
     # One recorded launch (same kernel, dims and shapes) serves every call: each call's inputs, outputs and
     # scalars must reach the kernel, whether a buffer's address changed or was reused.
-    arrays._commands().clear()
+    arrays.prepared_launches().clear()
     ws = Workspace(device, "torch", device)
     xs = [ws.input(torch.arange(6, dtype=torch.float32).reshape(2, 3) + 10 * n) for n in range(3)]
     outs = []
@@ -79,14 +79,14 @@ def test_replayed_launches_read_each_calls_buffers(device: str) -> None:
         outs.append((x.native.cpu().numpy() * (n + 1), y))
     for want, y in outs:
         np.testing.assert_array_equal(y.native.cpu().numpy(), want)
-    assert sum(k[0] is scale_rows_kernel for k in arrays._commands()) == 1
+    assert sum(k[0] is scale_rows_kernel for k in arrays.prepared_launches()) == 1
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_recorded_launches_keep_no_memory(device: str) -> None:
     # The cache outlives the call: the recorded launch must not hold the first call's tensors (a volume or a
     # batch of logits each), neither through its parameters nor through Warp's record of the launch arguments.
-    arrays._commands().clear()
+    arrays.prepared_launches().clear()
     ws = Workspace(device, "torch", device)
     x = torch.ones((2, 3), dtype=torch.float32, device=device)
     y = torch.empty((2, 3), dtype=torch.float32, device=device)
@@ -98,7 +98,7 @@ def test_recorded_launches_keep_no_memory(device: str) -> None:
     del x, y
     gc.collect()
     assert all(r() is None for r in refs), "a recorded launch keeps a call's array alive"
-    assert len(arrays._commands()) == 1
+    assert len(arrays.prepared_launches()) == 1
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -112,12 +112,12 @@ def test_recorded_launch_survives_a_module_rebuild(device: str) -> None:
         """Test kernel: ``x += 1``, one thread per element."""
         x[wp.tid()] = x[wp.tid()] + 1.0
 
-    arrays._commands().clear()
+    arrays.prepared_launches().clear()
     ws = Workspace(device, "torch", device)
     x = torch.zeros(4, dtype=torch.float32, device=device)
     buf = Buffer.of(x, wp.float32, device)
     ws.launch(add_one_kernel, (4,), [buf])
-    recorded = next(p.cmd for k, p in arrays._commands().items() if k[0] is add_one_kernel)
+    recorded = next(p.cmd for k, p in arrays.prepared_launches().items() if k[0] is add_one_kernel)
 
     @wp.kernel(module=module)
     def add_two_kernel(x: wp.array(dtype=wp.float32)):
@@ -132,5 +132,5 @@ def test_recorded_launch_survives_a_module_rebuild(device: str) -> None:
     assert recorded.module_exec not in add_one_kernel.module.execs.values(), "the module was not rebuilt"
     gc.collect()
     ws.launch(add_one_kernel, (4,), [buf])
-    assert next(p.cmd for k, p in arrays._commands().items() if k[0] is add_one_kernel) is recorded
+    assert next(p.cmd for k, p in arrays.prepared_launches().items() if k[0] is add_one_kernel) is recorded
     np.testing.assert_array_equal(x.cpu().numpy(), np.full(4, 4.0, np.float32))

@@ -129,12 +129,12 @@ def test_prepared_launches_follow_buffers_shapes_and_evictions(device: str, monk
              for v in range(3) for c in range(2)}
     for cache_size in (arrays._COMMAND_CACHE_SIZE, 1):
         monkeypatch.setattr(arrays, "_COMMAND_CACHE_SIZE", cache_size)
-        arrays._commands().clear()
+        arrays.prepared_launches().clear()
         for v, c in [(0, 0), (1, 1), (2, 0), (0, 1), (1, 0), (2, 1)]:
             got = np_hits(first_hit(vols[v], GRID, cams[c], backend="warp", device=device))
             for name, ref in fresh[(v, c)].items():
                 np.testing.assert_array_equal(got[name], ref, err_msg=f"{name} of volume {v}, camera {c}")
-    assert len(arrays._commands()) <= 1
+    assert len(arrays.prepared_launches()) <= 1
 
 
 @pytest.mark.parametrize("device", DEVICES)
