@@ -255,12 +255,16 @@ def main(argv: list[str] | None = None) -> int:
                               "date": time.strftime("%Y-%m-%d"), "notes": args.note,
                               "machine": {"gpu": common.gpu_name(), "cores": common.usable_cores(),
                                           "cpu": common.cpu_description()},
-                              "rows": [measure(args, n) for n in args.gpus]}
+                              "rows": []}
+    # Written again after each GPU count, so that a run cut short (a lent machine's time limit) keeps what it measured.
+    for n in args.gpus:
+        result["rows"].append(measure(args, n))
+        common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
     if args.curves and max(args.gpus) > 1:
         png = Path(f"{out}-curves.png")
         result["curves"] = curves(args, max(args.gpus), png)
         result["curves_png"] = f"results/{png.name}"
-    common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
+        common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}.json")
     return 0
 
