@@ -46,6 +46,7 @@ from fruxel.errors import ConfigError
 from fruxel.grid import FruxelGrid, GridError
 
 from .cameras import ROBOT_CAMERA, CameraConfig, check_camera
+from .checks import check_range
 from .raytrace.config import RaytraceConfig
 from .renderer import DEFAULT_RENDERER, check_renderer
 from .robot import CameraMount, RobotParams
@@ -71,15 +72,6 @@ rooms' ray tracer (textures, soft shadows, a camera response)."""
 
 MAX_SPLIT_SAMPLES = 10**9
 """Largest number of samples one split may have: a sanity bound that catches typos such as an extra digit."""
-
-
-def _check_range(name: str, lo_hi: Any, low: float = -math.inf, high: float = math.inf) -> None:
-    try:
-        lo, hi = (float(v) for v in lo_hi)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be a (low, high) pair of numbers, got {lo_hi!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo <= hi <= high):
-        raise ConfigError(f"{name} must satisfy {low} <= low <= high <= {high}, got {lo_hi!r}")
 
 
 @dataclass(frozen=True)
@@ -113,12 +105,12 @@ class AugmentConfig:
     """Range of the standard deviation of additive Gaussian pixel noise, in [0, 1] units."""
 
     def __post_init__(self) -> None:
-        _check_range("light_intensity", self.light_intensity, 0.0)
-        _check_range("ambient", self.ambient, 0.0, 1.0)
-        _check_range("exposure", self.exposure, -8.0, 8.0)
-        _check_range("saturation", self.saturation, 0.0)
-        _check_range("gamma", self.gamma, 1e-3)
-        _check_range("noise", self.noise, 0.0, 1.0)
+        check_range("light_intensity", self.light_intensity, 0.0)
+        check_range("ambient", self.ambient, 0.0, 1.0)
+        check_range("exposure", self.exposure, -8.0, 8.0)
+        check_range("saturation", self.saturation, 0.0)
+        check_range("gamma", self.gamma, 1e-3)
+        check_range("noise", self.noise, 0.0, 1.0)
         for name in ("light_tint", "object_colour", "white_balance"):
             v = getattr(self, name)
             if not 0.0 <= float(v) <= 1.0:
@@ -182,8 +174,8 @@ class TrajectoryConfig:
         if isinstance(self.steps_per_frame, bool) or not isinstance(self.steps_per_frame, (int, np.integer)) \
                 or self.steps_per_frame < 1:
             raise ConfigError(f"steps_per_frame must be a positive integer, got {self.steps_per_frame!r}")
-        _check_range("speed_range", self.speed_range, 0.0)
-        _check_range("segment_seconds", self.segment_seconds, 0.0)
+        check_range("speed_range", self.speed_range, 0.0)
+        check_range("segment_seconds", self.segment_seconds, 0.0)
 
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``random_trajectory`` (everything but the scene, frame count and seed)."""

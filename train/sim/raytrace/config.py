@@ -7,7 +7,6 @@ a data set whose config names the ``"raytrace"`` renderer.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,20 +14,12 @@ import numpy as np
 
 from fruxel.errors import ConfigError
 
+from ..checks import check_range
+
 RESPONSE_STEPS = ("exposure", "white_balance", "tone", "vignetting", "blur", "noise", "jpeg")
 """The random steps of the camera response, in the order they act on the image (blur and vignetting act on the
 light reaching the sensor, before exposure and noise; JPEG last). A step left out of
 :attr:`CameraResponseConfig.steps` keeps its neutral value; its random values are drawn all the same."""
-
-
-def check_range(name: str, lo_hi: Any, low: float = -math.inf, high: float = math.inf) -> None:
-    """Raise ConfigError unless ``lo_hi`` is a ``(lo, hi)`` pair with ``low <= lo <= hi <= high``."""
-    try:
-        lo, hi = (float(v) for v in lo_hi)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be a (low, high) pair of numbers, got {lo_hi!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo <= hi <= high):
-        raise ConfigError(f"{name} must satisfy {low} <= low <= high <= {high}, got {lo_hi!r}")
 
 
 def _check_int(name: str, value: Any, low: int, high: int) -> None:

@@ -8,11 +8,12 @@ angles in degrees.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from fruxel.errors import ConfigError
+
+from ..checks import check_range
 
 ROOM_TYPES = ("living", "bedroom", "dining", "office", "kitchen", "studio")
 """What a room is furnished as (:mod:`.furnish` says which pieces each type places)."""
@@ -24,13 +25,8 @@ TRAIN_SPLIT = "train"
 """The data split whose rooms always draw the pack's train assets."""
 
 
-def _range(name: str, value: Any, low: float = 0.0, high: float = math.inf) -> None:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"home.{name} must be a (low, high) pair of numbers, got {value!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo <= hi <= high):
-        raise ConfigError(f"home.{name} must satisfy {low} <= low <= high <= {high}, got {value!r}")
+def _range(name: str, value: Any, low: float, high: float) -> None:
+    check_range(f"home.{name}", value, low, high)
 
 
 def _count_range(name: str, value: Any, high: int = 1000) -> None:
