@@ -9,7 +9,8 @@ with them.
 
 Predicts ``--samples`` samples of ``--split`` (default ``train``: never the test split the model is evaluated on;
 without ``--data``, the simulator's split streamed with data seed ``--seed``, so that calibration can draw rooms no
-training run drew; with ``--test-set NAME``, the split of a held-out test set's stream,
+training run drew; with ``--test-set NAME``, the split of a held-out test set's stream (by default ``any-camera``
+for a model that labels the furnished rooms' classes: :func:`fruxel.train.sim.testsets.default_test_set`),
 :data:`fruxel.train.sim.testsets.TEST_SETS`, whose rooms of the ``train`` split training never drew either) once,
 counts mIoU, completion IoU, own-view and novel-view first-hit accuracy (the novel views
 unless ``--no-novel``) at every ``--offsets`` value added to the empty logit (with ``--fill``: and
@@ -32,12 +33,12 @@ from .common import (
     OneLineParser,
     UsageError,
     add_test_set_options,
-    check_stream,
     check_test_set_options,
     device_name,
     non_negative_int,
     positive_int,
     run,
+    streamed_source,
 )
 
 PROG = "fruxel-calibrate"
@@ -95,13 +96,11 @@ def _check(args: argparse.Namespace) -> None:
 
 def _samples(args: argparse.Namespace, config: Any) -> tuple[Any, int]:
     """``(source, count)``: where the samples come from and how many there are, checked against the model
-    (:func:`fruxel.cli.common.check_stream`)."""
+    (:func:`fruxel.cli.common.streamed_source`)."""
     from fruxel.train.samples import SampleSource, check_data_set, split_size
 
     if args.data is None:
-        source = SampleSource(seed=args.seed or 0, assets=str(args.assets or ""), test_set=args.test_set or "")
-        check_stream(source, config)
-        return source, args.samples
+        return streamed_source(args, config), args.samples
     source = SampleSource("shards", args.data, check_data_set(args.data, config).seed)
     return source, min(args.samples, split_size(source, config, args.split))
 

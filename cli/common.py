@@ -643,7 +643,8 @@ def add_test_set_options(parser: Any) -> None:
     from fruxel.train.sim.testsets import TEST_SETS
 
     parser.add_argument("--test-set", default=None, choices=tuple(TEST_SETS), metavar="NAME",
-                        help="stream the samples of a held-out test set instead of the model's own: "
+                        help="stream the samples of a held-out test set (default: any-camera for a model with the "
+                        "classes ceiling and object, else the flat world from the robot's mount): "
                         + "; ".join(f"{s.name}: {s.description}" for s in TEST_SETS.values())
                         + " (the first two need a model with the classes ceiling and object)")
     add_assets_option(parser, "the room-world test sets")
@@ -660,6 +661,19 @@ def check_test_set_options(args: argparse.Namespace) -> None:
                          "give one of them")
     if args.assets is not None and args.test_set is None:
         raise UsageError("--assets names the asset pack of a --test-set's furnished rooms; give --test-set NAME")
+
+
+def streamed_source(args: argparse.Namespace, model: Any, **fields: Any) -> Any:
+    """The streamed :class:`fruxel.train.samples.SampleSource` of ``--seed``, ``--test-set`` (by default the one
+    the model's classes call for, :func:`fruxel.train.sim.testsets.default_test_set`) and ``--assets``, with
+    ``fields`` more, checked against the model (:func:`check_stream`)."""
+    from fruxel.train.samples import SampleSource
+    from fruxel.train.sim.testsets import default_test_set
+
+    test_set = args.test_set or default_test_set(model.classes)
+    source = SampleSource(seed=args.seed or 0, assets=str(args.assets or ""), test_set=test_set, **fields)
+    check_stream(source, model)
+    return source
 
 
 def check_stream(source: Any, model: Any) -> None:

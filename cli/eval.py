@@ -10,11 +10,13 @@ The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training chec
 name (``ssz64``, ``ssz128``); by default the model shipped with fruxel (``ssz64``). Samples are the first N of a
 data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid, image size and
 classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split streamed for
-the model's grid and image size (default 256, ``--seed``): by default the flat world from the robot's mount (the
-samples of earlier reports, as ``--test-set robot`` gives them), with ``--test-set NAME`` those of a held-out
-test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and ``any-camera-test-assets``, furnished rooms
-from any camera with training or held-out assets, from the asset pack ``--assets`` names; ``robot``, the robot's
-mount in the flat world). A room-world set needs a model whose classes include ``ceiling`` and ``object``. The same
+the model's grid and image size (default 256, ``--seed``): by default the ``any-camera`` test set for a model that
+labels the furnished rooms' classes, else the flat world from the robot's mount (the samples of earlier reports, as
+``--test-set robot`` gives them) (:func:`fruxel.train.sim.testsets.default_test_set`); with ``--test-set NAME`` those
+of a held-out test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and
+``any-camera-test-assets``, furnished rooms from any camera with training or held-out assets, from the asset pack
+``--assets`` names; ``robot``, the robot's mount in the flat world).
+A room-world set needs a model whose classes include ``ceiling`` and ``object``. The same
 samples are predicted by
 
 * the model (argmax of its logits),
@@ -57,12 +59,12 @@ from .common import (
     add_model_options,
     add_test_set_options,
     check_output_folder,
-    check_stream,
     check_test_set_options,
     non_negative_int,
     path_name,
     positive_int,
     run,
+    streamed_source,
     torch_device,
     write_outputs,
 )
@@ -248,14 +250,11 @@ def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Ite
 
 def _source(args: argparse.Namespace, mc: Any) -> tuple[Any, int]:
     """``(source, count)``: where the samples come from and how many are evaluated, checked against the model
-    (:func:`fruxel.cli.common.check_stream`)."""
+    (:func:`fruxel.cli.common.streamed_source`)."""
     from fruxel.train.samples import DataError, SampleSource, check_data_set, split_size
 
     if args.data is None:
-        source = SampleSource(seed=args.seed or 0, augment=args.augment, assets=str(args.assets or ""),
-                              test_set=args.test_set or "")
-        check_stream(source, mc)
-        return source, args.samples or STREAM_SAMPLES
+        return streamed_source(args, mc, augment=args.augment), args.samples or STREAM_SAMPLES
     source = SampleSource("shards", args.data, check_data_set(args.data, mc).seed)
     available = split_size(source, mc, args.split)
     count = args.samples or available

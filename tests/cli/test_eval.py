@@ -212,6 +212,24 @@ def test_a_room_world_test_set_is_evaluated_and_its_prior_keyed_by_it(home_model
         prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=name), config, 2).name]
 
 
+def test_a_model_of_the_furnished_rooms_is_evaluated_on_them_by_default(home_model: Path, shipped_model: Path,
+                                                                       tiny_pack: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without --test-set a model that labels ceilings and objects is evaluated on the any-camera set (the pack from
+    $FRUXEL_ASSETS), and a model of the flat world on its own stream, as before."""
+    from fruxel.train.model_files import load_model
+    from fruxel.train.sim.testsets import default_test_set
+
+    assert default_test_set(load_model(home_model).config.classes) == "any-camera"
+    assert default_test_set(load_model(shipped_model).config.classes) == ""
+    monkeypatch.setenv("FRUXEL_ASSETS", str(tiny_pack))
+    out = tmp_path / "report"
+    assert eval_cli.main(["--checkpoint", str(home_model), "--samples", "2", "--prior-samples", "0", "--batch",
+                          str(BATCH), "--examples", "0", "--device", "cpu", "--out", str(out), "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["data"]["test_set"]["name"] == "any-camera"
+
+
 def test_test_sets_that_do_not_fit_are_refused_in_one_line(shipped_model: Path, home_model: Path, tmp_path: Path,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
     """--test-set with --data, --assets without --test-set, a room-world set for a model without its classes, a

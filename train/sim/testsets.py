@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from fruxel.classes import ClassTable
 from fruxel.errors import ConfigError
 
 from .cameras import ANY_CAMERA, ROBOT_CAMERA, CameraConfig
@@ -82,6 +83,15 @@ def test_set(name: str) -> EvaluationSet:
     if name not in TEST_SETS:
         raise ConfigError(f"unknown test set {name!r}; test sets are {list(TEST_SETS)}")
     return TEST_SETS[name]
+
+
+def default_test_set(classes: ClassTable) -> str:
+    """The test set a model is evaluated and calibrated on when none is named: ``"any-camera"`` for a model that
+    labels the room world's classes (it learnt the furnished rooms), else ``""``: the model's own stream, the flat
+    world from the robot's mount (the samples of earlier reports)."""
+    from .rooms import CLASS_NAMES
+
+    return "any-camera" if all(n in classes.names for n in CLASS_NAMES) else ""
 
 
 def _world(config: SimConfig, test_set: EvaluationSet) -> SimConfig:
