@@ -44,6 +44,7 @@ Shared helpers (numpy and the standard library only):
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
@@ -119,6 +120,15 @@ class ArchiveError(ValueError):
 STALE_AGE = 5.0
 """Seconds a temporary file must have existed before :func:`remove_stale_temporaries` may take it for a dead
 writer's (a live writer holds a lock on it from a moment after creating it)."""
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 4 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _temporary_name(target: str, suffix: str) -> str:

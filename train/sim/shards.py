@@ -31,7 +31,6 @@ raises one :class:`DatasetError` naming the file.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
 import json
 import math
@@ -45,7 +44,14 @@ import numpy as np
 import numpy.lib.format as npy_format
 
 from fruxel.errors import FruxelError
-from fruxel.io import ArchiveError, describe_read_error, open_archive, read_json_member, read_npy_member
+from fruxel.io import (
+    ArchiveError,
+    describe_read_error,
+    file_sha256,
+    open_archive,
+    read_json_member,
+    read_npy_member,
+)
 
 from . import cameras
 from .cameras import ROBOT_CAMERA, CameraRecord
@@ -163,15 +169,6 @@ def encode_shard(spec: ShardSpec, config: SimConfig, seed: int, samples: Sequenc
                     raise ValueError(f"sample {s.index} {name}: expected {shape} {dtype}, got {a.shape} {a.dtype}")
                 _put(zf, f"{name}_{j:05d}", a)
     return buf.getvalue()
-
-
-def file_sha256(path: str) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # ---------------------------------------------------------------------------------------------------- reading

@@ -16,13 +16,13 @@ import re
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from fruxel.io import atomic_write
+from fruxel.io import atomic_write, file_sha256
 
 from .config import ConfigError, SimConfig
 from .manifest import MANIFEST, Manifest
 from .renderer import RENDERERS, register_renderer
 from .sample import SampleMaker
-from .shards import VERSION, DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard, file_sha256
+from .shards import VERSION, DatasetError, ShardReader, ShardSpec, check_shard_sha256, encode_shard
 
 # The temporary files fruxel.io.atomic_write leaves beside a shard or the manifest when a run is killed.
 _SHARD_RE = re.compile(r"^\.([a-z0-9][a-z0-9_-]*-\d{5,}\.npz|manifest\.json)\.[0-9a-f]{12}\.tmp$")

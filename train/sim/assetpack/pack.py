@@ -31,7 +31,6 @@ Usage::
 
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 import zipfile
@@ -43,7 +42,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fruxel.io import ArchiveError, describe_read_error, open_archive, open_npy_member
+from fruxel.io import ArchiveError, describe_read_error, file_sha256, open_archive, open_npy_member
 
 from .manifest import FOLDERS, KINDS, MANIFEST_NAME, SPLITS, AssetPackError, Entry, parse_manifest
 
@@ -116,14 +115,6 @@ class Image:
     """``(H, W, 3)`` uint8, sRGB; row 0 is the top."""
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 class AssetPack:
     """A checked asset pack folder (layout in the module docstring).
 
@@ -176,7 +167,7 @@ class AssetPack:
                 if not path.is_file():
                     raise AssetPackError(f"{path}: missing (asset {e.id!r}, {role})")
                 total += path.stat().st_size
-                if verify and _sha256(path) != e.sha256[role]:
+                if verify and file_sha256(path) != e.sha256[role]:
                     raise AssetPackError(f"{path}: corrupt or changed (SHA-256 differs from {MANIFEST_NAME}, "
                                          f"asset {e.id!r})")
             if total != e.bytes:
