@@ -45,7 +45,6 @@ import argparse
 import hashlib
 import importlib.util
 import json
-import os
 import shlex
 import sys
 import time
@@ -78,7 +77,6 @@ PRIOR_SAMPLES = 1024
 """Training samples of the per-cell prior when ``--prior-samples`` is not given."""
 OUTPUTS = ("report.md", "report.json", "examples.png")
 """Files written into ``--out``."""
-CACHE_ENV = "FRUXEL_CACHE_DIR"
 """Environment variable naming the folder of fruxel's caches (default ``$XDG_CACHE_HOME/fruxel``, else
 ``~/.cache/fruxel``); ``fruxel-eval`` keeps its per-cell priors in ``prior/`` there."""
 
@@ -107,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prior-samples", type=non_negative_int, default=PRIOR_SAMPLES, metavar="N",
                    help="training samples counted for the per-cell prior, from the train split of the same source "
                    f"(0 leaves the prior out; default {PRIOR_SAMPLES}, at most the data set's train split); kept in "
-                   f"a cache for later evaluations (${CACHE_ENV}, default ~/.cache/fruxel)")
+                   f"a cache for later evaluations ($FRUXEL_CACHE_DIR, default ~/.cache/fruxel)")
     p.add_argument("--out", type=path_name, default=DEFAULT_OUT, metavar="DIR",
                    help=f"output folder (default {DEFAULT_OUT}/): {', '.join(OUTPUTS)}")
     p.add_argument("--batch", type=positive_int, default=8, metavar="B", help="samples per batch (default 8)")
@@ -146,14 +144,6 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- prior
-def cache_folder() -> Path:
-    """The folder of fruxel's caches: ``$FRUXEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/fruxel``, else
-    ``~/.cache/fruxel``."""
-    if os.environ.get(CACHE_ENV):
-        return Path(os.environ[CACHE_ENV])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fruxel"
-
-
 def _code_digest() -> str:
     """SHA-256 of the sources that make and count the samples (fruxel's core, kernels and training packages): a
     cached prior made by other code is not read back."""
@@ -181,6 +171,7 @@ def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
         model: the model's config (grid, image size, classes).
         samples: training samples counted.
     """
+    from fruxel.io import cache_folder
     from fruxel.train.samples import sim_config
     from fruxel.train.sim.manifest import MANIFEST
 

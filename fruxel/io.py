@@ -131,6 +131,18 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
+CACHE_ENV = "FRUXEL_CACHE_DIR"
+"""The environment variable naming the folder of fruxel's caches (:func:`cache_folder`)."""
+
+
+def cache_folder() -> Path:
+    """The folder of fruxel's caches (derived data that is made again when it is missing): ``$FRUXEL_CACHE_DIR``,
+    else ``$XDG_CACHE_HOME/fruxel``, else ``~/.cache/fruxel``."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fruxel"
+
+
 def _temporary_name(target: str, suffix: str) -> str:
     # Beside the target (os.replace must not cross file systems), short enough for any name limit.
     directory = os.path.dirname(os.path.abspath(target))

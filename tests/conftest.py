@@ -15,6 +15,21 @@ ASSETPACK_SOURCES = Path(__file__).resolve().parent / "data" / "assetpack_source
 """The tiny committed sources of the asset pack (scripts/make_assetpack_fixture.py)."""
 
 
+@pytest.fixture(scope="session", autouse=True)
+def session_cache_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """fruxel's cache folder (``FRUXEL_CACHE_DIR``: the decoded textures of :mod:`fruxel.train.sim.assetpack.derived`,
+    priors) in the session's temporary folder, so that tests never read or fill the user's ``~/.cache``; spawned
+    workers inherit it."""
+    folder = tmp_path_factory.mktemp("fruxel-cache")
+    old = os.environ.get("FRUXEL_CACHE_DIR")
+    os.environ["FRUXEL_CACHE_DIR"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("FRUXEL_CACHE_DIR", None)
+    else:
+        os.environ["FRUXEL_CACHE_DIR"] = old
+
+
 @pytest.fixture
 def torch_one_thread() -> Iterator[None]:
     """Run torch on one thread for the test: on two cores shared with other processes, torch's two OpenMP threads

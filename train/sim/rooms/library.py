@@ -250,9 +250,16 @@ class Library:
     def texture_colour(self, texture_id: str) -> np.ndarray:
         """``(3,)`` float64 mean linear RGB of the texture's albedo (decoded once)."""
         if texture_id not in self._colours:
+            from ..assetpack.derived import code_digest, derived_arrays
+
             e = self.pack.entry(texture_id)
-            albedo = read_rgb(self.root / e.files["albedo"])
-            self._colours[texture_id] = srgb_to_linear(albedo.reshape(-1, 3) / 255.0).mean(axis=0)
+
+            def compute() -> np.ndarray:
+                albedo = read_rgb(self.root / e.files["albedo"])
+                return srgb_to_linear(albedo.reshape(-1, 3) / 255.0).mean(axis=0)
+
+            name = f"colour-{e.sha256['albedo'][:32]}-{code_digest(__name__)}"
+            self._colours[texture_id] = derived_arrays().get(name, (3,), np.float64, compute)
         return self._colours[texture_id]
 
     # -------------------------------------------------------------------------------------------- images
