@@ -13,11 +13,11 @@ and overrides any fields, nested as :class:`fruxel.train.config.TrainConfig` nes
 
 ``--steps``, ``--batch-size``, ``--workers``, ``--time-limit`` and ``--data DIR`` (shards written by
 ``fruxel-sim generate``, or a data folder of your own labelled photos with a ``dataset.json``: docs/your-data.md)
-override the config's values. To fine-tune a model on your data, start from it with ``"run": {"init": FILE}``. The run folder gets the checkpoint ``last.pt``, the
-shipped model ``model.safetensors``, ``config.json``, ``metrics.csv``, ``curves.png`` and ``examples.png``
-(:mod:`fruxel.train.engine.trainer`). ``--resume`` continues ``RUN_DIR/last.pt`` with the run's own config;
-only ``--steps``, ``--time-limit`` and ``--workers`` may change. Ctrl-C writes a checkpoint, then exits with
-status 130.
+override the config's values. To fine-tune a model on your data, start from it with ``"run": {"init": FILE}``.
+The run folder gets the checkpoint ``last.pt``, the shipped model ``model.safetensors``, ``config.json``,
+``metrics.csv``, ``curves.png`` and ``examples.png`` (:mod:`fruxel.train.engine.trainer`). ``--resume`` continues
+``RUN_DIR/last.pt`` with the run's own config; only ``--steps``, ``--time-limit`` and ``--workers`` may change.
+Ctrl-C writes a checkpoint, then exits with status 130.
 
 Under ``torchrun`` every process runs this command; each trains on its own part of the data (DDP), and rank 0
 writes the files and prints. Errors print one line on stderr and exit with status 2
