@@ -497,3 +497,20 @@ def check_folder(root: str | os.PathLike[str], grid: FruxelGrid, classes: Any) -
         for stem in stems:
             fs.check_sample(stem)
     return fs
+
+
+def folder_digest(root: str | os.PathLike[str]) -> str:
+    """A SHA-256 hex digest that changes when a data folder does: of its ``dataset.json`` and the name, size and
+    modification time of every file under it (a cache key; the files' contents are not read)."""
+    import hashlib
+
+    root = os.fsdecode(root)
+    digest = hashlib.sha256()
+    with open(os.path.join(root, DATASET_JSON), "rb") as f:
+        digest.update(f.read())
+    for folder, _, files in sorted(os.walk(root)):
+        for name in sorted(files):
+            st = os.stat(os.path.join(folder, name))
+            digest.update(f"{os.path.relpath(os.path.join(folder, name), root)}\0{st.st_size}\0{st.st_mtime_ns}\0"
+                          .encode())
+    return digest.hexdigest()

@@ -1,10 +1,12 @@
-"""Samples for a model: split S of a source (the simulator's stream or a data set folder) made or read for model M,
-in batches. The one data path of training, evaluation, calibration and the demos.
+"""Samples for a model: split S of a source (the simulator's stream, a data set folder of shards, or a data folder of
+labelled photos, :mod:`fruxel.train.folder`) made or read for model M, in batches. The one data path of training,
+evaluation, calibration and the demos.
 
 Order and resuming
     A rank's samples form a sequence of *blocks*, block ``q`` being one room's samples (``samples_per_scene``
     consecutive indices, clipped to the rank's range). Streaming takes the rooms in index order; shards take each
-    epoch's rooms in a permutation seeded by the run. Worker ``w`` of ``K`` makes blocks ``q = w, w + K, ...``; the
+    epoch's rooms in a permutation seeded by the run; a data folder's samples are independent photos, each a block
+    of its own, permuted likewise. Worker ``w`` of ``K`` makes blocks ``q = w, w + K, ...``; the
     DataLoader returns its workers' results round-robin, so the main process receives blocks in the order
     ``q = 0, 1, 2, ...`` whatever ``K`` is. A batch is the next ``batch`` samples of that sequence, and the
     position ``(next block, samples of it already used)`` is all a checkpoint needs to continue with exactly the
@@ -32,6 +34,9 @@ Arrays
     ``hfov``       ``(N,)``         float64 the camera's horizontal field of view, degrees
     ``coverage``   ``(N, H, W)``    bool    grid frame: the columns ``image`` covers (not grey padding)
     ============== ================ ======= ==========================================================================
+
+    A data folder's samples give NaN where their camera file does not say (:mod:`fruxel.train.folder`): the pose,
+    the gravity direction with pitch and roll, the height.
 
     ``image`` is always the grid's view: a camera of another field of view is framed onto it as the commands frame a
     photo (:mod:`fruxel.train.sim.cameras`); ``labels`` are the full truth, covered columns or not. Images and

@@ -180,6 +180,13 @@ def test_fruxel_train_fine_tunes_on_a_folder(folder: Path, tmp_path: Path, capsy
     saved = json.loads((tmp_path / "run/config.json").read_text())
     assert saved["data"]["source"] == "folder" and saved["data"]["root"] == str(folder)
     assert capsys.readouterr().err == ""
+    # The fine-tuned model calibrates on the folder too.
+    from fruxel.cli.calibrate import main as calibrate
+
+    out = tmp_path / "calibrated.safetensors"
+    assert calibrate([str(tmp_path / "run/model.safetensors"), "--out", str(out), "--data", str(folder),
+                      "--samples", "4", "--device", "cpu"]) == 0
+    assert out.is_file() and "4 samples" in capsys.readouterr().out
 
 
 def _error(tmp_path: Path, folder: Path, capsys: pytest.CaptureFixture[str]) -> str:
@@ -224,6 +231,7 @@ BROKEN = [
     (DATASET_JSON, {"format": "coco"}, "dataset.json: not a fruxel data folder description"),
     (DATASET_JSON, {"splits": {"train": ["../x"]}}, "dataset.json: sample '../x' of split 'train' is not a path"),
     (DATASET_JSON, {"splits": {"test": "test"}}, ": the data folder has no split 'train'"),
+    (DATASET_JSON, {"splits": {"train": "train"}}, ": the data folder has no split 'test' (its splits: train)"),
     (DATASET_JSON, {"splits": {"train": "nowhere"}}, "/nowhere: no such folder"),
 ]
 
