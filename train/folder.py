@@ -33,7 +33,8 @@ Checking
     or intrinsics that make no sense are one :class:`FolderError` naming the file. Reading a sample later
     (:meth:`FolderSet.sample`) checks the label values and decodes the photo.
 
-numpy and Pillow only.
+numpy and Pillow, but for decoding a sample's photo, which :func:`fruxel.train.predict.load_image` does as for every
+command (EXIF orientation, 16-bit grey).
 """
 
 from __future__ import annotations
@@ -190,7 +191,7 @@ def parse_camera(d: Any, size: tuple[int, int], path: str) -> FolderCamera:
         height = _number(d, "height", path)
         if not 0.0 < height <= 100.0:
             raise FolderError(f"{path}: height must be in (0, 100] metres above the floor, got {height:g}")
-    return FolderCamera((fx, fy, cx, cy), (int(w), int(h)), pose, gravity / np.linalg.norm(gravity), height)
+    return FolderCamera((fx, fy, cx, cy), (int(w), int(h)), pose, gravity, height)
 
 
 def _rigid(value: Any, path: str) -> np.ndarray:
