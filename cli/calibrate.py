@@ -34,6 +34,7 @@ from .common import (
     UsageError,
     add_test_set_options,
     check_test_set_options,
+    data_source,
     device_name,
     non_negative_int,
     positive_int,
@@ -54,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
                       "and write the model with them (weights unchanged).")
     p.add_argument("model", help="trained model: a .safetensors file, a training checkpoint or a shipped model's name")
     p.add_argument("--out", required=True, help="calibrated model file to write (.safetensors)")
-    p.add_argument("--data", default=None, help="data set folder (fruxel-sim generate) holding --split (default: "
+    p.add_argument("--data", default=None, help="data set folder (fruxel-sim generate) or data folder of labelled "
+                   "photos (docs/your-data.md) holding --split (default: "
                    "stream the simulator's --split with data seed --seed)")
     p.add_argument("--split", default="train", help="split to calibrate on (default train)")
     add_test_set_options(p)
@@ -97,11 +99,11 @@ def _check(args: argparse.Namespace) -> None:
 def _samples(args: argparse.Namespace, config: Any) -> tuple[Any, int]:
     """``(source, count)``: where the samples come from and how many there are, checked against the model
     (:func:`fruxel.cli.common.streamed_source`)."""
-    from fruxel.train.samples import SampleSource, check_data_set, split_size
+    from fruxel.train.samples import split_size
 
     if args.data is None:
         return streamed_source(args, config), args.samples
-    source = SampleSource("shards", args.data, check_data_set(args.data, config).seed)
+    source = data_source(args.data, config)
     return source, min(args.samples, split_size(source, config, args.split))
 
 

@@ -676,6 +676,23 @@ def streamed_source(args: argparse.Namespace, model: Any, **fields: Any) -> Any:
     return source
 
 
+def data_source(root: str | Path, model: Any) -> Any:
+    """The :class:`fruxel.train.samples.SampleSource` of ``--data DIR``, checked against the model: a data folder of
+    labelled photos when ``DIR`` holds a ``dataset.json`` (:mod:`fruxel.train.folder`), else a data set of shards.
+
+    Raises:
+        DataError: see :func:`fruxel.train.samples.check_data_set` and
+            :func:`~fruxel.train.samples.check_folder_set` (one line naming the file).
+    """
+    from fruxel.train.folder import is_folder_set
+    from fruxel.train.samples import SampleSource, check_data_set, check_folder_set
+
+    if is_folder_set(root):
+        check_folder_set(str(root), model)
+        return SampleSource("folder", str(root))
+    return SampleSource("shards", str(root), check_data_set(str(root), model).seed)
+
+
 def check_stream(source: Any, model: Any) -> None:
     """Check, before any slow work, that a streamed sample source fits a model: a test set of the room world needs
     the model's classes to include the ones that world labels, and its asset pack (:func:`check_asset_pack`).

@@ -59,6 +59,7 @@ from .common import (
     add_test_set_options,
     check_output_folder,
     check_test_set_options,
+    data_source,
     non_negative_int,
     path_name,
     positive_int,
@@ -92,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_model_options(p)
     p.add_argument("--data", type=path_name, default=None, metavar="DIR",
-                   help="a data set folder made by fruxel-sim generate (default: stream samples from the simulator)")
+                   help="a data set folder made by fruxel-sim generate, or a data folder of labelled photos (with a "
+                   "dataset.json: docs/your-data.md) (default: stream samples from the simulator)")
     p.add_argument("--split", default="test", metavar="NAME", help="the data set's split to evaluate on (default test)")
     add_test_set_options(p)
     p.add_argument("--samples", type=positive_int, default=None, metavar="N",
@@ -180,6 +182,10 @@ def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
     if data.source == "shards":
         # A data set's manifest holds its settings and every shard's SHA-256.
         key["data set"] = hashlib.sha256(Path(data.root, MANIFEST).read_bytes()).hexdigest()
+    elif data.source == "folder":
+        from fruxel.train.folder import folder_digest
+
+        key["data folder"] = folder_digest(data.root)
     else:
         key["stream"] = sim_config(model, data, (("train", samples),)).to_dict()
         key["seed"] = data.seed
@@ -242,11 +248,11 @@ def _progress(batches: Iterator[Any], total: int, desc: str, quiet: bool) -> Ite
 def _source(args: argparse.Namespace, mc: Any) -> tuple[Any, int]:
     """``(source, count)``: where the samples come from and how many are evaluated, checked against the model
     (:func:`fruxel.cli.common.streamed_source`)."""
-    from fruxel.train.samples import DataError, SampleSource, check_data_set, split_size
+    from fruxel.train.samples import DataError, split_size
 
     if args.data is None:
         return streamed_source(args, mc, augment=args.augment), args.samples or STREAM_SAMPLES
-    source = SampleSource("shards", args.data, check_data_set(args.data, mc).seed)
+    source = data_source(args.data, mc)
     available = split_size(source, mc, args.split)
     count = args.samples or available
     if count > available:
@@ -263,7 +269,7 @@ def _prior(args: argparse.Namespace, source: Any, mc: Any, load: Any, device: An
     from fruxel.train.samples import DataError, split_size
 
     n_prior = args.prior_samples
-    if source.source == "shards":
+    if source.source != "stream":
         try:
             n_prior = min(n_prior, split_size(source, mc, "train"))
         except DataError:

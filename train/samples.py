@@ -1,10 +1,12 @@
-"""Samples for a model: split S of a source (the simulator's stream or a data set folder) made or read for model M,
-in batches. The one data path of training, evaluation, calibration and the demos.
+"""Samples for a model: split S of a source (the simulator's stream, a data set folder of shards, or a data folder of
+labelled photos, :mod:`fruxel.train.folder`) made or read for model M, in batches. The one data path of training,
+evaluation, calibration and the demos.
 
 Order and resuming
     A rank's samples form a sequence of *blocks*, block ``q`` being one room's samples (``samples_per_scene``
     consecutive indices, clipped to the rank's range). Streaming takes the rooms in index order; shards take each
-    epoch's rooms in a permutation seeded by the run. Worker ``w`` of ``K`` makes blocks ``q = w, w + K, ...``; the
+    epoch's rooms in a permutation seeded by the run; a data folder's samples are independent photos, each a block
+    of its own, permuted likewise. Worker ``w`` of ``K`` makes blocks ``q = w, w + K, ...``; the
     DataLoader returns its workers' results round-robin, so the main process receives blocks in the order
     ``q = 0, 1, 2, ...`` whatever ``K`` is. A batch is the next ``batch`` samples of that sequence, and the
     position ``(next block, samples of it already used)`` is all a checkpoint needs to continue with exactly the
@@ -33,6 +35,9 @@ Arrays
     ``coverage``   ``(N, H, W)``    bool    grid frame: the columns ``image`` covers (not grey padding)
     ============== ================ ======= ==========================================================================
 
+    A data folder's samples give NaN where their camera file does not say (:mod:`fruxel.train.folder`): the pose,
+    the gravity direction with pitch and roll, the height.
+
     ``image`` is always the grid's view: a camera of another field of view is framed onto it as the commands frame a
     photo (:mod:`fruxel.train.sim.cameras`); ``labels`` are the full truth, covered columns or not. Images and
     labels stay uint8 until the training device (:func:`fruxel.train.engine.data.to_device`), where images become
@@ -58,6 +63,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from fruxel.errors import FruxelError
 
 from .config import DATA_SOURCES, DataConfig
+from .folder import grid_words
 from .models.registry import ModelConfig
 
 
@@ -71,9 +77,10 @@ class SampleSource:
     """Where samples come from."""
 
     source: str = "stream"
-    """``"stream"``: made by the simulator for the model's grid and image size; ``"shards"``: a data set folder."""
+    """``"stream"``: made by the simulator for the model's grid and image size; ``"shards"``: a data set folder;
+    ``"folder"``: a data folder of labelled photos (:mod:`fruxel.train.folder`)."""
     root: str = ""
-    """The data set folder (``source = "shards"``)."""
+    """The data set folder (``source = "shards"``) or data folder (``source = "folder"``)."""
     seed: int = 0
     """The simulator's base seed (streaming; a data set has its own)."""
     augment: bool = True
@@ -115,6 +122,8 @@ class SampleSource:
         """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
         if self.source == "shards":
             return f"data set {self.root}"
+        if self.source == "folder":
+            return f"data folder {self.root}"
         if self.test_set:
             what = f", test set {self.test_set}"
         else:
@@ -167,11 +176,9 @@ def check_data_set(root: str, model: ModelConfig) -> Any:
     except DatasetError as e:
         raise DataError(str(e)) from None
     sc = manifest.config
-    g, m = sc.grid, model.grid
     problems = []
-    if g != m:
-        problems.append(f"grid {g.width}x{g.height}x{g.depth} z {g.z_near:g}..{g.z_far:g} m hfov {g.hfov:g} (the "
-                        f"model's: {m.width}x{m.height}x{m.depth} z {m.z_near:g}..{m.z_far:g} m hfov {m.hfov:g})")
+    if sc.grid != model.grid:
+        problems.append(f"grid {grid_words(sc.grid)} (the model's: {grid_words(model.grid)})")
     if (sc.image_height, sc.image_width) != model.image_size:
         problems.append(f"images {sc.image_width}x{sc.image_height} (the model's: {model.image_size[1]}x"
                         f"{model.image_size[0]})")
@@ -182,12 +189,35 @@ def check_data_set(root: str, model: ModelConfig) -> Any:
     return manifest
 
 
-def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | None:
-    """Samples in ``split`` of a data set (None for the stream, which has any number).
+def check_folder_set(root: str, model: ModelConfig) -> Any:
+    """A data folder of labelled photos (:mod:`fruxel.train.folder`), checked whole against a model.
+
+    Returns:
+        Its :class:`fruxel.train.folder.FolderSet`.
 
     Raises:
-        DataError: see :func:`check_data_set`; a split the data set does not have.
+        DataError: see :func:`fruxel.train.folder.check_folder` (one line naming the file).
     """
+    from .folder import FolderError, check_folder
+
+    try:
+        return check_folder(root, model.grid, model.classes.names)
+    except FolderError as e:
+        raise DataError(str(e)) from None
+
+
+def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | None:
+    """Samples in ``split`` of a data set or data folder (None for the stream, which has any number).
+
+    Raises:
+        DataError: see :func:`check_data_set` and :func:`check_folder_set`; a split the data set does not have.
+    """
+    if source.source == "folder":
+        splits = check_folder_set(source.root, model).splits
+        if split not in splits:
+            raise DataError(f"{source.root}: the data folder has no split {split!r} (its splits: "
+                            f"{', '.join(splits)})")
+        return len(splits[split])
     if source.source != "shards":
         return None
     from fruxel.train.sim.dataset import ShardDataset
@@ -224,18 +254,13 @@ def split_batches(source: SampleSource, model: ModelConfig, split: str, count: i
     Raises:
         DataError: see :func:`check_data_set`; a corrupt shard.
     """
-    if source.source == "shards":
-        spp = check_data_set(source.root, model).config.samples_per_scene
-        sim = None
-    else:
-        spp = source.samples_per_scene
-        sim = sim_config(model, source, ((split, count),))
+    spp, reading = _reading(source, model, ((split, count),))
     plan = BlockPlan(0, count, spp, None)
 
     def factory(block: int, skip: int) -> BlockStream:
         # The stream ends after the blocks of ``count`` samples: the workers make nothing that is not used.
-        return BlockStream(plan, source.source, split, sim_config=sim, seed=source.seed, root=source.root,
-                           first_block=block, skip=skip, device=device, stop_block=plan.rooms[1] - plan.rooms[0])
+        return BlockStream(plan, source.source, split, **reading, first_block=block, skip=skip, device=device,
+                           stop_block=plan.rooms[1] - plan.rooms[0])
 
     loader = Batches(factory, batch, min(workers, math.ceil(count / spp)))
     try:
@@ -289,24 +314,31 @@ def training_batches(source: SampleSource, model: ModelConfig, samples: int, *, 
     Raises:
         DataError: fewer rooms than ranks.
     """
-    spp = source.samples_per_scene
-    sim = None
-    if source.source == "shards":
-        spp = check_data_set(source.root, model).config.samples_per_scene
-    else:
-        sim = sim_config(model, source, (("train", samples),))
+    spp, reading = _reading(source, model, (("train", samples),))
     try:
         lo, hi = rank_range(samples, spp, rank, world)
     except ValueError as e:
-        where = source.root if source.source == "shards" else "data.train_samples"
+        where = "data.train_samples" if source.source == "stream" else source.root
         raise DataError(f"{where}: training split: {e}") from None
     plan = BlockPlan(lo, hi, spp, None if source.source == "stream" else shuffle_seed)
 
     def factory(block: int, skip: int) -> BlockStream:
-        return BlockStream(plan, source.source, "train", sim_config=sim, seed=source.seed, root=source.root,
-                           first_block=block, skip=skip, device=device)
+        return BlockStream(plan, source.source, "train", **reading, first_block=block, skip=skip, device=device)
 
     return Batches(factory, batch, workers, pin=pin, position=position)
+
+
+def _reading(source: SampleSource, model: ModelConfig, splits: tuple[tuple[str, int], ...]
+             ) -> tuple[int, dict[str, Any]]:
+    """``(samples per block, BlockStream's reading arguments)`` of a source: a data set's own samples per room; one
+    sample a block for a data folder, whose samples are independent photos; the stream's, with its simulator config
+    of ``splits``."""
+    if source.source == "shards":
+        return check_data_set(source.root, model).config.samples_per_scene, {"root": source.root}
+    if source.source == "folder":
+        return 1, {"root": source.root, "folder": check_folder_set(source.root, model),
+                   "image_size": model.image_size}
+    return source.samples_per_scene, {"sim_config": sim_config(model, source, splits), "seed": source.seed}
 
 
 def train_split_size(source: SampleSource, model: ModelConfig, streamed: int) -> int:
@@ -387,11 +419,14 @@ class BlockStream(IterableDataset):
 
     Args:
         plan: the rank's blocks.
-        source: ``"stream"`` (a :class:`~fruxel.train.sim.shards.SampleMaker` per worker) or ``"shards"``.
+        source: ``"stream"`` (a :class:`~fruxel.train.sim.shards.SampleMaker` per worker), ``"shards"`` or
+            ``"folder"``.
         split: the split's name.
         sim_config: the simulator config (streaming).
         seed: the simulator's base seed (streaming).
-        root: the data set folder (shards).
+        root: the data set folder (shards) or data folder.
+        folder: the checked data folder (:class:`fruxel.train.folder.FolderSet`; ``source = "folder"``).
+        image_size: ``(height, width)`` the data folder's photos are framed to (the model's image size).
         first_block: the block to start with.
         skip: samples of the first block to leave out (already used before a resume).
         device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
@@ -400,8 +435,8 @@ class BlockStream(IterableDataset):
     """
 
     def __init__(self, plan: BlockPlan, source: str, split: str, *, sim_config: Any = None, seed: int = 0,
-                 root: str = "", first_block: int = 0, skip: int = 0, device: str | None = None,
-                 stop_block: int | None = None) -> None:
+                 root: str = "", folder: Any = None, image_size: tuple[int, int] = (0, 0), first_block: int = 0,
+                 skip: int = 0, device: str | None = None, stop_block: int | None = None) -> None:
         super().__init__()
         self.plan = plan
         self.source = source
@@ -409,14 +444,18 @@ class BlockStream(IterableDataset):
         self.sim_config = sim_config
         self.seed = seed
         self.root = root
+        self.folder = folder
+        self.image_size = image_size
         self.first_block = first_block
         self.skip = skip
         self.device = device
         self.stop_block = stop_block
 
     def _reader(self) -> tuple[Callable[[int], Any], Callable[[], None]]:
-        """``(read, close)``: sample ``i`` of the split (simulated or read from shards), and the closing of what
-        reading holds."""
+        """``(read, close)``: sample ``i`` of the split (simulated, read from shards or from a data folder), and the
+        closing of what reading holds."""
+        if self.source == "folder":
+            return (lambda i: self.folder.sample(self.split, i, self.image_size)), (lambda: None)
         if self.source == "stream":
             if self.device is not None and self.device.startswith("cuda:"):
                 # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers

@@ -290,6 +290,25 @@ def test_data_set_split_end_to_end(shipped_model: Path, checkpoint_model: Path, 
     assert "per-cell prior" not in md2.split("## Metrics")[1] and "examples.png" not in md2
 
 
+def test_a_data_folder_of_the_same_samples_gives_the_same_report(shipped_model: Path, data_set: Path,
+                                                                  tmp_path: Path) -> None:
+    # The data set's samples exported as a data folder of labelled photos (docs/your-data.md) read back as the same
+    # images and labels, so every number of the report is the same.
+    from fruxel.train.sim.export import export_folder
+    from fruxel.train.sim.manifest import MANIFEST, Manifest
+
+    folder = tmp_path / "folder"
+    export_folder(folder, Manifest.load(str(data_set / MANIFEST)).config, 5, progress=False)
+    reports = []
+    for data in (data_set, folder):
+        out = tmp_path / data.name / "report"
+        assert eval_cli.main(["--checkpoint", str(shipped_model), "--data", str(data), "--batch", str(BATCH),
+                              "--prior-samples", "10", "--examples", "0", "--out", str(out), "-q"]) == 0
+        reports.append(json.loads((out / "report.json").read_text()))
+    assert reports[1]["data"]["kind"] == "folder" and reports[1]["prior"] == {"split": "train", "samples": 4}
+    assert reports[1]["results"] == reports[0]["results"]
+
+
 # ---------------------------------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("kind", BAD_MODELS)
 def test_bad_model_files_give_one_line_and_run_nothing(kind: str, shipped_model: Path, tmp_path: Path,

@@ -118,10 +118,14 @@ class Trainer:
             raise TrainingError("a new run needs a config")
         self.config = override_settings(config, overrides) if overrides else config
         """The run's config."""
-        from ..samples import SampleSource, train_split_size
+        from ..samples import SampleSource, split_size, train_split_size
 
-        # A data set that does not fit is refused before anything is written.
-        train_split_size(SampleSource.of(self.config.data), self.config.model, self.config.data.train_samples)
+        # A data set that does not fit, or lacks the test split the evaluation reads, is refused before anything is
+        # written (not after training, when the evaluation first reads it).
+        source = SampleSource.of(self.config.data)
+        train_split_size(source, self.config.model, self.config.data.train_samples)
+        if evaluation:
+            split_size(source, self.config.model, "test")
         self.dist = distributed.setup(device)
         """This process's place in the run (device, rank, world)."""
         self.progress = progress and self.dist.main

@@ -219,12 +219,23 @@ class SampleMaker:
         Raises:
             ConfigError: an unknown split or an index outside it.
         """
+        return self.make_with_render(split, index)[0]
+
+    def make_with_render(self, split: str, index: int) -> tuple[Sample, np.ndarray]:
+        """Sample ``index`` of ``split`` and its camera's render before framing: ``(h, w, 3)`` uint8 RGB of
+        ``sample.camera`` (its intrinsics and image size; the sample's ``image`` itself when the camera is not
+        framed). A photo with those intrinsics, framed as the commands frame photos, is the sample's image (what
+        ``fruxel-sim export`` writes).
+
+        Raises:
+            ConfigError: an unknown split or an index outside it.
+        """
         from fruxel.kernels.fruxelize import fruxelize
 
         room, frame = self._locate(split, index)
         index, scene, pose = int(index), room.key[1], room.poses[frame]
         t0 = time.perf_counter()
-        image = self._render(room, pose, augment_rng(self.seed, split, index))
+        render, image = self._render(room, pose, augment_rng(self.seed, split, index))
         t1 = time.perf_counter()
         labels = np.ascontiguousarray(fruxelize(room.mesh_set, self.config.grid, pose, backend=self.backend),
                                       dtype=np.uint8)
@@ -232,11 +243,14 @@ class SampleMaker:
         self.timings["render"] += t1 - t0
         self.timings["fruxelize"] += t2 - t1
         record = cameras.camera_record(self.config, room.mount, pose)
-        return Sample(split, index, scene, frame, room.seed, image, labels, pose.copy(), record, room.coverage.copy())
+        sample = Sample(split, index, scene, frame, room.seed, image, labels, pose.copy(), record,
+                        room.coverage.copy())
+        return sample, render
 
-    def _render(self, room: _Room, pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The sample's image: the renderer's image of the network's view, or the render of the room's camera at its
-        own field of view framed onto that view (:mod:`.cameras`).
+    def _render(self, room: _Room, pose: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """``(render, image)``: the render of the room's camera at its own field of view, and the sample's image,
+        that render framed onto the network's view (:mod:`.cameras`); the same array twice when the camera is the
+        network's own.
 
         Raises:
             ConfigError: a camera of another field of view for a renderer that draws only the network's view.
@@ -246,7 +260,8 @@ class SampleMaker:
             self._renderer = make_renderer(cfg, self.device)
         self._renderer.set_scene(room.scene)
         if not cameras.is_framed(cfg, room.mount.hfov):
-            return self._renderer.render(pose, rng)
+            image = self._renderer.render(pose, rng)
+            return image, image
         if not takes_camera(self._renderer):
             raise ConfigError(f"renderer {cfg.renderer!r} draws only the grid's view (its render() takes no camera), "
                               f"but the config's camera draws other fields of view ({room.mount.hfov:.4g} degrees); "
@@ -258,7 +273,7 @@ class SampleMaker:
             raise RuntimeError(f"renderer {cfg.renderer!r} returned {getattr(render, 'dtype', type(render))} "
                                f"{getattr(render, 'shape', '')} for a {camera.width}x{camera.height} camera; "
                                f"expected ({camera.height}, {camera.width}, 3) uint8")
-        return cameras.frame_render(cfg, render, room.mount.hfov)
+        return render, cameras.frame_render(cfg, render, room.mount.hfov)
 
     def close(self) -> None:
         """Free the renderer (its OpenGL context, say) and the current room (idempotent)."""
