@@ -134,3 +134,15 @@ def test_bad_camera_values_give_one_error_line(camera_model: Path, tmp_path: Pat
 def test_render_refuses_camera_options_without_a_photo(capsys: pytest.CaptureFixture[str]) -> None:
     assert render_cli.main(["--pitch", "10"]) == 2
     assert "--pitch" in error_line(capsys, "fruxel-render")
+
+
+def test_eval_camera_known_parses() -> None:
+    from fruxel.cli import eval as eval_cli
+
+    parse = eval_cli.build_parser().parse_args
+    assert parse(["--camera-known", "gravity,height"]).camera_known == ("gravity", "height")
+    assert parse(["--camera-known", "none"]).camera_known == ()
+    assert parse([]).camera_known is None  # what the test set records: both
+    for bad in ("height", "pose", "gravity,size"):
+        with pytest.raises(SystemExit):
+            parse(["--camera-known", bad])

@@ -213,3 +213,13 @@ def test_a_few_real_training_steps_with_cameras(tmp_path: Path) -> None:
         low, high = (net(image, _camera(10.0, 0.0, h)).logits for h in (1.0, 1.5))
     assert not torch.allclose(low, high, atol=1e-5)
     assert dataclasses.asdict(m.config)["camera_inputs"] is True
+
+
+@torch.no_grad()
+def test_refined_network_reads_the_camera_below_its_level() -> None:
+    config = small_config(camera_inputs=True, refine=4)
+    torch.manual_seed(0)
+    net = config.build().eval()
+    image = _image(config)
+    low, high = (net(image, _camera(10.0, 0.0, h)).logits for h in (1.0, 1.5))
+    assert low.shape[2:] == config.grid.shape and not torch.allclose(low, high, atol=1e-4)
