@@ -223,3 +223,21 @@ def test_refined_network_reads_the_camera_below_its_level() -> None:
     image = _image(config)
     low, high = (net(image, _camera(10.0, 0.0, h)).logits for h in (1.0, 1.5))
     assert low.shape[2:] == config.grid.shape and not torch.allclose(low, high, atol=1e-4)
+
+
+@torch.no_grad()
+def test_calibration_tells_the_recorded_pose() -> None:
+    """The rules' sweep counts what evaluation with the pose given counts."""
+    from fruxel.train.eval.calibrate import sweep_rules
+
+    config, net = _net()
+    image = _image(config)
+    record = {"gravity": torch.tensor([[0.0, math.cos(0.3), math.sin(0.3)]], dtype=torch.float64),
+              "height": torch.tensor([0.8], dtype=torch.float64)}
+    labels = net(image, CameraInput.from_record(record)).logits.argmax(1).to(torch.uint8)  # its own answer: IoU 100
+    accs = sweep_rules(net, [(image, labels, record)], [0.0], [0.5], config.num_classes, base=InferenceRules(),
+                       device=torch.device("cpu"))
+    assert next(iter(accs.values())).summary()["miou"] == pytest.approx(100.0)
+    blind = sweep_rules(net, [(image, labels)], [0.0], [0.5], config.num_classes, base=InferenceRules(),
+                        device=torch.device("cpu"))
+    assert next(iter(blind.values())).summary()["miou"] < 99.0
