@@ -144,11 +144,13 @@ def _main(args: argparse.Namespace) -> None:
 
     def images(pairs):  # noqa: ANN001, ANN202
         with tqdm(total=count, desc="calibrate", unit="sample", leave=False, disable=None) as bar:
-            for image, labels in pairs:
-                yield image.permute(0, 3, 1, 2).float() / 255, labels
+            for image, labels, *camera in pairs:
+                yield image.permute(0, 3, 1, 2).float() / 255, labels, *camera
                 bar.update(len(labels))
 
-    pairs = split_batches(source, m.config, args.split, count, args.batch, workers=args.workers)
+    # A model that reads the camera is calibrated with the pose the samples record (as fruxel-eval's default).
+    pairs = split_batches(source, m.config, args.split, count, args.batch, workers=args.workers,
+                          camera=m.config.reads_camera)
     accs = sweep_rules(m.network.to(device), images(pairs), offsets, thresholds, m.config.num_classes, base=base,
                        device=device, grid=m.config.grid if args.novel else None, backend=args.backend)
     summaries = {r: a.summary() for r, a in accs.items()}

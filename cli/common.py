@@ -753,3 +753,100 @@ def torch_device(name: str | None) -> Any:
             raise UsageError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA devices, "
                              f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")
     return torch.device(name)
+
+
+# ---------------------------------------------------------------------------------------------------- photo cameras
+def angle(text: str) -> float:
+    """argparse type: a pitch or roll in degrees, in (-90, 90)."""
+    return _real(text, lambda v: -90.0 < v < 90.0, "degrees in (-90, 90)")
+
+
+def camera_height(text: str) -> float:
+    """argparse type: a camera's height above the floor in metres, in (0, 10]."""
+    return _real(text, lambda v: 0.0 < v <= 10.0, "metres in (0, 10]")
+
+
+def intrinsics(text: str) -> tuple[float, float, float, float]:
+    """argparse type: ``fx,fy,cx,cy`` in pixels of the photo, focal lengths > 0."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(v == v and abs(v) != float("inf") for v in values) or min(values[:2]) <= 0:
+        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy (pixels, fx and fy > 0), got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def add_camera_options(parser: Any, hfov: bool = True) -> None:
+    """Add what is known of a photo's camera: ``--pitch``, ``--roll``, ``--height`` (for a model that reads the
+    camera: :class:`fruxel.train.predict.CameraPrior`) and ``--intrinsics fx,fy,cx,cy``, with ``--hfov DEG`` too
+    unless the command has its own (``hfov=False``). :func:`camera_prior` and :func:`photo_view` read them."""
+    parser.add_argument("--pitch", type=angle, default=None, metavar="DEG",
+                        help="the camera's pitch in degrees, positive looking down (default unknown; a model that "
+                        "reads the camera then knows gravity, with --roll 0 unless given)")
+    parser.add_argument("--roll", type=angle, default=None, metavar="DEG",
+                        help="the camera's roll in degrees, positive clockwise as seen from behind it (default 0 "
+                        "with --pitch, else unknown)")
+    parser.add_argument("--height", type=camera_height, default=None, metavar="M",
+                        help="the camera's height above the floor in metres (default unknown; needs --pitch)")
+    if hfov:
+        parser.add_argument("--hfov", type=field_of_view, default=None, metavar="DEG",
+                            help="the photos' horizontal field of view in degrees (default: from the photo's EXIF "
+                            "35 mm focal length, else the model grid's own); a wider photo is cropped to the grid's "
+                            "view, a narrower one padded")
+    parser.add_argument("--intrinsics", type=intrinsics, default=None, metavar="FX,FY,CX,CY",
+                        help="the photos' pinhole intrinsics in pixels (instead of --hfov): the photo is cropped "
+                        "about the principal point to square pixels")
+
+
+def camera_prior(args: argparse.Namespace) -> Any:
+    """The :class:`fruxel.train.predict.CameraPrior` of ``--pitch``, ``--roll`` and ``--height``, checked.
+
+    Raises:
+        UsageError: ``--intrinsics`` with ``--hfov``; ``--height`` without ``--pitch`` or ``--roll``.
+    """
+    if getattr(args, "intrinsics", None) is not None and getattr(args, "hfov", None) is not None:
+        raise UsageError("--intrinsics and --hfov both give the field of view; give one")
+    if args.height is not None and args.pitch is None and args.roll is None:
+        raise UsageError(f"--height {args.height:g} needs --pitch: a model reads the height along gravity")
+    from fruxel.train.predict import CameraPrior
+
+    return CameraPrior(pitch=args.pitch, roll=args.roll, height=args.height)
+
+
+def photo_view(path: str | Path, image: Any, args: argparse.Namespace, prog: str, default_hfov: float) -> Any:
+    """A photo and its horizontal field of view as the model's framing takes them: ``--intrinsics`` (the photo
+    cropped about the principal point), else ``--hfov``, else the photo's EXIF 35 mm-equivalent focal length
+    (:func:`fruxel.train.predict.exif_focal_35mm`: one warning line on stderr when it is absurd), else None (the
+    model grid's own, ``default_hfov``).
+
+    Args:
+        path: the photo's file.
+        image: its ``(h, w, 3)`` uint8 RGB (upright).
+        args: the parsed options (:func:`add_camera_options`).
+        prog: the command's name, for the warning.
+        default_hfov: the field of view used when nothing gives one, degrees (named in the warning).
+
+    Returns:
+        ``(image (h', w', 3) uint8, hfov degrees or None)``.
+
+    Raises:
+        UsageError: ``--intrinsics`` whose principal point lies outside the photo.
+    """
+    from fruxel.train.predict import centre_intrinsics, exif_focal_35mm, hfov_from_focal_35mm
+
+    if getattr(args, "intrinsics", None) is not None:
+        try:
+            return centre_intrinsics(image, args.intrinsics)
+        except ValueError as e:
+            raise UsageError(f"--intrinsics for {path}: {e}") from None
+    if args.hfov is not None:
+        return image, args.hfov
+    focal, why = exif_focal_35mm(path)
+    if why is not None:
+        print(f"{prog}: warning: {path}: {why}; using {default_hfov:g} degrees across (give --hfov)",
+              file=sys.stderr)
+    if focal is None:
+        return image, None
+    return image, hfov_from_focal_35mm(focal, image.shape[1], image.shape[0])

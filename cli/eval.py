@@ -118,8 +118,25 @@ def build_parser() -> argparse.ArgumentParser:
                    "best available)")
     p.add_argument("--examples", type=non_negative_int, default=4, metavar="N",
                    help="samples shown in examples.png (default 4; 0: no picture)")
+    p.add_argument("--camera-known", type=camera_pieces, default=None, metavar="gravity,height|gravity|none",
+                   help="for a model that reads the camera: what it is told of each test sample's recorded camera "
+                   "(default gravity,height: pose given, as the test set records it; none: pose unknown); other "
+                   "models ignore it")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     return p
+
+
+CAMERA_PIECES = ("gravity", "height")
+"""What ``--camera-known`` may name (:data:`fruxel.train.models.conditioning.KNOWN`)."""
+
+
+def camera_pieces(text: str) -> tuple[str, ...]:
+    """argparse type of ``--camera-known``: ``none`` or a comma-separated subset of :data:`CAMERA_PIECES` (a height
+    needs gravity)."""
+    pieces = () if text == "none" else tuple(dict.fromkeys(t.strip() for t in text.split(",")))
+    if any(p not in CAMERA_PIECES for p in pieces) or ("height" in pieces and "gravity" not in pieces):
+        raise argparse.ArgumentTypeError(f"expected gravity,height, gravity or none, got {text!r}")
+    return pieces
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -226,7 +243,7 @@ def _prior_mode(data: Any, model: Any, samples: int, batches: Any) -> Any:
     counted = _cached_prior(cache, model)
     if counted is None:
         prior = CellPrior(model.grid.shape, len(model.classes.names))
-        for _, labels in batches():
+        for _, labels, *_ in batches():
             prior.add(labels)
         counted = prior.mode()
         _cache_prior(cache, counted, model)
@@ -303,18 +320,20 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     sim_device = "cuda" if device.type == "cuda" else "cpu"
 
     def load(split: str, n: int, desc: str) -> Iterator[Any]:
-        return _progress(split_batches(source, mc, split, n, args.batch, workers=args.workers, device=sim_device),
-                         n, desc, args.quiet)
+        return _progress(split_batches(source, mc, split, n, args.batch, workers=args.workers, device=sim_device,
+                                       camera=mc.reads_camera), n, desc, args.quiet)
 
     prior_info = None
-    predictors: dict[str, Any] = {"model": model_predict(m.network, m.rules, autocast=device.type == "cuda")}
+    known = CAMERA_PIECES if args.camera_known is None else args.camera_known
+    predictors: dict[str, Any] = {"model": model_predict(m.network, m.rules, autocast=device.type == "cuda",
+                                                         camera_known=known if mc.reads_camera else None)}
     if args.prior_samples:
         predictors["prior"], prior_info = _prior(args, source, mc, load, device)
     predictors["oracle"] = lambda image, truth: oracle_prediction(truth, mc.grid, args.backend)
 
     def as_input(pairs: Iterator[Any]) -> Iterator[Any]:
-        for image, labels in pairs:
-            yield to_device({"image": image, "labels": labels}, device)
+        for image, labels, *camera in pairs:
+            yield (*to_device({"image": image, "labels": labels}, device), *camera)
 
     with torch.no_grad():
         # Examples spread over the samples: consecutive samples are frames of one room.
@@ -329,7 +348,8 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
                "image_size": list(mc.image_size), "training": m.training, "inference_rules": m.rules.to_dict()},
         data={"source": source.describe(), "kind": source.source, "root": source.root or None, "seed": source.seed,
               "augment": source.augment if source.source == "stream" else None, "split": args.split,
-              "samples": count, "indices": f"indices 0..{count - 1}", "test_set": _test_set(source)},
+              "samples": count, "indices": f"indices 0..{count - 1}", "test_set": _test_set(source),
+              "camera_known": list(known) if mc.reads_camera else None},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
         seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None)
     return _write(args, report, kept, mc, count)

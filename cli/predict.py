@@ -2,19 +2,23 @@
 
 Usage::
 
-    fruxel-predict IMAGE... [--checkpoint FILE] [--out DIR] [--fit crop|pad] [--hfov DEG] [--batch N] [--logits]
-                   [--device cpu|cuda[:N]] [-q]
+    fruxel-predict IMAGE... [--checkpoint FILE] [--out DIR] [--fit crop|pad] [--hfov DEG | --intrinsics FX,FY,CX,CY]
+                   [--pitch DEG] [--roll DEG] [--height M] [--batch N] [--logits] [--device cpu|cuda[:N]] [-q]
 
 IMAGE is any PNG, JPEG or other image Pillow reads (16-bit grey and 32-bit float grey in [0, 1] included), of any
 size a camera gives: at least 16 pixels on its shorter side and at most 8 times as long as wide
 (:func:`fruxel.cli.common.check_photo`; smaller or thinner pictures are refused). Each is mapped onto the model's
-own camera (:func:`fruxel.train.predict.prepare_image`): with ``--hfov`` (the photo's horizontal field of view) it
-is cropped or padded to the grid's view about the centre, by geometry alone; without it the photo is taken as the
-grid's view and its aspect matched by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then
-it is resized to the model's image size. Grid columns whose centre ray falls on grey padding are left empty: the photo
-says nothing of them. The model (``--checkpoint``: a shipped ``.safetensors`` file, a training checkpoint ``.pt``
-or a shipped model's name, ``ssz64`` or ``ssz128``; default the model shipped with fruxel, ``ssz64``) predicts the
-images in batches of ``--batch``.
+own camera (:func:`fruxel.train.predict.prepare_image`): with a field of view it is cropped or padded to the grid's
+view about the centre, by geometry alone; without one the photo is taken as the grid's view and its aspect matched
+by a centred crop (``--fit crop``, default) or grey padding (``--fit pad``); then it is resized to the model's image
+size. The field of view is ``--hfov``, else ``--intrinsics`` (the photo cropped about its principal point to
+square pixels), else the photo's EXIF 35 mm-equivalent focal length (``2 atan(36 / (2 f))`` across a landscape
+photo; a value outside 8-400 mm is ignored with a warning line), else none. ``--pitch``, ``--roll`` and
+``--height`` tell a model that reads the camera (``SSZConfig.camera_inputs``) which way is down and how high the
+camera is (:class:`fruxel.train.predict.CameraPrior`); other models ignore them. Grid columns whose centre ray
+falls on grey padding are left empty: the photo says nothing of them. The model (``--checkpoint``: a shipped
+``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name, ``ssz64`` or ``ssz128``; default the
+model shipped with fruxel, ``ssz64``) predicts the images in batches of ``--batch``.
 
 For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)
 
@@ -40,11 +44,13 @@ from typing import Any
 from .common import (
     OneLineParser,
     UsageError,
+    add_camera_options,
     add_model_options,
+    camera_prior,
     check_output_folder,
     check_photo,
-    field_of_view,
     path_name,
+    photo_view,
     positive_int,
     run,
     torch_device,
@@ -74,9 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"output folder (default {DEFAULT_OUT}/)")
     p.add_argument("--fit", choices=("crop", "pad"), default="crop",
                    help="without --hfov: match the model's aspect by a centred crop or by grey padding (default crop)")
-    p.add_argument("--hfov", type=field_of_view, default=None, metavar="DEG",
-                   help="the photos' horizontal field of view in degrees (default: the model grid's own); a wider "
-                   "photo is cropped to the grid's view, a narrower one padded")
+    add_camera_options(p)
     p.add_argument("--batch", type=positive_int, default=8, metavar="N", help="images per forward pass (default 8)")
     p.add_argument("--compile", action="store_true",
                    help="on CUDA, compile the forward pass first (torch.compile, about half a minute): worth it for "
@@ -144,6 +148,7 @@ def _main(args: argparse.Namespace) -> int:
     targets = output_names(args.images, args.out, args.logits)
     for path in args.images:
         check_photo(path)
+    prior = camera_prior(args)
     device = str(torch_device(args.device))
 
     from fruxel.train.predict import (
@@ -155,20 +160,20 @@ def _main(args: argparse.Namespace) -> int:
         prepare_image,
     )
 
-    predictor = load_predictor(args.checkpoint, device=device, batch=args.batch, compile=args.compile)
+    predictor = load_predictor(args.checkpoint, device=device, batch=args.batch, compile=args.compile, camera=prior)
     config = predictor.config
     # Every image is read and checked before the model runs; what is kept is its small model-sized version.
     prepared, coverage = [], []
     grid, classes = config.grid, config.classes
     for path in _progress(args.images, len(args.images), "read", args.quiet):
         try:
-            image = load_image(path)
-            prepared.append(prepare_image(image, config, hfov=args.hfov, fit=args.fit))
+            image, hfov = photo_view(path, load_image(path), args, PROG, grid.hfov)
+            prepared.append(prepare_image(image, config, hfov=hfov, fit=args.fit))
         except ImageError:
             raise
         except ValueError as e:
             raise ImageError(f"{path}: {e}") from None
-        coverage.append(frame_coverage(image.shape, grid, args.hfov, args.fit))
+        coverage.append(frame_coverage(image.shape, grid, hfov, args.fit))
     predictions = _progress(predictor.predict(prepared), len(prepared), "predict", args.quiet)
     for logits, covered, files in zip(predictions, coverage, targets, strict=True):
         logits = empty_uncovered(logits, covered)

@@ -6,13 +6,17 @@ Usage::
                   [--shell {none,own,poses,view}] [--mesh {full,culled,greedy}] [--size WxH] [--camera JSON]
                   [--grid N|WxHxD [--z-near Z] [--z-far Z] [--hfov DEG]] [--out DIR] [--orbit N [--video {gif,mp4}]]
                   [--export FILE.glb|FILE.ply] [--view] [--benchmark]
+                  [PHOTO options: --checkpoint FILE --truth FILE.npz --fit crop|pad --intrinsics FX,FY,CX,CY
+                   --pitch DEG --roll DEG --height M]
 
 MODEL (default: the bundled sample room, ``fruxel.data.SAMPLE_ROOM``) is one of
 
 * a photo (``.png``, ``.jpg``, ``.webp``, ``.bmp``, ``.tif``, ``.gif``, or any file that starts like one): SSZ
   predicts its model (``--checkpoint``, default the shipped model, :func:`fruxel.train.predict.load_predictor`),
   after the photo is brought to the view of the model's grid camera (``--hfov``: the photo's horizontal field of
-  view, default the grid's; ``--fit``: how its aspect is matched, :func:`fruxel.train.predict.frame_image`). The
+  view, else ``--intrinsics``, else its EXIF 35 mm focal length, else the grid's; ``--fit``: how its aspect is
+  matched, :func:`fruxel.train.predict.frame_image`; :func:`fruxel.cli.common.photo_view`), and with what is known of
+  its camera (``--pitch``, ``--roll``, ``--height``) for a model that reads it. The
   picture then shows the photo, the predicted model and, with ``--truth FILE.npz`` (a fruxel model on the same
   grid), the ground truth, each as the mesh, the ray cast or both (:class:`fruxel.render.compare.PhotoComparison`),
   from one view fitted to what the models hold, and the own-view first-hit accuracy against the truth in its
@@ -58,7 +62,9 @@ from fruxel.errors import FruxelError
 from .common import (
     OneLineParser,
     UsageError,
+    add_camera_options,
     add_grid_options,
+    camera_prior,
     check_output_file,
     check_output_folder,
     check_photo,
@@ -70,6 +76,7 @@ from .common import (
     image_size,
     one_line,
     path_name,
+    photo_view,
     positive_int,
     run,
     unit_fraction,
@@ -167,6 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--fit", choices=FITS, default=None,
                     help="without --hfov, how a photo of another aspect than the grid's is matched: crop (default; a "
                     "centred crop of the grid's aspect) or pad (grey bands); with --hfov geometry alone decides")
+    add_camera_options(ph, hfov=False)
     b = p.add_argument_group("Table 1 (--benchmark)")
     b.add_argument("--benchmark", action="store_true", help="measure Table 1 (per-frame model updates)")
     config_option(b, Table1Config, "frames", type=positive_int)
@@ -379,7 +387,9 @@ def _check_photo_options(args: argparse.Namespace, photo: bool) -> None:
 
     if not photo:
         given = [flag for flag, v in (("--checkpoint", args.checkpoint), ("--truth", args.truth),
-                                      ("--fit", args.fit)) if v is not None]
+                                      ("--fit", args.fit), ("--pitch", args.pitch), ("--roll", args.roll),
+                                      ("--height", args.height), ("--intrinsics", args.intrinsics))
+                 if v is not None]
         if given:
             raise UsageError(f"{', '.join(given)}: only for a photo MODEL (.png, .jpg, ...)")
         return
@@ -438,6 +448,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
     )
 
     _check_photo_options(args, True)
+    prior = camera_prior(args)
     path = Path(args.model)
     image = load_image(path)
     truth = None
@@ -445,7 +456,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
         t = fruxel.load(args.truth)
         truth = RenderInput(np.ascontiguousarray(t.labels), t.grid, t.classes, args.truth.stem)
     checkpoint = model_path(args.checkpoint)
-    predictor = load_predictor(checkpoint, device=args.device, batch=1)
+    predictor = load_predictor(checkpoint, device=args.device, batch=1, camera=prior)
     if predictor.device.type == "cpu":
         share_cpu()
     grid, classes = predictor.config.grid, predictor.config.classes
@@ -456,7 +467,8 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
         if len(truth.classes) != len(classes):
             raise InputError(f"--truth {args.truth}: {len(truth.classes)} classes, the model predicts {len(classes)}")
     fit = args.fit or FITS[0]
-    x = to_tensor([frame_image(image, grid, predictor.config.image_size, args.hfov, fit)], predictor.device)
+    image, view = photo_view(path, image, args, PROG, grid.hfov)
+    x = to_tensor([frame_image(image, grid, predictor.config.image_size, view, fit)], predictor.device)
     # The first call sets up the backend's kernels (seconds on a loaded CPU); the time shown is the second's.
     predictor.logits(x)
     t0 = time.perf_counter()
@@ -466,10 +478,10 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
 
         torch.cuda.synchronize(predictor.device)  # the time is the prediction's, not its launch's
     ms = 1000.0 * (time.perf_counter() - t0)
-    logits = empty_uncovered(logits, frame_coverage(image.shape, grid, args.hfov, fit))
+    logits = empty_uncovered(logits, frame_coverage(image.shape, grid, view, fit))
     height = round(PHOTO_DISPLAY * grid.height / grid.width)
-    framed = frame_image(image, grid, (height, PHOTO_DISPLAY), args.hfov, fit)
-    hfov = args.hfov if args.hfov is not None else grid.hfov
+    framed = frame_image(image, grid, (height, PHOTO_DISPLAY), view, fit)
+    hfov = view if view is not None else grid.hfov
     title = (f"{path.name} ({image.shape[1]}x{image.shape[0]}, {hfov:g}\N{DEGREE SIGN}) \N{RIGHTWARDS ARROW} SSZ "
              f"{Path(checkpoint).name} ({grid.width}x{grid.height}x{grid.depth} cells, {grid.z_near:g}-"
              f"{grid.z_far:g} m), predicted on {predictor.device.type} in {ms:.0f} ms")

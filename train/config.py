@@ -229,6 +229,12 @@ class DataConfig:
     """Test samples used by the periodic evaluation during training."""
     frequency_samples: int = 256
     """Training samples counted for the cross-entropy's class frequencies."""
+    camera_dropout: tuple[float, float] = (0.3, 0.3)
+    """For a model that reads the camera (``model.camera_inputs``): ``(p_gravity, p_height)``, the probability that
+    a training sample's gravity direction is withheld from the network (its height then too: a height means
+    nothing without gravity), and that its height alone is withheld when gravity is given; each in [0, 1], drawn
+    per sample, so that the network learns "unknown" as well as "known" (a phone knows gravity, a photo nothing).
+    The default gives 49 % both, 21 % gravity only, 30 % nothing. Models without camera inputs ignore it."""
 
     def __post_init__(self) -> None:
         from .sim.cameras import CAMERAS
@@ -249,6 +255,10 @@ class DataConfig:
             count(f"data.{name}", getattr(self, name), allow_zero=True)
         for name in ("train_samples", "test_samples", "samples_per_scene", "reuse", "frequency_samples"):
             count(f"data.{name}", getattr(self, name))
+        p = self.camera_dropout
+        if not (isinstance(p, tuple) and len(p) == 2 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in p)):
+            raise ConfigError(f"data.camera_dropout must be two probabilities in [0, 1] (gravity, height), got {p!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- optimiser

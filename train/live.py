@@ -250,13 +250,18 @@ class RobotDemo:
     """
 
     def __init__(self, config: RobotDemoConfig) -> None:
-        from .predict import load_predictor, share_cpu
+        from .predict import CameraPrior, load_predictor, share_cpu
         from .sim.cameras import ROBOT_CAMERA
         from .sim.config import AugmentConfig, ImageConfig, SimConfig, TrajectoryConfig
 
         self.config = config
         share_cpu(config.threads)
-        self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile)
+        trajectory = TrajectoryConfig(steps_per_frame=config.steps_per_frame)
+        # The robot knows its mount: a model that reads the camera is told its pitch, roll (level) and height.
+        mount = trajectory.mount
+        prior = CameraPrior(pitch=float(mount.tilt), roll=0.0, height=float(mount.height))
+        self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile,
+                                        camera=prior)
         if not config.flip_average:  # before the first frame: the Predictor compiles and captures then
             self.predictor.rules = dataclasses.replace(self.predictor.rules, flip_average=False)
         mc = self.predictor.config
@@ -266,7 +271,6 @@ class RobotDemo:
         if (cam_w * self.grid.height) % self.grid.width:
             raise LiveError(f"size {cam_w} times the grid's height {self.grid.height} must be a multiple of its "
                             f"width {self.grid.width}")
-        trajectory = TrajectoryConfig(steps_per_frame=config.steps_per_frame)
         # The robot's own mount, whatever the simulator's default camera: the chase view rides on it.
         self.sim = SimConfig(grid=self.grid, image=ImageConfig(size=cam_w, augment=AugmentConfig(enabled=False)),
                              classes=self.classes, samples_per_scene=config.frames, trajectory=trajectory,

@@ -13,14 +13,16 @@ Images are ``(h, w, 3)`` uint8 RGB arrays (rows down, columns right) until :func
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError, FruxelError
 
 # The framing of photos lives in .framing (numpy and Pillow only, for the simulator too); the commands import it
 # from here.
@@ -89,6 +91,149 @@ def _as_rgb(im: Any, p: str) -> np.ndarray:
     else:
         return np.asarray(im.convert("RGB"), dtype=np.uint8)
     return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+
+FOCAL_35MM_BOUNDS = (8.0, 400.0)
+"""Plausible 35 mm-equivalent focal lengths, millimetres (a 132-degree fisheye to a long telephoto): an EXIF value
+outside them is taken for a mistake and ignored (:func:`exif_focal_35mm`)."""
+FILM_WIDTH_MM = 36.0
+"""The long side of 35 mm film, millimetres: ``hfov = 2 atan(36 / (2 f35))`` across a landscape photo."""
+
+
+def exif_focal_35mm(path: str | os.PathLike[str]) -> tuple[float | None, str | None]:
+    """The photo's 35 mm-equivalent focal length from its EXIF (``FocalLengthIn35mmFilm``, tag 0xA405 of the Exif
+    IFD), millimetres.
+
+    Returns:
+        ``(focal, None)``; ``(None, None)`` when the file has none (or no EXIF); ``(None, why)`` when it has one
+        outside :data:`FOCAL_35MM_BOUNDS` or unreadable, ``why`` a sentence to warn with.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(os.fsdecode(path)) as im:
+            value = im.getexif().get_ifd(0x8769).get(0xA405)
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None, None
+    if value is None:
+        return None, None
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None, f"its EXIF 35 mm focal length {value!r} is not a number"
+    lo, hi = FOCAL_35MM_BOUNDS
+    if not (math.isfinite(f) and lo <= f <= hi):
+        return None, f"its EXIF 35 mm focal length {f:g} mm is outside {lo:g}-{hi:g} mm"
+    return f, None
+
+
+def hfov_from_focal_35mm(focal: float, width: int, height: int) -> float:
+    """Horizontal field of view, degrees, of an upright ``width x height`` photo with 35 mm-equivalent focal length
+    ``focal`` mm: its long side spans the film's 36 mm, so ``2 atan(36 / (2 f))`` across a landscape photo and
+    ``2 atan(36 w / h / (2 f))`` across a portrait one."""
+    across = FILM_WIDTH_MM * width / max(width, height)
+    return math.degrees(2.0 * math.atan(across / (2.0 * focal)))
+
+
+def centre_intrinsics(img: np.ndarray, intrinsics: Sequence[float]) -> tuple[np.ndarray, float]:
+    """A photo of pinhole intrinsics ``(fx, fy, cx, cy)`` (pixels) as one that :func:`frame_image` takes with a
+    field of view: its rows stretched by ``fx / fy`` (square pixels), then cropped to the largest window centred
+    on the principal point (so nothing outside the photo is made up).
+
+    Args:
+        img: ``(h, w, 3)`` uint8 RGB.
+        intrinsics: ``fx, fy > 0``; ``(cx, cy)`` inside the photo.
+
+    Returns:
+        ``(image (h', w', 3) uint8, hfov degrees)`` of the centred photo.
+
+    Raises:
+        ValueError: intrinsics that are not four finite numbers, a focal length <= 0, or a principal point that
+            leaves no window of a pixel around it.
+    """
+    from PIL import Image
+
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    h, w = img.shape[:2]
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or min(fx, fy) <= 0:
+        raise ValueError(f"intrinsics must be finite with fx, fy > 0, got {fx:g},{fy:g},{cx:g},{cy:g}")
+    if fx != fy:
+        rows = max(1, round(h * fx / fy))
+        img = np.asarray(Image.fromarray(img).resize((w, rows), Image.BILINEAR), dtype=np.uint8)
+        cy, h = cy * rows / h, rows
+    half_w, half_h = min(cx, w - cx), min(cy, h - cy)
+    if half_w < 0.5 or half_h < 0.5:
+        raise ValueError(f"the principal point ({cx:g}, {cy:g}) must lie inside the {w}x{h} photo, away from its "
+                         "edges")
+    x0, y0 = round(cx - half_w), round(cy - half_h)
+    x1, y1 = max(x0 + 1, round(cx + half_w)), max(y0 + 1, round(cy + half_h))
+    return np.ascontiguousarray(img[y0:y1, x0:x1]), math.degrees(2.0 * math.atan((x1 - x0) / (2.0 * fx)))
+
+
+@dataclass(frozen=True)
+class CameraPrior:
+    """What is known of a photo's camera besides the image, for a model that reads it
+    (``SSZConfig.camera_inputs``). Angles follow the simulator's cameras (:mod:`fruxel.train.sim.cameras`): pitch
+    positive looking down, roll positive clockwise as seen from behind the camera (its right side down). None is
+    unknown. The gravity direction needs the pitch (a roll alone is taken with pitch 0 too; the roll defaults to
+    0, a level camera, when only the pitch is given); a height means something only along gravity, so a height
+    without pitch or roll is refused.
+
+    Raises:
+        ConfigError: on construction, a value that is not finite or outside its bounds, or a height without an
+            angle (the message names the field).
+    """
+
+    pitch: float | None = None
+    """Degrees, in (-90, 90), positive looking down."""
+    roll: float | None = None
+    """Degrees, in (-90, 90), positive clockwise as seen from behind the camera."""
+    height: float | None = None
+    """Height of the optical centre above the floor, metres, in (0, 10]."""
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("pitch", -90.0, 90.0), ("roll", -90.0, 90.0), ("height", 0.0, 10.0)):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo < v and (
+                v <= hi if name == "height" else v < hi)
+            if not ok:
+                bounds = "(0, 10] metres" if name == "height" else f"({lo:g}, {hi:g}) degrees"
+                raise ConfigError(f"camera {name} must be a number in {bounds}, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if self.height is not None and not self.knows_gravity:
+            raise ConfigError("camera height needs the pitch (or roll): a model reads the height along gravity")
+
+    @property
+    def knows_gravity(self) -> bool:
+        """Whether the gravity direction is known (a pitch or a roll given)."""
+        return self.pitch is not None or self.roll is not None
+
+    def gravity(self) -> np.ndarray | None:
+        """``(3,)`` float64 unit gravity direction in the camera frame (OpenCV axes), or None when unknown: the
+        simulator's own pose of a camera at this pitch and roll (:func:`fruxel.train.sim.robot.camera_poses`,
+        :func:`fruxel.train.sim.cameras.roll_poses`, :func:`~fruxel.train.sim.cameras.gravity_in_camera`)."""
+        if not self.knows_gravity:
+            return None
+        from .sim.cameras import gravity_in_camera, roll_poses
+        from .sim.robot import CameraMount, camera_poses
+
+        pose = camera_poses(np.zeros((1, 2)), np.zeros(1), CameraMount(tilt=self.pitch or 0.0))
+        return gravity_in_camera(roll_poses(pose, self.roll or 0.0)[0])
+
+    def camera_input(self, batch: int, device: torch.device | str = "cpu") -> Any:
+        """The :class:`~fruxel.train.models.conditioning.CameraInput` of ``batch`` photos of this camera."""
+        from .models.conditioning import CameraInput
+
+        g = self.gravity()
+        known = [[g is not None, self.height is not None]] * batch
+        return CameraInput.of(np.tile(np.zeros(3) if g is None else g, (batch, 1)),
+                              np.full(batch, self.height or 0.0), known, device)
+
+
+UNKNOWN_CAMERA = CameraPrior()
+"""Nothing known of the camera: a photo alone."""
 
 
 UNCOVERED_LOGIT = -1.0e4
@@ -168,6 +313,8 @@ class Predictor:
             the graphs here capture the compiled pass). Ignored on the CPU.
         precision: one of :data:`PRECISIONS`, on CUDA (the CPU predicts in float32).
         rules: the inference rules applied after the network (the model file's own: :func:`load_predictor`).
+        camera: what is known of the photos' camera, for a model that reads it (``config.reads_camera``; other
+            models ignore it); None: nothing known. Fixed for the predictor's life (the CUDA graphs hold it).
 
     Raises:
         ValueError: an unknown precision.
@@ -178,7 +325,7 @@ class Predictor:
 
     def __init__(self, network: torch.nn.Module, config: ModelConfig, device: torch.device | str = "cpu",
                  batch: int = 8, graphs: bool = True, compile: bool = False, precision: str = "bfloat16",
-                 rules: InferenceRules = NO_RULES) -> None:
+                 rules: InferenceRules = NO_RULES, camera: CameraPrior | None = None) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.device = torch.device(device)
@@ -192,17 +339,28 @@ class Predictor:
         self.batch = max(1, int(batch))
         self.graphs = bool(graphs) and cuda
         self.compiled = bool(compile) and cuda
+        self.camera = camera if camera is not None else UNKNOWN_CAMERA
+        self._cameras: dict[int, Any] = {}
         self._pass = torch.compile(self._eager) if self.compiled else self._eager
         self._graphs: dict[tuple[Any, ...], tuple[Any, torch.Tensor, Any]] = {}
 
-    def _eager(self, images: torch.Tensor) -> torch.Tensor:
+    def _camera_input(self, batch: int) -> Any:
+        """The network's camera input for ``batch`` photos (made once per batch size, on the device, outside any
+        graph capture), or None for a model that reads no camera."""
+        if not self.config.reads_camera:
+            return None
+        if batch not in self._cameras:
+            self._cameras[batch] = self.camera.camera_input(batch, self.device)
+        return self._cameras[batch]
+
+    def _eager(self, images: torch.Tensor, camera: Any = None) -> torch.Tensor:
         if self.precision == "bfloat16":
-            return predict_logits(self.network, images.to(torch.bfloat16), self.rules).float()
+            return predict_logits(self.network, images.to(torch.bfloat16), self.rules, camera=camera).float()
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "autocast"):
-            return predict_logits(self.network, images, self.rules).float()
+            return predict_logits(self.network, images, self.rules, camera=camera).float()
 
     def _forward(self, images: torch.Tensor, then: Callable[[torch.Tensor], Any] | None = None) -> Any:
-        logits = self._pass(images)
+        logits = self._pass(images, self._camera_input(images.shape[0]))
         return logits if then is None else then(logits)
 
     @property
@@ -234,6 +392,7 @@ class Predictor:
             and ``then`` overwrites them (copy what you keep).
         """
         images = images.to(self.device)
+        self._camera_input(images.shape[0])  # made before a capture: a graph cannot copy from the host
         if not self.graphs:
             return self._forward(images, then)
         key = (tuple(images.shape), images.dtype, then)
@@ -293,15 +452,15 @@ def share_cpu(threads: int | None = None) -> int:
 
 
 def load_predictor(path: str | None = None, device: str | None = None, batch: int = 8, graphs: bool = True,
-                   compile: bool = False, precision: str = "bfloat16", rules: InferenceRules | None = None
-                   ) -> Predictor:
+                   compile: bool = False, precision: str = "bfloat16", rules: InferenceRules | None = None,
+                   camera: CameraPrior | None = None) -> Predictor:
     """A :class:`Predictor` of a shipped model or training checkpoint, a file or a shipped model's name
     (:func:`fruxel.train.model_files.model_path`; the shipped default when ``path`` is None), on ``device`` (CUDA
-    when present), with the file's inference rules unless ``rules`` are given; ``graphs``, ``compile`` and
-    ``precision`` as :class:`Predictor`'s."""
+    when present), with the file's inference rules unless ``rules`` are given; ``graphs``, ``compile``,
+    ``precision`` and ``camera`` (what is known of the photos' camera) as :class:`Predictor`'s."""
     from .model_files import load_model
 
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     m = load_model(path, device=dev)
     return Predictor(m.network, m.config, dev, batch, graphs, compile, precision,
-                     m.rules if rules is None else rules)
+                     m.rules if rules is None else rules, camera)

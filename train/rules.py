@@ -23,6 +23,8 @@ import torch.nn.functional as F
 
 from fruxel.errors import ConfigError
 
+from .models.registry import run_network
+
 DEFAULT_FILL_THRESHOLD = 0.5
 """The default ``threshold`` of :func:`fill_columns`."""
 
@@ -84,7 +86,7 @@ NO_RULES = InferenceRules()
 
 
 def predict_logits(network: torch.nn.Module, image: torch.Tensor, rules: InferenceRules, *,
-                   batched_flip: bool | None = None) -> torch.Tensor:
+                   batched_flip: bool | None = None, camera: Any = None) -> torch.Tensor:
     """A model's answer for a batch: the network's logits under ``rules`` (see the module docstring).
 
     Args:
@@ -95,6 +97,9 @@ def predict_logits(network: torch.nn.Module, image: torch.Tensor, rules: Inferen
         batched_flip: with ``flip_average``, run the image and its mirror image as one batch of 2 B (True) or as
             two passes (False); None: one batch on a GPU, two passes on the CPU, where the batch of two is
             cache-bound and slower (BENCHMARKS.md).
+        camera: what is known of the batch's camera (a
+            :class:`~fruxel.train.models.conditioning.CameraInput`), for a network that reads it; None for others.
+            The mirror image's camera is its mirror (:meth:`~fruxel.train.models.conditioning.CameraInput.mirrored`).
 
     Returns:
         ``(B, C, D, H, W)`` logits in the network's output dtype, grid frame.
@@ -103,13 +108,14 @@ def predict_logits(network: torch.nn.Module, image: torch.Tensor, rules: Inferen
         ValueError: ``fill_columns`` with a network that has no column depth head.
     """
     if rules.flip_average:
-        out = mirror_average(network, image, image.device.type != "cpu" if batched_flip is None else batched_flip)
+        out = mirror_average(network, image, image.device.type != "cpu" if batched_flip is None else batched_flip,
+                             camera)
     else:
-        out = network(image)
+        out = run_network(network, image, camera)
     return apply_rules(out.logits, out.depth_logits, rules)
 
 
-def mirror_average(network: torch.nn.Module, image: torch.Tensor, batched: bool) -> Any:
+def mirror_average(network: torch.nn.Module, image: torch.Tensor, batched: bool, camera: Any = None) -> Any:
     """The network's output on the image and on its mirror image (W reversed), averaged, the mirror's outputs
     mirrored back along W (the last axis of every output: conventions section 1, ``cx = W / 2``, so pixel column
     x and grid column W - 1 - x mirror each other exactly).
@@ -118,17 +124,19 @@ def mirror_average(network: torch.nn.Module, image: torch.Tensor, batched: bool)
         network: the network.
         image: ``(B, 3, h, w)`` float RGB.
         batched: one pass over a batch of 2 B, or two passes.
+        camera: the batch's camera for a network that reads it (the mirror image takes its mirror), else None.
 
     Returns:
         The network's output type with every tensor field averaged (None fields stay None).
     """
+    mirror = None if camera is None else camera.mirrored()
     if batched:
         b = image.shape[0]
-        both = network(torch.cat([image, image.flip(-1)]))
+        both = run_network(network, torch.cat([image, image.flip(-1)]), None if camera is None else camera.cat(mirror))
         pairs = {k: (None, None) if v is None else (v[:b], v[b:]) for k, v in vars(both).items()}
         kind = type(both)
     else:
-        a, m = network(image), network(image.flip(-1))
+        a, m = run_network(network, image, camera), run_network(network, image.flip(-1), mirror)
         pairs = {k: (v, getattr(m, k)) for k, v in vars(a).items()}
         kind = type(a)
     return kind(**{k: None if x is None else (x + y.flip(-1)) * 0.5 for k, (x, y) in pairs.items()})

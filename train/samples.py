@@ -236,7 +236,7 @@ def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | No
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
-                  device: str | None = None) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+                  device: str | None = None, camera: bool = False) -> Iterator[tuple[Any, ...]]:
     """The first ``count`` samples of ``split`` in batches of ``batch`` (the last one smaller).
 
     Args:
@@ -247,9 +247,11 @@ def split_batches(source: SampleSource, model: ModelConfig, split: str, count: i
         batch: samples per batch.
         workers: DataLoader worker processes that make or read the samples (0: this process).
         device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
+        camera: also yield each batch's camera record (for a network that reads the camera).
 
     Yields:
-        ``(images (B, h, w, 3) uint8, labels (B, D, H, W) uint8)`` CPU tensors.
+        ``(images (B, h, w, 3) uint8, labels (B, D, H, W) uint8)`` CPU tensors, with ``camera`` a third item: the
+        batch's camera record, a dictionary of CPU tensors (module docstring).
 
     Raises:
         DataError: see :func:`check_data_set`; a corrupt shard.
@@ -271,16 +273,20 @@ def split_batches(source: SampleSource, model: ModelConfig, split: str, count: i
             except RuntimeError as e:
                 raise _worker_error(e) from None
             take = min(count - done, len(b["index"]))
-            yield b["image"][:take], b["labels"][:take]
+            if camera:
+                yield b["image"][:take], b["labels"][:take], {k: v[:take] for k, v in b["camera"].items()}
+            else:
+                yield b["image"][:take], b["labels"][:take]
             done += take
     finally:
         loader.close()
 
 
 def load_split(source: SampleSource, model: ModelConfig, split: str, count: int, *, workers: int = 0,
-               device: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               device: str | None = None, camera: bool = False) -> tuple[Any, ...]:
     """The first ``count`` samples of ``split`` at once (a training run's evaluation set): ``(images (N, h, w, 3)
-    uint8, labels (N, D, H, W) uint8)``, N = ``count`` or the split's size if smaller.
+    uint8, labels (N, D, H, W) uint8)``, N = ``count`` or the split's size if smaller; with ``camera``, their camera
+    record (a dictionary of tensors) third.
 
     Raises:
         DataError: no such split, or an empty one; see :func:`split_batches`.
@@ -289,9 +295,12 @@ def load_split(source: SampleSource, model: ModelConfig, split: str, count: int,
     count = count if size is None else min(count, size)
     if count <= 0:
         raise DataError(f"{source.describe()}: no {split} split to evaluate on")
-    images, labels = zip(*split_batches(source, model, split, count, count, workers=workers, device=device),
-                         strict=True)
-    return torch.cat(images), torch.cat(labels)
+    parts = list(zip(*split_batches(source, model, split, count, count, workers=workers, device=device,
+                                    camera=camera), strict=True))
+    out: tuple[Any, ...] = (torch.cat(parts[0]), torch.cat(parts[1]))
+    if camera:
+        out += ({k: torch.cat([torch.as_tensor(c[k]) for c in parts[2]]) for k in parts[2][0]},)
+    return out
 
 
 def training_batches(source: SampleSource, model: ModelConfig, samples: int, *, batch: int, workers: int,

@@ -159,19 +159,24 @@ class Evaluation(Callback):
 
     def _evaluate(self, trainer: Trainer) -> dict[str, Any]:
         from ..eval.evaluate import evaluate
+        from ..models.conditioning import KNOWN
         from ..rules import NO_RULES
         from ..samples import SampleSource, load_split
 
         c, dev = trainer.config, trainer.dist.device
+        reads = c.model.reads_camera
         if self._set is None:
             self._set = load_split(SampleSource.of(c.data), c.model, "test", c.data.eval_samples,
-                                   workers=c.data.workers, device="cuda" if dev.type == "cuda" else "cpu")
-        images, labels = self._set
+                                   workers=c.data.workers, device="cuda" if dev.type == "cuda" else "cpu",
+                                   camera=reads)
+        images, labels = self._set[:2]
         bs = max(1, c.run.batch_size // trainer.dist.world)
+        # A network that reads the camera is evaluated with the pose the test set records (pose given).
         batches = ((images[i:i + bs].permute(0, 3, 1, 2).float() / 255.0, labels[i:i + bs])
+                   + (({k: v[i:i + bs] for k, v in self._set[2].items()},) if reads else ())
                    for i in range(0, len(images), bs))
         acc, kept = evaluate(trainer.state.network, NO_RULES, batches, c.model.grid, c.model.classes, device=dev,
-                             autocast=trainer.autocast, keep=4)
+                             autocast=trainer.autocast, keep=4, camera_known=KNOWN if reads else None)
         summary = acc.summary(c.model.classes.names)
         self.pending = (kept, f"{c.name}, step {trainer.state.step}: held-out rooms, mIoU {summary['miou']:.1f}")
         return summary

@@ -10,7 +10,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..config import LossConfig
+from ..models.conditioning import CameraInput
 from ..models.discriminator import hinge_d_loss, hinge_g_loss
+from ..models.registry import run_network
 from ..objective import SSZObjective
 from .state import TrainingState
 
@@ -74,13 +76,15 @@ class Step:
     autocast: bool
     timer: PhaseTimer
 
-    def __call__(self, state: TrainingState, image: torch.Tensor, labels: torch.Tensor) -> dict[str, torch.Tensor]:
+    def __call__(self, state: TrainingState, image: torch.Tensor, labels: torch.Tensor,
+                 camera: CameraInput | None = None) -> dict[str, torch.Tensor]:
         """Train one batch at ``state.step`` (the caller advances the counters).
 
         Args:
             state: the run's state (network, optimisers, discriminator).
             image: ``(B, 3, h, w)`` float RGB in [0, 1] on the training device.
             labels: ``(B, D, H, W)`` uint8 labels, grid frame, same device.
+            camera: what the network is told of the batch's cameras (a network that reads them), else None.
 
         Returns:
             The loss terms, detached scalar tensors (``total`` and each term).
@@ -90,7 +94,7 @@ class Step:
         adv_w = adversarial_weight(c.loss, step)
         state.optimizer.zero_grad(set_to_none=True)
         with torch.autocast(kind, dtype=torch.bfloat16, enabled=self.autocast):
-            out = self.model(image)
+            out = run_network(self.model, image, camera)
             tick(step, "forward")
             terms = self.objective(out, labels)
             tick(step, "loss")

@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from fruxel.kernels.fpmode import flush_denormals
@@ -28,7 +29,7 @@ from ..config import TrainConfig, override
 from . import distributed
 from .callbacks import Callback, Checkpoints, Evaluation, MetricLog, TimeLimit
 from .checkpoint import LATEST, Checkpoint, read_checkpoint
-from .data import to_device
+from .data import camera_with_dropout, to_device
 from .run_folder import CONFIG, RunFolder
 from .state import TrainingError, TrainingState, new_state
 from .step import PhaseTimer, Step
@@ -308,9 +309,9 @@ class Trainer:
         """The steps, then the callbacks' ``on_stop``; returns whether the time limit cut the run short."""
         c, s = self.config, self.state
         try:
-            for image, labels in self._feed():
+            for image, labels, camera in self._feed():
                 t = time.perf_counter()
-                terms = step(s, image, labels)
+                terms = step(s, image, labels, camera)
                 s.step += 1
                 s.samples += c.run.batch_size
                 s.elapsed += time.perf_counter() - t + self._data_seconds
@@ -331,9 +332,10 @@ class Trainer:
             cb.on_stop(self, interrupted=False)
         return s.step < c.run.steps
 
-    def _feed(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        """The batches of the steps to come, on the training device (through the replay buffer when there is one);
-        ``_data_seconds`` is the time the last one took."""
+    def _feed(self) -> Iterator[tuple[torch.Tensor, torch.Tensor, Any]]:
+        """The batches of the steps to come, on the training device (through the replay buffer when there is one),
+        with what the network is told of their cameras (None for a network that reads none); ``_data_seconds`` is
+        the time the last one took."""
         c, s, dev = self.config, self.state, self.dist.device
         per_rank = c.run.batch_size // self.dist.world
         channels_last = dev.type == "cuda" and c.run.channels_last
@@ -353,10 +355,15 @@ class Trainer:
             else:
                 batch = host if host is not None else next(self._stream)
             image, labels = to_device(batch, dev, channels_last)
+            camera = None
+            if c.model.reads_camera:
+                # Drawn from the run's seed, the step and the rank: a resumed run withholds the same pieces.
+                rng = np.random.default_rng((c.run.seed, s.step, self.dist.rank))
+                camera = camera_with_dropout(batch["camera"], c.data.camera_dropout, rng, dev)
             self.timer.tick(s.step, "data")
             self._data_seconds = time.perf_counter() - t
             self._data_total += self._data_seconds
-            yield image, labels
+            yield image, labels, camera
 
 
 def train(config: TrainConfig, run_dir: str, *, resume: bool = False, device: str | None = None,

@@ -21,6 +21,8 @@ import torch
 
 from fruxel.errors import ConfigError
 
+from ..models.conditioning import CameraInput
+from ..models.registry import run_network
 from ..rules import InferenceRules, first_hit_classes, first_hit_label, mirror_average, shift_and_fill
 from .metrics import Accumulator
 
@@ -37,7 +39,8 @@ def sweep_rules(network: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, 
 
     Args:
         network: the network (in eval mode for the sweep, then back).
-        batches: ``(images (B, 3, h, w) float in [0, 1], labels (B, D, H, W) integer)`` pairs.
+        batches: ``(images (B, 3, h, w) float in [0, 1], labels (B, D, H, W) integer)`` pairs, or triples with the
+            batch's camera record third: a network that reads the camera is then told the recorded pose.
         offsets: the offsets to try, added to every cell's empty logit (channel 0).
         thresholds: the ``fill_threshold`` values to try with each offset, in (0, 1] (ignored without
             ``base.fill_columns``).
@@ -61,9 +64,11 @@ def sweep_rules(network: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, 
     training = network.training
     network.eval()
     try:
-        for image, labels in batches:
+        for image, labels, *record in batches:
             image = image.to(device)
-            out = mirror_average(network, image, device.type != "cpu") if base.flip_average else network(image)
+            camera = CameraInput.from_record(record[0], device=device) if record else None
+            out = (mirror_average(network, image, device.type != "cpu", camera) if base.flip_average
+                   else run_network(network, image, camera))
             if base.fill_columns and out.depth_logits is None:
                 raise ConfigError("rules.fill_columns needs a network with a column depth head")
             logits = out.logits.float()

@@ -11,6 +11,7 @@ import torch
 from fruxel.classes import ClassTable
 from fruxel.grid import FruxelGrid
 
+from ..models.conditioning import CameraInput
 from ..rules import InferenceRules, predict_logits
 from .metrics import Accumulator
 
@@ -47,21 +48,36 @@ def _host(x: Any) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-Predict = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+Predict = Callable[..., torch.Tensor]
 """A prediction rule: ``(image (B, 3, h, w) float, truth (B, D, H, W) uint8) -> (B, D, H, W)`` integer labels on
 the truth's device. The truth is given only so that baselines built from it (the visible-surface oracle) and from
-its shape (the per-cell prior) can be evaluated like a network."""
+its shape (the per-cell prior) can be evaluated like a network. A rule with a true ``reads_camera`` attribute
+(:func:`model_predict` of a network that reads the camera) is called with the batch's camera record third (None
+when the batches carry none)."""
 
 
-def model_predict(network: torch.nn.Module, rules: InferenceRules, autocast: bool = False) -> Predict:
+def model_predict(network: torch.nn.Module, rules: InferenceRules, autocast: bool = False,
+                  camera_known: Collection[str] | None = None) -> Predict:
     """The prediction rule of a network and its inference rules: the argmax of its logits under the rules
-    (:func:`fruxel.train.rules.predict_logits`; bfloat16 autocast on CUDA with ``autocast``)."""
+    (:func:`fruxel.train.rules.predict_logits`; bfloat16 autocast on CUDA with ``autocast``).
 
-    def predict(image: torch.Tensor, _: torch.Tensor) -> torch.Tensor:
+    Args:
+        network, rules, autocast: as above.
+        camera_known: for a network that reads the camera, the pieces of each sample's recorded camera it is told
+            (a subset of :data:`fruxel.train.models.conditioning.KNOWN`; empty: pose unknown); None for a network
+            that reads none.
+    """
+
+    def predict(image: torch.Tensor, _: torch.Tensor, record: Mapping[str, Any] | None = None) -> torch.Tensor:
+        camera = None
+        if camera_known is not None:
+            camera = (CameraInput.unknown(len(image), image.device) if record is None
+                      else CameraInput.from_record(record, camera_known, image.device))
         with torch.autocast(image.device.type, dtype=torch.bfloat16, enabled=autocast):
-            logits = predict_logits(network, image, rules)
+            logits = predict_logits(network, image, rules, camera=camera)
         return logits.argmax(dim=1).to(torch.uint8)
 
+    predict.reads_camera = camera_known is not None  # type: ignore[attr-defined]
     return predict
 
 
@@ -75,7 +91,7 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
     Args:
         predictors: the rules by name (e.g. the model and the baselines of :mod:`.baselines`).
         batches: ``(image, labels)`` pairs: ``(B, 3, h, w)`` float in [0, 1] and ``(B, D, H, W)`` integer labels,
-            on any device.
+            on any device; or ``(image, labels, camera)`` with the batch's camera record (for rules that read it).
         grid, classes: the grid and class table of the labels.
         device: where to predict and count.
         novel: also count the novel-view metrics (two ``first_hit`` per camera, batch and rule).
@@ -92,12 +108,17 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
     wanted = set(range(keep)) if isinstance(keep, int) else {int(k) for k in keep}
     kept: list[dict[str, Any]] = []
     seen = 0
-    for image, labels in batches:
+    for batch in batches:
+        image, labels = batch[0], batch[1]
+        record = batch[2] if len(batch) > 2 else None
         image = image.to(device, non_blocking=True)
         target = labels.to(device, non_blocking=True).to(torch.uint8)
         first = None
         for name, predict in predictors.items():
-            pred = predict(image, target).to(torch.uint8)
+            if getattr(predict, "reads_camera", False):
+                pred = predict(image, target, record).to(torch.uint8)
+            else:
+                pred = predict(image, target).to(torch.uint8)
             first = pred if first is None else first
             accs[name].add_volumes(pred, target)
             if cams:
@@ -113,21 +134,22 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
 @torch.no_grad()
 def evaluate(network: torch.nn.Module, rules: InferenceRules, batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
              grid: FruxelGrid, classes: ClassTable, *, device: torch.device, novel: bool = True,
-             backend: str | None = None, autocast: bool = False, keep: int = 0
-             ) -> tuple[Accumulator, list[dict[str, Any]]]:
+             backend: str | None = None, autocast: bool = False, keep: int = 0,
+             camera_known: Collection[str] | None = None) -> tuple[Accumulator, list[dict[str, Any]]]:
     """Run a network under its inference rules over batches and count every metric.
 
     Args:
         network: the model (switched to eval mode for the call, then back).
         rules: its inference rules (:data:`fruxel.train.rules.NO_RULES` for the network's raw argmax).
         batches: ``(image, labels)`` pairs: ``(B, 3, h, w)`` float in [0, 1] and ``(B, D, H, W)`` integer labels,
-            on any device.
+            on any device, or ``(image, labels, camera)`` triples (the camera record, for a network that reads it).
         grid, classes: the grid and class table of the labels.
         device: where to predict.
         novel: also count the novel-view metrics (two ``first_hit`` per camera and batch).
         backend: kernel backend for the novel views.
         autocast: predict under bfloat16 autocast (CUDA).
         keep: how many samples to keep for :func:`fruxel.train.eval.visual.example_sheet` (first ones).
+        camera_known: the camera pieces a network that reads the camera is told (:func:`model_predict`).
 
     Returns:
         ``(accumulator, kept)``: kept samples as dicts of ``image`` (3, h, w) float, ``labels`` and ``pred``
@@ -136,7 +158,8 @@ def evaluate(network: torch.nn.Module, rules: InferenceRules, batches: Iterable[
     was_training = network.training
     network.eval()
     try:
-        accs, kept = evaluate_predictions({"model": model_predict(network, rules, autocast)}, batches, grid, classes,
+        predict = model_predict(network, rules, autocast, camera_known)
+        accs, kept = evaluate_predictions({"model": predict}, batches, grid, classes,
                                           device=device, novel=novel, backend=backend, keep=keep)
     finally:
         network.train(was_training)

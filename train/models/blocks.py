@@ -210,25 +210,31 @@ class Lift(nn.Module):
     probability) and the cumulative probability up to and including it (0 in front of the surface, 1 behind).
     Cells in front of what the camera sees are empty; the cumulative channel says which those are.
 
+    With ``camera`` channels, the camera's per-cell geometry (:class:`~.conditioning.CameraConditioning`: each
+    cell's height above the floor where gravity and height are known) joins the sum through one more pointwise
+    term; without them the module and its parameters are what they were.
+
     Args:
         c3d: channels of the decoder's volume (0 at the bottom level, where there is none yet).
         c2d: channels of the image features.
         cout: output channels.
+        camera: channels of the camera features (0: the network reads no camera).
     """
 
     DEPTH_CHANNELS = 2
     """Channels of the depth features (:meth:`~.generator.SSZGenerator.depth_features`)."""
 
-    def __init__(self, c3d: int, c2d: int, cout: int) -> None:
+    def __init__(self, c3d: int, c2d: int, cout: int, camera: int = 0) -> None:
         super().__init__()
         self.from_2d = nn.Conv2d(c2d, cout, 1, bias=False)
         self.from_3d = Pointwise3d(c3d, cout, bias=False) if c3d else None
         self.from_coords = Pointwise3d(3, cout, bias=True)
         self.from_depth = Pointwise3d(self.DEPTH_CHANNELS, cout, bias=False)
+        self.from_camera = Pointwise3d(camera, cout, bias=False) if camera else None
         self.post = act3d()
 
     def forward(self, x3d: torch.Tensor | None, f2d: torch.Tensor, depth: torch.Tensor,
-                shape: tuple[int, int, int]) -> torch.Tensor:
+                shape: tuple[int, int, int], camera: torch.Tensor | None = None) -> torch.Tensor:
         """Merge one level.
 
         Args:
@@ -236,6 +242,7 @@ class Lift(nn.Module):
             f2d: ``(B, c2d, H, W)`` image features of this resolution.
             depth: ``(B, 2, D, H, W)`` depth features.
             shape: ``(D, H, W)`` of this level.
+            camera: ``(B, camera, D, H, W)`` camera features when the module has camera channels (else ignored).
 
         Returns:
             ``(B, cout, D, H, W)``, in ``x3d``'s memory format.
@@ -249,6 +256,8 @@ class Lift(nn.Module):
         elif y.shape[0] != f2d.shape[0]:
             y = y.expand(f2d.shape[0], -1, -1, -1, -1)
         y = y + self.from_depth(depth.to(y.dtype))
+        if self.from_camera is not None and camera is not None:
+            y = y + self.from_camera(camera.to(y.dtype))
         return self.post(y)
 
 

@@ -16,6 +16,7 @@ Architecture (``L`` = ``levels``; level ``s`` has the grid's resolution divided 
       x_s     = blocks(Lift(Up3d(x_{s+1}), t_s, depth features))                         (B, V_s, D_s, H_s, W_s)
       logits  = pointwise(x_0) + SurfaceFusion(depth head, surface head)                 (B, C, D, H, W)
     [refine: RefineLevel doubles the grid from the full image, the network above reading it 2x2-pooled]
+    [camera_inputs: each Lift also reads CameraConditioning's per-cell geometry of the camera (B, 5, D_s, H_s, W_s)]
 
 The 2D-to-3D skips copy the image features of each resolution into every depth slice (Z-GAN's skip). A copy
 says nothing about *where along the column* something is, and a wall one or two cells thick must land in exactly
@@ -40,7 +41,10 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from fruxel.grid import FruxelGrid
+
 from .blocks import Down2d, InvertedResidual2d, InvertedResidual3d, Lift, Pointwise3d, SurfaceFusion, Up3d, act2d
+from .conditioning import CAMERA_CHANNELS, CameraConditioning, CameraInput
 from .registry import ModelOutput
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
@@ -57,7 +61,8 @@ class SSZGenerator(nn.Module):
         classes: C, number of classes including empty.
         grid_shape: ``(D, H, W)`` of the output.
         image_scale, levels, stem, detail_branch, encoder, encoder_blocks, encoder_expand, topdown, decoder,
-            decoder_blocks, expand, refine: the architecture (:class:`~.ssz.SSZConfig`).
+            decoder_blocks, expand, refine, camera_inputs: the architecture (:class:`~.ssz.SSZConfig`).
+        grid: the output grid (its frustum places the cells for ``camera_inputs``; required with it).
         checkpointing: recompute the 3D decoder's blocks in the backward pass instead of storing their
             activations (less memory, more decoder time).
     """
@@ -65,7 +70,8 @@ class SSZGenerator(nn.Module):
     def __init__(self, *, classes: int, grid_shape: tuple[int, int, int], image_scale: int, levels: int,
                  stem: int, detail_branch: int, encoder: tuple[int, ...], encoder_blocks: tuple[int, ...],
                  encoder_expand: int, topdown: tuple[int, ...], decoder: tuple[int, ...],
-                 decoder_blocks: tuple[int, ...], expand: int, refine: int, checkpointing: bool = False) -> None:
+                 decoder_blocks: tuple[int, ...], expand: int, refine: int, camera_inputs: bool = False,
+                 grid: FruxelGrid | None = None, checkpointing: bool = False) -> None:
         super().__init__()
         scale = 2 if refine else 1
         self.grid_shape = tuple(grid_shape)
@@ -79,6 +85,13 @@ class SSZGenerator(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGE_STD).view(1, 3, 1, 1), persistent=False)
         self._build_image_side(classes, image_scale, levels, stem, detail_branch, encoder, encoder_blocks,
                                encoder_expand, topdown)
+        self.conditioning: CameraConditioning | None = None
+        if camera_inputs:
+            if grid is None:
+                raise ValueError("camera_inputs needs the grid")
+            d, h, w = self.base_shape
+            self.conditioning = CameraConditioning(
+                FruxelGrid(width=w, height=h, depth=d, z_near=grid.z_near, z_far=grid.z_far, hfov=grid.hfov), levels)
         self._build_decoder(classes, levels, topdown, decoder, decoder_blocks, expand)
         self.refine: RefineLevel | None = None
         if refine:
@@ -132,7 +145,8 @@ class SSZGenerator(nn.Module):
         """The 3D decoder, its lifts and up-convolutions, the output head and the surface fusion."""
         db = self.base_shape[0] // 2 ** (levels - 1)
         self.bottom_lift = nn.Conv2d(topdown[-1], decoder[-1] * db, 1)
-        self.lifts = nn.ModuleList(Lift(decoder[s], topdown[s], decoder[s]) for s in range(levels))
+        cam = CAMERA_CHANNELS if self.conditioning is not None else 0
+        self.lifts = nn.ModuleList(Lift(decoder[s], topdown[s], decoder[s], cam) for s in range(levels))
         self.ups = nn.ModuleList(Up3d(decoder[s + 1], decoder[s]) for s in range(levels - 1))
         # The finest level's blocks work per cell: its neighbourhood comes from the up-convolution into it.
         self.blocks = nn.ModuleList(
@@ -204,31 +218,35 @@ class SSZGenerator(nn.Module):
         return module(*args)
 
     # ------------------------------------------------------------------ forward
-    def forward(self, image: torch.Tensor) -> ModelOutput:
+    def forward(self, image: torch.Tensor, camera: CameraInput | None = None) -> ModelOutput:
         """Predict a batch: the network alone (inference rules are :mod:`fruxel.train.rules`).
 
         Args:
             image: ``(B, 3, h, w)`` float RGB in [0, 1] (the grid's own camera, :attr:`image_size`).
+            camera: what is known of each sample's camera, for a network built with ``camera_inputs`` (None:
+                nothing known); a network without it ignores the argument.
 
         Returns:
             :class:`~.registry.ModelOutput` with all three heads.
         """
+        if self.conditioning is not None and camera is None:
+            camera = CameraInput.unknown(image.shape[0], image.device)
         if self.refine is None:
-            logits, depth_logits, surface_logits = self._predict_base(image)[:3]
+            logits, depth_logits, surface_logits = self._predict_base(image, camera)[:3]
             return ModelOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
         # The level reads the image twice as large as the network below.
         self._check_image(image, tuple(2 * n for n in self.base_shape))
         # The network below reads the image as it was trained to: averaged over 2 x 2 pixels.
-        logits, depth_logits, surface_logits, x0, t0 = self._predict_base(F.avg_pool2d(image, 2))
+        logits, depth_logits, surface_logits, x0, t0 = self._predict_base(F.avg_pool2d(image, 2), camera)
         normalised = (image - self.mean.to(image.dtype)) / self.std.to(image.dtype)
         logits, depth_logits, surface_logits = self.refine(normalised, logits, depth_logits, surface_logits, x0, t0,
                                                            run=self._run)
         return ModelOutput(logits=logits, depth_logits=depth_logits, surface_logits=surface_logits)
 
-    def _predict_base(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def _predict_base(self, image: torch.Tensor, camera: CameraInput | None) -> tuple[torch.Tensor, ...]:
         """The network at ``base_shape``: ``(logits, depth_logits, surface_logits)``, then the finest decoder volume
         ``(B, V_0, D, H, W)`` and the finest top-down image features ``(B, T_0, H, W)`` (read by the refinement
-        level)."""
+        level). ``camera`` is read only with ``camera_inputs``."""
         t = self.encode(image)
         d, h, w = self.base_shape
         depth_logits = self.depth_head(t[0]).float()
@@ -239,11 +257,14 @@ class SSZGenerator(nn.Module):
         bottom = self.bottom_lift(t[-1])
         ds, hs, ws = shapes[-1]
         x = bottom.reshape(b, -1, ds, hs, ws)
-        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1])
+        cond = self.conditioning
+        if cond is not None and camera is not None:
+            camera = camera.to(image.device)
+        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1], cond(camera, self.levels - 1) if cond is not None else None)
         x = self._run(self.blocks[-1], x)
         for s in range(self.levels - 2, -1, -1):
             x = self.ups[s](x)
-            x = self.lifts[s](x, t[s], depth[s], shapes[s])
+            x = self.lifts[s](x, t[s], depth[s], shapes[s], cond(camera, s) if cond is not None else None)
             x = self._run(self.blocks[s], x)
         logits = self.head(x)
         logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)

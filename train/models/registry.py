@@ -9,7 +9,9 @@ evaluation or prediction.
 
 Every network honours one output contract, :class:`ModelOutput`: ``forward(image)`` takes ``(B, 3, h, w)`` float
 RGB in [0, 1] of the grid's own camera at the config's :attr:`ModelConfig.image_size` and returns the cells' class
-logits, plus the column heads the training objective and the inference rules read when the network has them.
+logits, plus the column heads the training objective and the inference rules read when the network has them. A
+network whose config :attr:`ModelConfig.reads_camera` also takes ``forward(image, camera)``, what is known of the
+camera (:func:`run_network` calls either).
 
 This module imports no torch: configs are read and checked (``fruxel-train --print-config``, a file's metadata)
 without loading the network code.
@@ -89,10 +91,23 @@ class ModelConfig:
         """``(height, width)`` of the input image in pixels, in the grid's aspect."""
         raise NotImplementedError
 
+    @property
+    def reads_camera(self) -> bool:
+        """Whether the network's ``forward(image, camera)`` takes what is known of the camera (a
+        :class:`~fruxel.train.models.conditioning.CameraInput`); False: ``forward(image)`` alone, and callers pass no
+        camera (:func:`run_network`)."""
+        return False
+
     def build(self, *, checkpointing: bool = False) -> nn.Module:
         """A freshly initialised network of this config (``checkpointing``: recompute activations in the backward
         pass where the architecture supports it)."""
         raise NotImplementedError
+
+
+def run_network(network: nn.Module, image: torch.Tensor, camera: Any = None) -> Any:
+    """``network(image)``, or ``network(image, camera)`` when a camera is given (a network whose config
+    :attr:`~ModelConfig.reads_camera`; other architectures' ``forward`` takes the image alone)."""
+    return network(image) if camera is None else network(image, camera)
 
 
 C = TypeVar("C", bound=type[ModelConfig])

@@ -61,6 +61,11 @@ class SSZConfig(ModelConfig):
     reads the image averaged over 2 x 2 pixels, so a model trained at that grid (``run.init``) is the network below
     the level, which starts as a zero correction: a fresh level repeats the coarse model's answer on the fine
     cells. The level reads the full image (``image_size``) through a branch of its own."""
+    camera_inputs: bool = False
+    """Condition the network on what is known of the camera besides the image: the gravity direction in the camera
+    frame and the height above the floor, each optional (:mod:`fruxel.train.models.conditioning`). Every decoder
+    level (below ``refine``'s) then reads each cell's height above the floor as extra channels. False: the network
+    of the shipped ``ssz64`` and ``ssz128``, which reads the image alone."""
 
     def validate(self) -> None:
         """Raise :class:`~fruxel.errors.ConfigError` (naming ``model.KEY``) for an impossible architecture."""
@@ -69,6 +74,8 @@ class SSZConfig(ModelConfig):
             _count(name, getattr(self, name))
         for name in ("detail_branch", "refine"):
             _count(name, getattr(self, name), allow_zero=True)
+        if not isinstance(self.camera_inputs, bool):
+            raise ConfigError(f"model.camera_inputs must be true or false, got {self.camera_inputs!r}")
         if isinstance(self.image_scale, bool) or not isinstance(self.image_scale, int) \
                 or not 0 <= self.image_scale <= MAX_IMAGE_SCALE:
             raise ConfigError(f"model.image_scale must be an integer in [0, {MAX_IMAGE_SCALE}], got "
@@ -96,6 +103,11 @@ class SSZConfig(ModelConfig):
         k = self.image_scale + (1 if self.detail_branch else 0)
         return self.grid.height << k, self.grid.width << k
 
+    @property
+    def reads_camera(self) -> bool:
+        """Whether the network takes the camera (``camera_inputs``)."""
+        return self.camera_inputs
+
     def build(self, *, checkpointing: bool = False) -> SSZGenerator:
         """A freshly initialised :class:`~fruxel.train.models.generator.SSZGenerator` of this config."""
         from .generator import SSZGenerator
@@ -103,7 +115,7 @@ class SSZConfig(ModelConfig):
         # The network's keyword arguments are the config's own fields, by name: a setting is written once.
         own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("grid", "classes")}
         g = self.grid
-        return SSZGenerator(classes=self.num_classes, grid_shape=(g.depth, g.height, g.width),
+        return SSZGenerator(classes=self.num_classes, grid_shape=(g.depth, g.height, g.width), grid=g,
                             checkpointing=checkpointing, **own)
 
 
