@@ -65,6 +65,20 @@ def test_height_without_gravity_is_unknown() -> None:
     assert torch.equal(net(image, lone).logits, net(image).logits)
 
 
+def test_a_nan_piece_is_unknown_whatever_the_flags_say() -> None:
+    """A data folder's sample that gives no gravity or height holds NaN there (fruxel.train.folder): the camera
+    input is then zero with flag 0, never NaN, so one such sample cannot poison a batch's loss."""
+    nan = float("nan")
+    camera = CameraInput.of([[0.0, 1.0, 0.0], [nan, nan, nan], [0.0, 1.0, 0.0]], [1.2, 1.3, nan],
+                            [[1, 1], [1, 1], [1, 1]])
+    assert torch.equal(camera.known, torch.tensor([[1.0, 1.0], [0.0, 1.0], [1.0, 0.0]]))
+    assert torch.isfinite(camera.gravity).all() and torch.isfinite(camera.height).all()
+    assert camera.gravity[1].abs().sum() == 0 and camera.height[2] == 0
+    config, net = _net()
+    image = _image(config).repeat(3, 1, 1, 1)
+    assert torch.isfinite(net(image, camera).logits).all()
+
+
 @torch.no_grad()
 def test_unconditioned_network_has_no_camera_weights_and_ignores_a_camera() -> None:
     config, net = _net(camera=False)

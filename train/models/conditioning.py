@@ -62,12 +62,15 @@ class CameraInput:
     @classmethod
     def of(cls, gravity: Any, height: Any, known: Any, device: torch.device | str = "cpu") -> CameraInput:
         """From arrays or tensors: ``gravity`` ``(B, 3)``, ``height`` ``(B,)``, ``known`` ``(B, 2)`` 0/1 (any
-        numeric dtype; unknown pieces are zeroed here)."""
+        numeric dtype). Unknown pieces are zeroed here; a NaN piece (what a data folder's sample that does not give
+        it holds, :mod:`fruxel.train.folder`) is unknown whatever ``known`` says."""
         def t(x: Any) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x).to(device, torch.float32)
 
-        k = t(known).reshape(-1, 2)
-        return cls(t(gravity).reshape(-1, 3) * k[:, :1], t(height).reshape(-1) * k[:, 1], k)
+        g, h = t(gravity).reshape(-1, 3), t(height).reshape(-1)
+        k = t(known).reshape(-1, 2) * torch.stack([torch.isfinite(g).all(dim=1), torch.isfinite(h)], dim=1)
+        zero = g.new_zeros(())
+        return cls(torch.where(k[:, :1] > 0, g, zero), torch.where(k[:, 1] > 0, h, zero), k)
 
     @classmethod
     def from_record(cls, camera: Mapping[str, Any], known: Collection[str] = KNOWN,
