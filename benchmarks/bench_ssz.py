@@ -21,6 +21,8 @@ Parts (``--parts``, default all):
   CUDA graphs); with ``--predictor``, also through fruxel's own
   :class:`~fruxel.train.predict.Predictor` (the compiled pass, and the pass with the shell and ray cast, each
   replayed as one CUDA graph); median of ``--repeat`` calls, synchronised.
+* ``predictor``: only the ``--predictor`` rows of ``latency`` (bfloat16 unless named), e.g. to check a model
+  variant's budget: ``--parts predictor --model-override '{"camera_inputs": true}'``.
 * ``rules``: batch 1, image -> logits of a trained model (``--checkpoint``, default the shipped one) on the bundled
   photo, with no inference rule, with the empty-logit offset and ``fill_columns``, with ``first_hit_label`` after
   them, and with ``flip_average`` before them all (the model file's own offset and threshold), in alternating rounds
@@ -344,7 +346,7 @@ def bench_predictor_latency(preset: str, device: Any, repeat: int, precision: st
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--parts", nargs="+", default=["layers", "pointwise", "train", "latency", "rules"],
-                   choices=["layers", "pointwise", "train", "latency", "rules"])
+                   choices=["layers", "pointwise", "train", "latency", "rules", "predictor"])
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
     p.add_argument("--presets", nargs="+", default=["ssz64", "ssz128"])
     p.add_argument("--steps", type=int, default=120, help="training steps per preset")
@@ -399,6 +401,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.frozen and device.type == "cuda":
             result["latency"] += [bench_latency(pr, device, args.repeat, True, frozen=True, model_override=mo)
                                   for pr in args.presets]
+    if "predictor" in args.parts and device.type == "cuda":
+        # The Predictor's batch-1 latency alone (no eager or plain compiled rows): a model variant's check.
+        mo = json.loads(args.model_override)
+        result.setdefault("latency", [])
+        result["latency"] += [bench_predictor_latency(pr, device, args.repeat, prec, model_override=mo)
+                              for prec in args.predictor or ["bfloat16"] for pr in args.presets]
     if "rules" in args.parts:
         result["rules"] = bench_rules(device, args.repeat, args.checkpoint)
     out = Path(args.out) if args.out else common.RESULTS / f"ssz-{device.type}"
