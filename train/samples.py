@@ -337,6 +337,33 @@ def training_batches(source: SampleSource, model: ModelConfig, samples: int, *, 
     return Batches(factory, batch, workers, pin=pin, position=position)
 
 
+MPS_PIPE_DEFAULT = "/tmp/nvidia-mps"
+"""Where CUDA's Multi-Process Service keeps its control pipe unless ``$CUDA_MPS_PIPE_DIRECTORY`` says otherwise."""
+
+
+def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> str | None:
+    """A one-line hint when several simulator workers will share one GPU without CUDA's Multi-Process Service, else
+    None.
+
+    Each data worker of a streamed simulator is a process with its own CUDA context; without MPS the GPU runs one
+    context at a time and the workers wait for each other's time slices: the furnished rooms streamed several times
+    faster with MPS on (BENCHMARKS.md, "## Simulator", both rows). MPS is a per-machine daemon
+    (``nvidia-cuda-mps-control -d``) that lets their kernels run side by side; fruxel does not start it.
+
+    Args:
+        source: the training data.
+        workers: DataLoader workers of the rank.
+        device: the Warp device the workers draw on (``"cuda:N"`` or ``"cpu"``).
+    """
+    if source.source != "stream" or workers < 2 or not str(device or "").startswith("cuda"):
+        return None
+    pipe = os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or MPS_PIPE_DEFAULT
+    if os.path.exists(os.path.join(pipe, "control")):
+        return None
+    return (f"note: {workers} simulator workers share {device} without CUDA MPS (no control pipe in {pipe}); "
+            "`nvidia-cuda-mps-control -d` before training lets them run side by side (BENCHMARKS.md, Simulator)")
+
+
 def _reading(source: SampleSource, model: ModelConfig, splits: tuple[tuple[str, int], ...]
              ) -> tuple[int, dict[str, Any]]:
     """``(samples per block, BlockStream's reading arguments)`` of a source: a data set's own samples per room; one

@@ -393,3 +393,21 @@ def test_config_round_trip_and_splits() -> None:
     wide = CONFIG.replace(grid=FruxelGrid(width=16, height=12, depth=8, z_near=0.5, z_far=8.0, hfov=70.0))
     assert (wide.image_width, wide.image_height) == (64, 48)
     assert wide.trajectory.mount.hfov == 70.0
+
+
+def test_gpu_sharing_hint_names_mps_only_when_stream_workers_share_a_gpu_without_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Several streamed-simulator workers on one CUDA device without MPS's control pipe get one line naming the
+    command; with the pipe there, on the CPU, with one worker or with stored data there is none."""
+    from fruxel.train.samples import SampleSource, gpu_sharing_hint
+
+    pipe = tmp_path / "mps"
+    pipe.mkdir()
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(pipe))
+    stream = SampleSource()
+    hint = gpu_sharing_hint(stream, 15, "cuda:0")
+    assert hint is not None and "nvidia-cuda-mps-control -d" in hint and "\n" not in hint and str(pipe) in hint
+    assert gpu_sharing_hint(stream, 15, "cpu") is None and gpu_sharing_hint(stream, 1, "cuda:0") is None
+    assert gpu_sharing_hint(SampleSource("shards", str(tmp_path)), 15, "cuda:0") is None
+    (pipe / "control").write_text("")  # the daemon's named pipe stands there while it runs
+    assert gpu_sharing_hint(stream, 15, "cuda:0") is None

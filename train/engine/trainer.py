@@ -206,7 +206,7 @@ class Trainer:
 
     def _batches(self) -> Any:
         """The rank's training batches from the state's data position."""
-        from ..samples import SampleSource, train_split_size, training_batches
+        from ..samples import SampleSource, gpu_sharing_hint, train_split_size, training_batches
 
         c, d, s = self.config, self.dist, self.state
         source = SampleSource.of(c.data)
@@ -214,10 +214,14 @@ class Trainer:
         if c.data.replay:
             per_rank = max(1, math.ceil(per_rank / c.data.reuse))
         cuda = d.device.index if d.device.type == "cuda" else None
+        sim_device = f"cuda:{cuda}" if cuda is not None else "cpu"
+        hint = gpu_sharing_hint(source, c.data.workers, sim_device)
+        if hint and self.progress and d.rank == 0:
+            print(hint, file=sys.stderr)
         return training_batches(source, c.model, train_split_size(source, c.model, c.data.train_samples),
                                 batch=per_rank, workers=c.data.workers, rank=d.rank, world=d.world,
                                 position=s.position, shuffle_seed=c.run.seed, pin=d.device.type == "cuda",
-                                device=f"cuda:{cuda}" if cuda is not None else "cpu")
+                                device=sim_device)
 
     def _class_weights(self, batches: Any) -> None:
         """Count the class frequencies on the first training batches (kept in :attr:`_prefetched`, trained on as
