@@ -815,6 +815,14 @@ def camera_prior(args: argparse.Namespace) -> Any:
     return CameraPrior(pitch=args.pitch, roll=args.roll, height=args.height)
 
 
+def note_unread_camera(args: argparse.Namespace, config: Any, prog: str) -> None:
+    """One line on stderr when ``--pitch``, ``--roll`` or ``--height`` were given for a model that reads no camera
+    (``config.reads_camera`` False, e.g. the shipped ``ssz64``): they change nothing, and a user should know."""
+    given = [f"--{name}" for name in ("pitch", "roll", "height") if getattr(args, name, None) is not None]
+    if given and not config.reads_camera:
+        print(f"{prog}: note: this model reads no camera; {', '.join(given)} change nothing", file=sys.stderr)
+
+
 def photo_view(path: str | Path, image: Any, args: argparse.Namespace, prog: str, default_hfov: float) -> Any:
     """A photo and its horizontal field of view as the model's framing takes them: ``--intrinsics`` (the photo
     cropped about the principal point), else ``--hfov``, else the photo's EXIF 35 mm-equivalent focal length

@@ -49,6 +49,7 @@ from .common import (
     camera_prior,
     check_output_folder,
     check_photo,
+    note_unread_camera,
     path_name,
     photo_view,
     positive_int,
@@ -162,6 +163,7 @@ def _main(args: argparse.Namespace) -> int:
 
     predictor = load_predictor(args.checkpoint, device=device, batch=args.batch, compile=args.compile, camera=prior)
     config = predictor.config
+    note_unread_camera(args, config, PROG)
     # Every image is read and checked before the model runs; what is kept is its small model-sized version.
     prepared, coverage = [], []
     grid, classes = config.grid, config.classes

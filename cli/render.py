@@ -74,6 +74,7 @@ from .common import (
     grid_from_args,
     grid_options_given,
     image_size,
+    note_unread_camera,
     one_line,
     path_name,
     photo_view,
@@ -457,6 +458,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
         truth = RenderInput(np.ascontiguousarray(t.labels), t.grid, t.classes, args.truth.stem)
     checkpoint = model_path(args.checkpoint)
     predictor = load_predictor(checkpoint, device=args.device, batch=1, camera=prior)
+    note_unread_camera(args, predictor.config, PROG)
     if predictor.device.type == "cpu":
         share_cpu()
     grid, classes = predictor.config.grid, predictor.config.classes

@@ -146,3 +146,23 @@ def test_eval_camera_known_parses() -> None:
     for bad in ("height", "pose", "gravity,size"):
         with pytest.raises(SystemExit):
             parse(["--camera-known", bad])
+
+
+def test_camera_flags_for_a_model_that_reads_no_camera_say_so_in_one_line(shipped_model: Path, camera_model: Path,
+                                                                           tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """The shipped kind of model ignores --pitch and --height: one note says so, and the prediction is the plain one;
+    a model that reads the camera gets no note."""
+    jpg = exif_jpeg(tmp_path / "room.jpg", 28)
+    outs = {}
+    for name, model, flags in (("flags", shipped_model, ["--pitch", "12", "--height", "1.4"]),
+                               ("plain", shipped_model, []), ("reads", camera_model, ["--pitch", "12"])):
+        capsys.readouterr()
+        outs[name] = tmp_path / name
+        assert predict_cli.main([str(jpg), "--checkpoint", str(model), "--out", str(outs[name]), "--logits", "-q",
+                                 "--device", "cpu", *flags]) == 0
+        err = capsys.readouterr().err
+        notes = [line for line in err.splitlines() if "reads no camera" in line]
+        assert notes == ([f"{predict_cli.PROG}: note: this model reads no camera; --pitch, --height change nothing"]
+                         if name == "flags" else [])
+    assert np.array_equal(_logits(outs["flags"], "room"), _logits(outs["plain"], "room"))
