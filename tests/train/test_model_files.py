@@ -36,6 +36,20 @@ def test_the_presets_rebuild_the_shipped_models(name: str) -> None:
     assert {k: tuple(v.shape) for k, v in state.items()} == {k: tuple(v.shape) for k, v in shipped.state.items()}
 
 
+def test_the_camera_aware_preset_is_ssz64_reading_the_camera_on_the_furnished_rooms() -> None:
+    """``ssz64-any`` (issue 39's training) is the shipped ssz64's architecture and image size with camera inputs,
+    the furnished rooms' classes, streamed from the furnished rooms with any camera; tiny reads the camera too."""
+    import dataclasses
+
+    from fruxel.classes import HOME_CLASSES
+
+    any_cam, ssz64 = preset("ssz64-any"), preset("ssz64")
+    assert any_cam.model == dataclasses.replace(ssz64.model, camera_inputs=True, classes=HOME_CLASSES)
+    assert any_cam.model.reads_camera and preset("tiny").model.reads_camera and not ssz64.model.reads_camera
+    assert (any_cam.data.world, any_cam.data.camera) == ("home", "any")
+    assert any_cam.data == dataclasses.replace(ssz64.data, world="home", camera="any")
+
+
 def _legacy_file(path: Path, model: dict, rules: dict) -> None:
     """A file as fruxel wrote shipped models before version 2: the rules inside the model config, the
     discriminator's channels too."""
