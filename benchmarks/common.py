@@ -9,6 +9,7 @@ included) never imports it.
 from __future__ import annotations
 
 import datetime as dt
+import importlib
 import json
 import os
 import platform
@@ -93,9 +94,8 @@ def load_average() -> float:
 
 def package_versions(names: Iterable[str] | Mapping[str, str]) -> dict[str, str | None]:
     """Installed versions of distributions, None for those missing. Reads the installed metadata, so nothing is
-    imported (importing warp or torch would cost seconds and print), except for a package that is already imported
-    without metadata (a Warp copied onto the GPU machine without its package files): its own version attribute
-    then.
+    imported (importing warp or torch would cost seconds and print), except for a package without metadata (a Warp
+    copied onto the GPU machine without its package files): it is imported for its own version attribute then.
 
     Args:
         names: distribution names, e.g. ``("numpy", "warp-lang")``; or a mapping from the key wanted in the
@@ -119,8 +119,14 @@ _MODULES = {"warp-lang": ("warp", "config.version"), "torch": ("torch", "__versi
 
 
 def _imported_version(dist: str) -> str | None:
-    """The version an already imported module reports, or None."""
+    """The version the module reports (imported here when it is not yet: only a copy without metadata gets here,
+    the GPU machine's Warp, whose results said "Warp None" while the module was still unimported), or None."""
     name, attr = _MODULES.get(dist, (None, None))
+    if name and name not in sys.modules:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            return None
     value = sys.modules.get(name) if name else None
     for part in (attr or "").split("."):
         value = getattr(value, part, None)

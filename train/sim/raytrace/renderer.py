@@ -47,8 +47,14 @@ wp = warp()
 STAGES = ("arrays", "textures", "bvh", "upload", "ambient", "primary", "lights", "occlusion", "resolve", "response")
 """Stages :attr:`RaytraceRenderer.timings` counts when ``profile`` is on: per room the first five (``arrays``: the
 room flattened on the host; ``textures``: pack assets decoded and uploaded the first time a room uses them;
-``bvh``: the BVH build; ``upload``: the other arrays and the smoothed normals), per image the rest (``response``
-includes the image's download and JPEG)."""
+``bvh``: the BVH build (:data:`BVH_CONSTRUCTOR`) and upload; ``upload``: the other arrays and the smoothed
+normals), per image the rest (``response`` includes the image's download and JPEG)."""
+
+BVH_CONSTRUCTOR = "sah"
+"""Warp's BVH builder for a room's mesh, on every device. SAH (built on the host, then uploaded to a CUDA device)
+traces the furnished rooms, wall-sized triangles beside small furniture parts, much faster than a split at the
+centroids' spatial median, and CUDA's own default, LBVH, splits on Morton codes of the centroids too
+(BENCHMARKS.md, "## BVH constructors", ``benchmarks/bench_bvh.py``)."""
 
 _PACKS: dict[str, Any] = {}
 """Asset packs opened in this process, by resolved folder."""
@@ -139,7 +145,8 @@ class RaytraceRenderer:
         self._room = None
         dev = self.device
         points = wp.array(arrays.vertices, dtype=wp.vec3, device=dev)
-        mesh = wp.Mesh(points=points, indices=wp.array(arrays.faces.ravel(), dtype=wp.int32, device=dev))
+        mesh = wp.Mesh(points=points, indices=wp.array(arrays.faces.ravel(), dtype=wp.int32, device=dev),
+                       bvh_constructor=BVH_CONSTRUCTOR)
         t2 = self._mark("bvh", t1)
         data = SceneData()
         data.mesh = mesh.id
