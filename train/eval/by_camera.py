@@ -161,7 +161,7 @@ def camera_chart(section: Mapping[str, Any], labels: Mapping[str, str], path: st
                  title: str = "") -> None:
     """Write the chart of a ``by_camera`` section (:func:`by_camera_section`) as a PNG, atomically: a panel per
     axis with mIoU and own-view accuracy per bin (a colour per metric, a line style per rule) over grey bars of
-    the samples per bin (right axis, numbers on the bars).
+    the samples per bin (right axis; their numbers in a row at the top).
 
     Args:
         section: the section, as in ``report.json``.
@@ -180,10 +180,13 @@ def camera_chart(section: Mapping[str, Any], labels: Mapping[str, str], path: st
     for ax, axis in zip(np.atleast_1d(axes), AXES, strict=True):
         _panel(ax, section[axis], axis, labels)
     handles, names = np.atleast_1d(axes)[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="lower center", ncol=min(4, len(names)), fontsize=9, frameon=False)
+    # A legend column per rule (its metrics one under the other), so that long setting names fit the width.
+    columns = len(labels) if len(labels) > 1 else len(METRIC_LINES)
+    fig.legend(handles, names, loc="lower center", ncol=columns, fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.06 + 0.04 * ((len(names) - 1) // 4), 1, 1))
+    rows = -(-len(names) // columns)
+    fig.tight_layout(rect=(0, 0.02 + 0.045 * rows, 1, 1))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
@@ -195,8 +198,7 @@ def _panel(ax: Any, part: Mapping[str, Any], axis: str, labels: Mapping[str, str
     centres, widths = (edges[1:] + edges[:-1]) / 2, np.diff(edges)
     counts = np.asarray(part["samples"])
     bars = ax.twinx()
-    drawn = bars.bar(centres, counts, width=0.8 * widths, color="0.88", edgecolor="0.7", lw=0.5)
-    bars.bar_label(drawn, labels=[str(c) for c in counts], fontsize=7, color="0.35", padding=1)
+    bars.bar(centres, counts, width=0.8 * widths, color="0.88", edgecolor="0.7", lw=0.5)
     bars.set_ylim(0, max(1, counts.max()) * 3.2)  # the bars keep to the panel's lower third, under the lines
     bars.set_ylabel("samples per bin", color="0.45", fontsize=8)
     bars.tick_params(axis="y", colors="0.45", labelsize=7)
@@ -210,10 +212,14 @@ def _panel(ax: Any, part: Mapping[str, Any], axis: str, labels: Mapping[str, str
     unit, words = AXES[axis]
     ax.set_xticks(edges)
     ax.set_xlim(edges[0], edges[-1])
-    ax.set_ylim(0, 100)
+    # The counts in a row above 100 %, where no curve can cover them.
+    ax.set_ylim(0, 108)
+    ax.set_yticks(range(0, 101, 20))
+    for x, n in zip(centres, counts, strict=True):
+        ax.text(x, 104, f"n={n}", ha="center", va="center", fontsize=7, color="0.3" if n else "0.6")
     ax.set_xlabel(f"{words} ({unit})")
     ax.set_ylabel("percent")
     ax.grid(alpha=0.3)
-    out = part["outside"]
-    missed = ", ".join(f"{n} {k}" for k, n in out.items() if n)
-    ax.set_title(f"by {words}" + (f" (not in a bin: {missed})" if missed else ""), fontsize=10)
+    where = {"below": f"below {edges[0]:g}", "above": f"above {edges[-1]:g}", "unrecorded": "unrecorded"}
+    missed = ", ".join(f"{n} {where[k]}" for k, n in part["outside"].items() if n)
+    ax.set_title(f"against {words}" + (f"; not in a bin: {missed}" if missed else ""), fontsize=10)
