@@ -4,7 +4,8 @@ Usage::
 
     fruxel-eval [--checkpoint FILE] [--data DIR [--split test] | --test-set NAME [--assets DIR]] [--samples N]
                 [--seed S] [--no-augment] [--prior-samples N] [--out DIR] [--batch B] [--workers K]
-                [--device cpu|cuda[:N]] [--backend NAME] [--examples N] [-q]
+                [--device cpu|cuda[:N]] [--backend NAME] [--examples N]
+                [--camera-known gravity,height|gravity|none ...] [--by-camera] [-q]
 
 The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's
 name (``ssz64``, ``ssz128``); by default the model shipped with fruxel (``ssz64``). Samples are the first N of a
@@ -35,8 +36,14 @@ IoU, own- and novel-view first-hit accuracy and novel-view depth error.
 Outputs, written together into ``--out`` (default ``out/``): ``report.md`` (tables, the command line, model file,
 samples, data source, test set and machine), ``report.json`` (the same numbers with the confusion matrices and counts
 behind them) and ``examples.png`` (image | truth and prediction from the grid's own camera | truth and prediction
-from a novel pose; not written with ``--examples 0``). Errors are one line ``fruxel-eval: error: ...`` with exit
-status 2 (:func:`fruxel.cli.common.run`).
+from a novel pose; not written with ``--examples 0``). With ``--by-camera`` the model's mIoU and own-view
+accuracy are also counted per bin of camera height (0.3 to 1.9 m in 0.2 m bins) and pitch (-20 to 40 degrees in 10
+degree bins) by the samples' recorded cameras (:mod:`fruxel.train.eval.by_camera`): the ``by_camera`` section of
+``report.json``, a table per axis in ``report.md`` and ``by_camera.png``. A model that reads the camera is told what
+``--camera-known`` says of each sample's camera (default ``gravity,height``); given several times, the model is
+evaluated under each setting on the same samples (results ``model`` for the first, ``model@none``,
+``model@gravity`` for the others) and the chart draws a curve per setting. Errors are one line
+``fruxel-eval: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
 """
 
 from __future__ import annotations
@@ -77,7 +84,9 @@ STREAM_SAMPLES = 256
 PRIOR_SAMPLES = 1024
 """Training samples of the per-cell prior when ``--prior-samples`` is not given."""
 OUTPUTS = ("report.md", "report.json", "examples.png")
-"""Files written into ``--out``."""
+"""Files written into ``--out`` (and :data:`CHART` with ``--by-camera``)."""
+CHART = "by_camera.png"
+"""The chart of ``--by-camera``, beside the report."""
 """Environment variable naming the folder of fruxel's caches (default ``$XDG_CACHE_HOME/fruxel``, else
 ``~/.cache/fruxel``); ``fruxel-eval`` keeps its per-cell priors in ``prior/`` there."""
 
@@ -118,16 +127,29 @@ def build_parser() -> argparse.ArgumentParser:
                    "best available)")
     p.add_argument("--examples", type=non_negative_int, default=4, metavar="N",
                    help="samples shown in examples.png (default 4; 0: no picture)")
-    p.add_argument("--camera-known", type=camera_pieces, default=None, metavar="gravity,height|gravity|none",
+    p.add_argument("--camera-known", type=camera_pieces, action="append", default=None,
+                   metavar="gravity,height|gravity|none",
                    help="for a model that reads the camera: what it is told of each test sample's recorded camera "
-                   "(default gravity,height: pose given, as the test set records it; none: pose unknown); other "
-                   "models ignore it")
+                   "(default gravity,height: pose given, as the test set records it; none: pose unknown); given "
+                   "again, the model is also evaluated under that setting on the same samples (e.g. --camera-known "
+                   "gravity,height --camera-known none); a model that reads no camera ignores one setting")
+    p.add_argument("--by-camera", action="store_true",
+                   help=f"also count mIoU and own-view accuracy per bin of camera height ({_edges_text('height')}) "
+                   f"and pitch ({_edges_text('pitch')}), into report.json and {CHART}")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summary")
     return p
 
 
 CAMERA_PIECES = ("gravity", "height")
 """What ``--camera-known`` may name (:data:`fruxel.train.models.conditioning.KNOWN`)."""
+BIN_EDGES = {"height": (0.3, 1.9, 0.2, "m"), "pitch": (-20.0, 40.0, 10.0, "deg")}
+"""``(first, last, step, unit)`` of ``--by-camera``'s bins per axis, for ``--help`` without importing torch (the same
+as :data:`fruxel.train.eval.by_camera.HEIGHT_EDGES` and ``PITCH_EDGES``, tested)."""
+
+
+def _edges_text(axis: str) -> str:
+    first, last, step, unit = BIN_EDGES[axis]
+    return f"{first:g} to {last:g} {unit} in {step:g} {unit} bins"
 
 
 def camera_pieces(text: str) -> tuple[str, ...]:
@@ -142,6 +164,10 @@ def camera_pieces(text: str) -> tuple[str, ...]:
 def _check_options(args: argparse.Namespace) -> None:
     """Options that do not go together, found before any work."""
     check_test_set_options(args)
+    settings = args.camera_known or []
+    for i, pieces in enumerate(settings):
+        if pieces in settings[:i]:
+            raise UsageError(f"--camera-known {','.join(pieces) or 'none'} is given twice")
     if args.data is None:
         if args.split != "test":
             raise UsageError("--split names a split of a data set: give --data DIR (streamed samples are the test "
@@ -297,6 +323,29 @@ def _prior(args: argparse.Namespace, source: Any, mc: Any, load: Any, device: An
     return (lambda image, truth: prior_prediction(mode, len(truth))), {"split": "train", "samples": n_prior}
 
 
+def _model_rules(args: argparse.Namespace, m: Any, device: Any) -> tuple[dict[str, Any], list[tuple[str, ...]]]:
+    """The model's prediction rules by results key, and the camera-known settings they stand for: ``model`` under
+    the first ``--camera-known`` setting, :func:`fruxel.train.eval.report.setting_key` under each further one; one
+    rule and no settings for a model that reads no camera.
+
+    Raises:
+        UsageError: several settings for a model that reads no camera.
+    """
+    from fruxel.train.eval.evaluate import model_predict
+    from fruxel.train.eval.report import setting_key
+
+    settings = args.camera_known or [CAMERA_PIECES]
+    autocast = device.type == "cuda"
+    if not m.config.reads_camera:
+        if len(settings) > 1:
+            raise UsageError(f"--camera-known is given {len(settings)} times, but {m.path} reads no camera: every "
+                             "setting would give the same numbers; give it once or not at all")
+        return {"model": model_predict(m.network, m.rules, autocast=autocast)}, []
+    keys = ["model", *(setting_key(known) for known in settings[1:])]
+    return {k: model_predict(m.network, m.rules, autocast=autocast, camera_known=known)
+            for k, known in zip(keys, settings, strict=True)}, settings
+
+
 def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     started = time.perf_counter()
     _check_options(args)
@@ -307,7 +356,8 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from fruxel.render.table1 import machine_info
     from fruxel.train.engine.data import to_device
     from fruxel.train.eval.baselines import oracle_prediction
-    from fruxel.train.eval.evaluate import evaluate_predictions, model_predict
+    from fruxel.train.eval.by_camera import CameraBinned, CameraBins
+    from fruxel.train.eval.evaluate import evaluate_predictions
     from fruxel.train.eval.report import build_report
     from fruxel.train.model_files import load_model
     from fruxel.train.samples import split_batches
@@ -318,18 +368,20 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     source, count = _source(args, mc)
     # Warp device of the simulator's fruxelize (streaming).
     sim_device = "cuda" if device.type == "cuda" else "cpu"
+    predictors, settings = _model_rules(args, m, device)
+    # Camera records travel with the batches for a model that reads them, and for the bins of --by-camera.
+    records = mc.reads_camera or args.by_camera
 
     def load(split: str, n: int, desc: str) -> Iterator[Any]:
         return _progress(split_batches(source, mc, split, n, args.batch, workers=args.workers, device=sim_device,
-                                       camera=mc.reads_camera), n, desc, args.quiet)
+                                       camera=records), n, desc, args.quiet)
 
     prior_info = None
-    known = CAMERA_PIECES if args.camera_known is None else args.camera_known
-    predictors: dict[str, Any] = {"model": model_predict(m.network, m.rules, autocast=device.type == "cuda",
-                                                         camera_known=known if mc.reads_camera else None)}
     if args.prior_samples:
         predictors["prior"], prior_info = _prior(args, source, mc, load, device)
     predictors["oracle"] = lambda image, truth: oracle_prediction(truth, mc.grid, args.backend)
+    binned = ({k: CameraBinned(len(mc.classes.names), CameraBins()) for k in predictors if k.startswith("model")}
+              if args.by_camera else None)
 
     def as_input(pairs: Iterator[Any]) -> Iterator[Any]:
         for image, labels, *camera in pairs:
@@ -339,7 +391,8 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         # Examples spread over the samples: consecutive samples are frames of one room.
         shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))  # 0: none
         accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), mc.grid,
-                                          mc.classes, device=device, backend=args.backend, keep=shown.tolist())
+                                          mc.classes, device=device, backend=args.backend, keep=shown.tolist(),
+                                          by_camera=binned)
     machine = machine_info(str(device))
     machine.update(device=str(device), kernels=describe(args.backend, None, torch.zeros(1, device=device)))
     report = build_report(
@@ -349,10 +402,18 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         data={"source": source.describe(), "kind": source.source, "root": source.root or None, "seed": source.seed,
               "augment": source.augment if source.source == "stream" else None, "split": args.split,
               "samples": count, "indices": f"indices 0..{count - 1}", "test_set": _test_set(source),
-              "camera_known": list(known) if mc.reads_camera else None},
+              "camera_known": list(settings[0]) if settings else None},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
-        seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None)
+        seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None,
+        by_camera=_by_camera(binned, mc))
     return _write(args, report, kept, mc, count)
+
+
+def _by_camera(binned: dict[str, Any] | None, mc: Any) -> dict[str, Any] | None:
+    """The report's ``by_camera`` section (None without ``--by-camera``)."""
+    from fruxel.train.eval.by_camera import by_camera_section
+
+    return None if binned is None else by_camera_section(binned, tuple(mc.classes.names), CHART)
 
 
 def _test_set(source: Any) -> dict[str, str] | None:
@@ -366,18 +427,19 @@ def _test_set(source: Any) -> dict[str, str] | None:
 
 def _write(args: argparse.Namespace, report: dict[str, Any], kept: list[Any], mc: Any, count: int) -> int:
     """Write the report, its Markdown and the examples, then name them."""
-    from fruxel.train.eval.report import RULES, markdown_report
+    from fruxel.train.eval.report import markdown_report, rule_names
     from fruxel.train.eval.visual import example_sheet
 
     text = markdown_report(report)
     res = report["results"]
+    names = rule_names(report)
 
     def miou(rule: str) -> str:
         v = res[rule]["miou"]
         return "n/a" if v is None else f"{v:.1f} %"
 
     title = (f"{Path(report['model']['file']).name}, {count} {args.split} samples: mIoU "
-             + ", ".join(f"{RULES[r]} {miou(r)}" for r in res))
+             + ", ".join(f"{names[r]} {miou(r)}" for r in res))
     out = args.out
     outputs = [
         (out / "report.md", lambda tmp: tmp.write_text(text, encoding="utf-8")),
@@ -388,12 +450,28 @@ def _write(args: argparse.Namespace, report: dict[str, Any], kept: list[Any], mc
     if args.examples:
         outputs.append((out / "examples.png", lambda tmp: example_sheet(kept, mc.grid, mc.classes, tmp, title=title,
                                                                         backend=args.backend)))
+    if report["by_camera"]:
+        outputs.append((out / CHART, lambda tmp: _chart(report, tmp, f"{Path(report['model']['file']).name}, "
+                                                                 f"{count} {args.split} samples")))
     written = write_outputs(outputs)
     if not args.quiet:
         print(title)
         for p in written:
             print(p)
     return 0
+
+
+def _chart(report: dict[str, Any], path: Path, title: str) -> None:
+    """Draw the report's ``by_camera`` section: a line style per camera-known setting of a model that reads the
+    camera, one unnamed curve per metric for a model that reads none."""
+    from fruxel.train.eval.by_camera import camera_chart
+    from fruxel.train.eval.report import SETTING, setting_text
+
+    rules = report["by_camera"]["height"]["miou"]
+    known = report["data"]["camera_known"]
+    labels = {r: ("" if known is None else "camera known: " + (setting_text(known) if r == "model"
+                                                                else r[len(SETTING):])) for r in rules}
+    camera_chart(report["by_camera"], labels, path, title=title)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -140,8 +140,10 @@ def test_eval_camera_known_parses() -> None:
     from fruxel.cli import eval as eval_cli
 
     parse = eval_cli.build_parser().parse_args
-    assert parse(["--camera-known", "gravity,height"]).camera_known == ("gravity", "height")
-    assert parse(["--camera-known", "none"]).camera_known == ()
+    assert parse(["--camera-known", "gravity,height"]).camera_known == [("gravity", "height")]
+    assert parse(["--camera-known", "none"]).camera_known == [()]
+    # Given again: one more setting, evaluated on the same samples.
+    assert parse(["--camera-known", "gravity", "--camera-known", "none"]).camera_known == [("gravity",), ()]
     assert parse([]).camera_known is None  # what the test set records: both
     for bad in ("height", "pose", "gravity,size"):
         with pytest.raises(SystemExit):

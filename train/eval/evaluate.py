@@ -13,6 +13,7 @@ from fruxel.grid import FruxelGrid
 
 from ..models.conditioning import CameraInput
 from ..rules import InferenceRules, predict_logits
+from .by_camera import CameraBinned
 from .metrics import Accumulator
 
 
@@ -84,7 +85,8 @@ def model_predict(network: torch.nn.Module, rules: InferenceRules, autocast: boo
 @torch.no_grad()
 def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
                          grid: FruxelGrid, classes: ClassTable, *, device: torch.device, novel: bool = True,
-                         backend: str | None = None, keep: int | Collection[int] = 0
+                         backend: str | None = None, keep: int | Collection[int] = 0,
+                         by_camera: Mapping[str, CameraBinned] | None = None
                          ) -> tuple[dict[str, Accumulator], list[dict[str, Any]]]:
     """Count every metric of several prediction rules on the same samples, in one pass over them.
 
@@ -98,10 +100,15 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
         backend: kernel backend for the novel views.
         keep: samples to keep for :func:`fruxel.train.eval.visual.example_sheet`: a number (the first ones) or the
             positions of the samples in the order of ``batches``.
+        by_camera: counts per camera bin of some of the rules, by rule name, added to in place (the batches must
+            carry their camera record).
 
     Returns:
         ``(accumulators by name, kept)``: kept samples in order, as dicts of ``image`` (3, h, w) float, ``labels``
         and ``pred`` (D, H, W) uint8 (``pred``: the first rule's prediction), all on the CPU.
+
+    Raises:
+        ValueError: ``by_camera`` with batches that carry no camera record.
     """
     accs = {name: Accumulator(len(classes.names)) for name in predictors}
     cams = novel_cameras(grid) if novel else []
@@ -121,6 +128,10 @@ def evaluate_predictions(predictors: Mapping[str, Predict], batches: Iterable[tu
                 pred = predict(image, target).to(torch.uint8)
             first = pred if first is None else first
             accs[name].add_volumes(pred, target)
+            if by_camera and name in by_camera:
+                if record is None:
+                    raise ValueError("counting by camera needs batches that carry their camera record")
+                by_camera[name].add(pred, target, record)
             if cams:
                 count_views(accs[name], pred, target, grid, cams, backend)
         for b in range(len(target)):

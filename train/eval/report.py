@@ -23,6 +23,36 @@ VERSION = 1
 """Version of ``report.json``'s layout."""
 RULES = {"model": "model", "prior": "per-cell prior", "oracle": "visible-surface oracle"}
 """The prediction rules of a report, by key, and their names in the tables."""
+SETTING = "model@"
+"""Key prefix of the model under a further ``--camera-known`` setting (``model@none``, ``model@gravity``): the first
+setting's results are ``model``'s, as the report's ``data.camera_known`` says."""
+
+
+def setting_text(pieces: Any) -> str:
+    """A camera-known setting (a list of :data:`fruxel.train.models.conditioning.KNOWN` pieces) as the command line
+    writes it: ``gravity,height``, ``gravity`` or ``none``."""
+    return ",".join(pieces) or "none"
+
+
+def setting_key(pieces: Any) -> str:
+    """The results key of the model told ``pieces`` of the camera, when that is not its first setting."""
+    return SETTING + setting_text(pieces)
+
+
+def rule_names(report: Mapping[str, Any]) -> dict[str, str]:
+    """The name in the tables of each rule of a report's results, in their order: :data:`RULES`, and for a model
+    evaluated under several camera-known settings, ``model, camera known: <setting>``."""
+    keys = list(report["results"])
+    several = any(k.startswith(SETTING) for k in keys)
+
+    def name(key: str) -> str:
+        if key.startswith(SETTING):
+            return f"model, camera known: {key[len(SETTING):]}"
+        if key == "model" and several:
+            return f"model, camera known: {setting_text(report['data']['camera_known'])}"
+        return RULES[key]
+
+    return {k: name(k) for k in keys}
 METRICS = (
     ("miou", "mIoU", "%"),
     ("completion_iou", "completion IoU", "%"),
@@ -56,12 +86,13 @@ def rule_result(acc: Accumulator, classes: ClassTable) -> dict[str, Any]:
 
 def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, model: dict[str, Any],
                  data: dict[str, Any], prior: dict[str, Any] | None, machine: dict[str, Any], command: str,
-                 seconds: float, examples: str | None = "examples.png") -> dict[str, Any]:
+                 seconds: float, examples: str | None = "examples.png",
+                 by_camera: dict[str, Any] | None = None) -> dict[str, Any]:
     """The report as a JSON-able dict (``report.json``).
 
     Args:
         results: the accumulators by rule, keys from :data:`RULES` (``"model"`` first; a baseline not evaluated is
-            left out).
+            left out) and :func:`setting_key` (the model under further camera-known settings, after ``"model"``).
         classes: the class table of the labels.
         model: the model: ``file``, ``grid`` (a grid dict), ``image_size`` ``[h, w]``, ``training`` (its summary),
             optionally ``inference_rules`` (``{"fill_columns": bool, "empty_offset": float, "fill_threshold":
@@ -74,6 +105,8 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         command: the command line.
         seconds: wall time of the evaluation.
         examples: the picture of examples beside the report, or None.
+        by_camera: the metrics per camera height and pitch bin
+            (:func:`fruxel.train.eval.by_camera.by_camera_section`), or None.
     """
     names = tuple(classes.names)
     truth = next(iter(results.values())).conf.sum(axis=1) if results else np.zeros(len(names))
@@ -93,6 +126,7 @@ def build_report(results: Mapping[str, Accumulator], classes: ClassTable, *, mod
         "results": {name: rule_result(acc, classes) for name, acc in results.items()},
         "definitions": {k: v for k, v in DEFINITIONS.items() if k in results},
         "examples": examples,
+        "by_camera": by_camera,
     }
 
 
@@ -140,7 +174,8 @@ def rules_text(rules: Mapping[str, Any]) -> str:
 
 def markdown_report(report: Mapping[str, Any]) -> str:
     """``report.md``: the report of :func:`build_report` as Markdown (a summary, then the tables)."""
-    rules = [r for r in RULES if r in report["results"]]
+    names = rule_names(report)
+    rules = list(names)
     res = report["results"]
     m, d = report["model"], report["data"]
     head = [f"# Evaluation of {m['file']}", ""]
@@ -165,21 +200,23 @@ def markdown_report(report: Mapping[str, Any]) -> str:
 
     lines += ["", "## Metrics", ""]
     rows = [[f"{name} ({unit})"] + [_value(res[r].get(key), unit) for r in rules] for key, name, unit in METRICS]
-    lines += _table(["metric", *(RULES[r] for r in rules)], rows)
+    lines += _table(["metric", *names.values()], rows)
     lines += ["", "mIoU: the mean IoU over the classes present in the ground truth; IoU, accuracy and depth error are "
                   "counted over every cell or pixel of every sample together. Novel views: "
                   "`orbit_cameras(grid, 4)` at the grid's width and height; accuracy over the pixels where either "
                   "volume is hit, depth error where both are."]
 
     lines += ["", "## IoU per class (%)", ""]
-    names = report["classes"]["names"]
+    classes = report["classes"]["names"]
     share = report["class_share"]
     # Shares with two decimals: small classes hold a few hundredths of the cells.
     rows = [[name, _value(share.get(name), "%", 2)] + [_value(res[r]["iou"].get(name), "%") for r in rules]
-            for name in names[1:]]
-    lines += _table(["class", "share of cells", *(RULES[r] for r in rules)], rows)
-    lines += ["", f"Empty cells: {_value(share.get(names[0]), '%')} % of the ground truth. n/a: a class neither in the "
-                  "ground truth nor predicted."]
+            for name in classes[1:]]
+    lines += _table(["class", "share of cells", *names.values()], rows)
+    lines += ["", f"Empty cells: {_value(share.get(classes[0]), '%')} % of the ground truth. n/a: a class neither in "
+                  "the ground truth nor predicted."]
+    if report.get("by_camera"):
+        lines += _by_camera_lines(report["by_camera"], names)
 
     defs = report.get("definitions") or {}
     if defs:
@@ -190,3 +227,28 @@ def markdown_report(report: Mapping[str, Any]) -> str:
                   "Per sample: the image | truth and model prediction from the grid's own camera | truth and model "
                   "prediction ray-cast from a novel pose.", "", f"![examples]({report['examples']})"]
     return "\n".join(lines) + "\n"
+
+
+def _by_camera_lines(section: Mapping[str, Any], names: Mapping[str, str]) -> list[str]:
+    """The Markdown of a report's ``by_camera`` section: a table per axis, then the chart."""
+    from .by_camera import AXES
+
+    lines = ["", "## By camera", "",
+             "mIoU and own-view first-hit accuracy (%) of the samples whose camera lies in each bin, counted as the "
+             "overall metrics are; a bin is [low, high), the last one closed."]
+    for axis, (unit, words) in AXES.items():
+        part = section[axis]
+        rules = list(part["miou"])
+        header = [f"{words} ({unit})", "samples"] + [f"{what}, {names.get(r, r)}" for r in rules
+                                                     for what in ("mIoU", "own-view")]
+        edges = part["edges"]
+        rows = [[f"{lo:g}..{hi:g}", str(n)] + [_value(part[key][r][i], "%") for r in rules
+                                             for key in ("miou", "own_view_accuracy")]
+                for i, (lo, hi, n) in enumerate(zip(edges, edges[1:], part["samples"], strict=False))]
+        lines += ["", *_table(header, rows)]
+        out = part["outside"]
+        if any(out.values()):
+            lines += ["", "Samples in no bin: " + ", ".join(f"{n} {k}" for k, n in out.items() if n) + "."]
+    if section.get("chart"):
+        lines += ["", f"![by camera]({section['chart']})"]
+    return lines
