@@ -115,6 +115,10 @@ class SceneObject:
     asset: str | None = None
     """Id of the asset pack mesh the object was made from (None: built by the generator); its materials name their
     own textures and images."""
+    label_mesh: tuple[np.ndarray, np.ndarray] | None = None
+    """The solid the object is labelled by when it is not ``mesh``: ``(vertices (V, 3) float64 world frame,
+    metres, faces (F, 3) int64)``, closed (a pack mesh that is not closed, filled: :mod:`.rooms.solids`); None:
+    ``mesh`` itself."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,8 +245,10 @@ class Scene:
 
     def labelled_meshes(self) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """``(vertices (V, 3) float64, faces (F, 3) int64, label)`` per solid object, world frame, in priority order:
-        the input of :func:`fruxel.kernels.fruxelize`."""
-        return [(np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces), o.label) for o in self.objects if o.solid]
+        the input of :func:`fruxel.kernels.fruxelize`; an object's ``label_mesh`` where it has one."""
+        return [(*(o.label_mesh if o.label_mesh is not None else (np.asarray(o.mesh.vertices),
+                                                                     np.asarray(o.mesh.faces))), o.label)
+                for o in self.objects if o.solid]
 
     def mesh_set(self, backend: str | None = None, device: str | None = None) -> Any:
         """The scene uploaded once for many :func:`fruxel.kernels.fruxelize` calls (a user-held

@@ -55,7 +55,7 @@ class DerivedArrays:
 
         Args:
             name: the file name without ``.npy``: everything the array depends on (module docstring).
-            shape: the array's shape; a file of another shape or dtype is made again.
+            shape: the array's shape, -1 where any size goes; a file of another shape or dtype is made again.
             dtype: the array's dtype.
             compute: makes the array (called only when the file is missing or wrong).
 
@@ -67,12 +67,12 @@ class DerivedArrays:
         if path is not None:
             try:
                 a = np.load(path, allow_pickle=False)
-                if a.shape == tuple(shape) and a.dtype == dtype:
+                if _fits(a.shape, shape) and a.dtype == dtype:
                     return a
             except (OSError, ValueError, EOFError):
                 pass  # missing or damaged: made again below
         a = np.ascontiguousarray(compute(), dtype=dtype)
-        if a.shape != tuple(shape):
+        if not _fits(a.shape, shape):
             raise ValueError(f"derived array {name!r} was computed with shape {a.shape}, expected {tuple(shape)}")
         if path is not None:
             self._write(path, a)
@@ -90,6 +90,11 @@ class DerivedArrays:
                           "each process decodes them itself (set FRUXEL_CACHE_DIR to a writable folder)",
                           RuntimeWarning, stacklevel=3)
             self.folder = None
+
+
+def _fits(shape: tuple[int, ...], wanted: tuple[int, ...]) -> bool:
+    """Whether ``shape`` is ``wanted``, where a -1 in ``wanted`` takes any size."""
+    return len(shape) == len(wanted) and all(w in (-1, s) for s, w in zip(shape, wanted, strict=True))
 
 
 _SHARED: dict[str, DerivedArrays] = {}

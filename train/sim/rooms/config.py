@@ -134,6 +134,11 @@ class HomeConfig:
     """Number of rugs (under the main group's furniture, or free on the floor)."""
     rug_thickness: tuple[float, float] = (0.008, 0.025)
     """Rug thickness, metres; furniture standing on a rug is raised by it."""
+    label_thickness: float = 0.12
+    """Thinnest upright slab in the labels, metres: a door leaf, a painting, a pane or another thin upright part of
+    a door, window, furniture, sculpture or object is labelled as a slab this thick about its middle
+    (:func:`.solids.thicken_slabs`; images show it as it is). The default is the depth of a 64^3 grid's slices
+    over 0.5-8 m, so that every column that sees it finds a cell centre inside it."""
     wall_art: tuple[int, int] = (2, 7)
     """Number of paintings and posters on the walls."""
     plants: tuple[int, int] = (1, 3)
@@ -187,7 +192,7 @@ class HomeConfig:
         for name in ("double_door", "open_door", "french_window", "curtains", "baseboard", "crown", "radiator",
                      "procedural", "sculpture_figures", "sun"):
             _probability(name, getattr(self, name))
-        for name in ("slab_thickness", "min_gap", "door_clearance", "free_space_resolution"):
+        for name in ("slab_thickness", "min_gap", "door_clearance", "free_space_resolution", "label_thickness"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 10.0 or \
                     (v == 0 and name != "min_gap"):

@@ -204,6 +204,7 @@ class Library:
         self._textures: dict[tuple[str, str], tuple[str, ...]] = {}
         self._colours: dict[str, np.ndarray] = {}
         self._image_sizes: dict[str, tuple[int, int]] = {}
+        self._solids: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
 
     # -------------------------------------------------------------------------------------------- meshes
     def role_ids(self, role: str, split: str) -> tuple[str, ...]:
@@ -230,6 +231,32 @@ class Library:
                                          np.asarray(m.face_parts, dtype=np.int32), roles, colours,
                                          float(m.entry.info.get("elevation_m", 0.0)))
         return self._props[asset_id]
+
+    def solid(self, asset_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """The solid the mesh ``asset_id`` is labelled by in its canonical frame (:mod:`.solids`): ``(vertices
+        (V, 3) float64, faces (F, 3) int64)`` of its filled surface, made once per machine; None when the mesh is
+        closed and labels as it is."""
+        if asset_id not in self._solids:
+            from ..assetpack.derived import code_digest, derived_arrays
+            from . import solids
+
+            prop = self.prop(asset_id)
+            if solids.is_closed(prop.vertices, prop.faces):
+                self._solids[asset_id] = None
+            else:
+                made: dict[str, np.ndarray] = {}
+
+                def part(key: str) -> np.ndarray:
+                    if not made:
+                        made["v"], made["f"] = solids.filled_solid(prop.vertices, prop.faces)
+                    return made[key]
+
+                name = f"solid-{self.pack.entry(asset_id).sha256['mesh'][:32]}-{solids.PITCH}-" \
+                       f"{code_digest(solids.__name__)}"
+                v = derived_arrays().get(f"{name}-v", (-1, 3), np.float64, lambda: part("v"))
+                f = derived_arrays().get(f"{name}-f", (-1, 3), np.int64, lambda: part("f"))
+                self._solids[asset_id] = (v, f)
+        return self._solids[asset_id]
 
     # -------------------------------------------------------------------------------------------- textures
     def texture_categories(self, split: str) -> list[str]:
