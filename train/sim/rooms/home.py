@@ -117,8 +117,10 @@ def make_home(seed: int, config: HomeConfig | None = None, classes: ClassTable =
     with _stage(timings, "lights"):
         lights, ambient = room_lights(h)
     with _stage(timings, "objects"):
-        objects = tuple(_object(p, ids, lib, cfg.label_thickness)
-                        for p in sorted(h.pieces, key=lambda p: LAYERS.index(p.layer)))
+        pieces = sorted(h.pieces, key=lambda p: LAYERS.index(p.layer))
+        objects = tuple(_object(p, ids, lib, m) for p, m in zip(pieces, _label_meshes(pieces, lib,
+                                                                                        cfg.label_thickness),
+                                                                  strict=True))
     with _stage(timings, "free_space"):
         free = _free_space(lx, ly, [p.slot.fp for p in h.pieces if _blocks(p)], cfg.free_space_resolution)
     return Scene(objects, np.array([lx, ly, lz]), tuple(lights), free, int(seed), classes, ambient=ambient)
@@ -130,37 +132,49 @@ def _blocks(p: Piece) -> bool:
         and p.slot.z0 < 0.3
 
 
-def _object(p: Piece, ids: dict[str, int], lib: Library, thickness: float) -> SceneObject:
+def _object(p: Piece, ids: dict[str, int], lib: Library, label_mesh: tuple[np.ndarray, np.ndarray] | None
+            ) -> SceneObject:
     counts = np.bincount(p.parts, minlength=len(p.materials))
     main = p.materials[int(np.argmax(counts))]
     return SceneObject(p.name, ids[p.label], _make_mesh(p.vertices, p.faces), flat_colour(p, lib),
                        float(main.metallic), float(main.roughness), tuple(p.materials),
                        np.ascontiguousarray(p.parts, dtype=np.int32), p.solid,
-                       p.prop.asset if p.prop is not None else None, _label_mesh(p, lib, thickness))
+                       p.prop.asset if p.prop is not None else None, label_mesh)
 
 
-def _label_mesh(p: Piece, lib: Library, thickness: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """The solid a piece is labelled by when it is not its mesh (:mod:`.solids`), or None: a piece made from a pack
-    mesh that is not closed is labelled by the mesh's filled solid, placed as the piece is (the affine map from the
-    pack mesh to the piece's vertices: rotation, position, lift, scale; a piece that is more than its prop, a statue
-    on a pedestal, keeps its mesh); then the thin upright parts of doors, windows, furniture, sculptures and
-    objects are thickened to ``thickness``."""
+def _label_meshes(pieces: list[Piece], lib: Library, thickness: float
+                  ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per piece, the solid it is labelled by when it is not its mesh (:mod:`.solids`), or None.
+
+    A piece made from a pack mesh that is not closed is labelled by the mesh's filled solid, placed as the piece is
+    (the affine map from the pack mesh to the piece's vertices: rotation, position, lift, scale; a piece that is
+    more than its prop, a statue on a pedestal, keeps its mesh); then the thin upright parts of doors, windows,
+    furniture, sculptures and objects are thickened to ``thickness``, all pieces in one call.
+    """
     from .solids import THICKENED_LABELS, affine_map, thicken_slabs
 
-    if not p.solid:
-        return None
-    v, f = np.asarray(p.vertices, dtype=np.float64), np.asarray(p.faces, dtype=np.int64)
-    filled = False
-    if p.prop is not None and p.prop.asset:
-        solid = lib.solid(p.prop.asset)
-        m = None if solid is None else affine_map(lib.prop(p.prop.asset).vertices, v)
-        if m is not None:
-            v, f, filled = np.column_stack([solid[0], np.ones(len(solid[0]))]) @ m, solid[1], True
-    if p.label in THICKENED_LABELS:
-        thick = thicken_slabs(v, f, thickness)
-        if filled or not np.array_equal(thick, v):
-            return thick, f
-    return (v, f) if filled else None
+    bases: list[tuple[np.ndarray, np.ndarray, bool]] = []
+    for p in pieces:
+        v, f = np.asarray(p.vertices, dtype=np.float64), np.asarray(p.faces, dtype=np.int64)
+        filled = False
+        if p.solid and p.prop is not None and p.prop.asset:
+            solid = lib.solid(p.prop.asset)
+            m = None if solid is None else affine_map(lib.prop(p.prop.asset).vertices, v)
+            if m is not None:
+                v, f, filled = np.column_stack([solid[0], np.ones(len(solid[0]))]) @ m, solid[1], True
+        bases.append((v, f, filled))
+    thin = [k for k, p in enumerate(pieces) if p.solid and p.label in THICKENED_LABELS]
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [(v, f) if filled else None for v, f, filled in bases]
+    if thin:
+        offsets = np.cumsum([0] + [len(bases[k][0]) for k in thin])
+        stacked = thicken_slabs(np.concatenate([bases[k][0] for k in thin]),
+                                np.concatenate([bases[k][1] + o for k, o in zip(thin, offsets, strict=False)]),
+                                thickness)
+        for k, a, b in zip(thin, offsets[:-1], offsets[1:], strict=True):
+            v = stacked[a:b]
+            if bases[k][2] or not np.array_equal(v, bases[k][0]):
+                out[k] = (v, bases[k][1])
+    return out
 
 
 def describe(scene: Scene) -> dict[str, Any]:

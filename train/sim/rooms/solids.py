@@ -152,15 +152,24 @@ def thicken_slabs(vertices: np.ndarray, faces: np.ndarray, minimum: float) -> np
         return v
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
     graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(len(v), len(v)))
-    _, part = connected_components(graph, directed=False)
-    for c in np.unique(part[np.unique(faces)]):
-        idx = np.flatnonzero(part == c)
-        pts = v[idx]
-        centre = (pts.max(axis=0) + pts.min(axis=0)) / 2
-        _, axes = np.linalg.eigh(np.cov((pts - centre).T) if len(pts) > 3 else np.eye(3))
-        thin = axes[:, 0]
-        extent = float(np.ptp((pts - centre) @ thin)) if len(pts) else 0.0
-        if 0.0 < extent < minimum and abs(thin[2]) < 0.5:
-            d = (pts - centre) @ thin
-            v[idx] = pts + np.outer(d * (minimum / extent - 1.0), thin)
-    return v
+    n, part = connected_components(graph, directed=False)
+    # Per part at once (the parts' vertices sorted together, reduced by segment): the box centre, the covariance's
+    # eigenvectors, the extent along the thinnest one.
+    order = np.argsort(part, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(part[order]) != 0])
+    vs = v[order]
+    centre = (np.minimum.reduceat(vs, starts) + np.maximum.reduceat(vs, starts)) / 2
+    d = v - centre[part]
+    count = np.bincount(part, minlength=n).astype(np.float64)
+    mean = np.stack([np.bincount(part, d[:, a], n) for a in range(3)], axis=1) / count[:, None]
+    cov = np.stack([np.stack([np.bincount(part, d[:, a] * d[:, b], n) for b in range(3)], axis=1)
+                    for a in range(3)], axis=1) / count[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    thin = np.linalg.eigh(cov)[1][:, :, 0]  # (n, 3): eigenvectors come in columns, smallest eigenvalue first
+    t = np.einsum("ij,ij->i", d, thin[part])
+    ts = t[order]
+    tlo, thi = np.minimum.reduceat(ts, starts), np.maximum.reduceat(ts, starts)
+    extent = thi - tlo
+    stretch = (count > 3) & (extent > 0.0) & (extent < minimum) & (np.abs(thin[:, 2]) < 0.5)
+    factor = np.where(stretch, minimum / np.where(extent > 0, extent, 1.0) - 1.0, 0.0)
+    mid = (tlo + thi) / 2
+    return v + ((t - mid[part]) * factor[part])[:, None] * thin[part]
