@@ -174,7 +174,8 @@ def test_camera_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert "camera" not in json.loads((robot / "manifest.json").read_text())["config"]
     m = json.loads((anyc / "manifest.json").read_text())
     assert m["version"] == 3 and m["config"]["camera"] == {"height": [0.3, 1.9], "pitch": [-20.0, 40.0],
-                                                           "roll": [-10.0, 10.0], "hfov": [50.0, 80.0]}
+                                                           "roll": [-10.0, 10.0], "hfov": [50.0, 80.0],
+                                                           "aim": 120.0}
     png = tmp_path / "sheet.png"
     assert main(["preview", "--out", str(png), "--world", "flat", "--count", "2", *TINY]) == 0
     assert Image.open(png).size[0] >= 3 * 32

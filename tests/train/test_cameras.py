@@ -87,8 +87,12 @@ def test_robot_camera_keeps_the_configs_and_digests_of_data_sets_made_before() -
     assert old.camera == ROBOT_CAMERA and "camera" not in old.to_dict()
     assert old.digest() == manifest["config_sha256"]
     d = ANY.to_dict()
-    assert d["camera"] == {"height": [0.3, 1.9], "pitch": [-20.0, 40.0], "roll": [-10.0, 10.0], "hfov": [50.0, 80.0]}
+    assert d["camera"] == {"height": [0.3, 1.9], "pitch": [-20.0, 40.0], "roll": [-10.0, 10.0], "hfov": [50.0, 80.0],
+                           "aim": 120.0}
     assert SimConfig.from_dict(json.loads(json.dumps(d))) == ANY
+    # A camera recorded before frames were aimed reads as one that looks along the robot's heading.
+    before = SimConfig.from_dict({**d, "camera": {k: v for k, v in d["camera"].items() if k != "aim"}})
+    assert before.camera.aim is None and before.camera.height == ANY_CAMERA.height
     assert ANY.digest() != ANY.replace(camera=ROBOT_CAMERA).digest()
     with pytest.raises(ConfigError, match="camera.pitch must be"):
         SimConfig.from_dict({**d, "camera": {**d["camera"], "pitch": [50.0, 40.0]}})
@@ -588,3 +592,29 @@ def test_streamed_samples_take_the_source_camera() -> None:
     assert sim_config(model, source, (("train", 4),)).camera == ANY_CAMERA and "any camera" in source.describe()
     with pytest.raises(DataError, match="sample source camera must be one of robot, any, got 'phone'"):
         SampleSource(camera="phone")
+
+
+def test_any_camera_looks_towards_the_room_within_its_aim() -> None:
+    """ANY_CAMERA aims every frame from the robot's position towards the room's middle within +- aim / 2 (a person
+    pointing a camera at the room); the headings differ from frame to frame; the robot camera looks along its
+    drive, not at the middle."""
+    def off_centre(samples: list, sizes: dict) -> np.ndarray:
+        out = []
+        for s in samples:
+            fwd = s.pose[:3, 2]
+            to_mid = sizes[s.scene][:2] / 2 - s.pose[:2, 3]
+            # the heading: the optical axis's horizontal direction (the roll turns the image about that axis)
+            a = math.degrees(math.atan2(fwd[1], fwd[0]) - math.atan2(to_mid[1], to_mid[0]))
+            out.append((a + 180.0) % 360.0 - 180.0)
+        return np.array(out)
+
+    results = {}
+    more = ANY.replace(splits=(("train", 48),), samples_per_scene=8)
+    for name, config in (("any", more), ("robot", more.replace(camera=ROBOT_CAMERA))):
+        with SampleMaker(config, SEED) as maker:
+            samples = [maker.make("train", i) for i in range(48)]
+            sizes = {s.scene: np.asarray(maker.scene_of("train", s.index)[0].room_size) for s in samples}
+        results[name] = off_centre(samples, sizes)
+    assert np.abs(results["any"]).max() <= ANY_CAMERA.aim / 2 + 1e-6
+    assert np.std(results["any"]) > 5.0
+    assert np.abs(results["robot"]).max() > ANY_CAMERA.aim / 2 + 10.0

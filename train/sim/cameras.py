@@ -23,7 +23,8 @@ Draw
     room and the drive are the same whatever the camera. Four uniform numbers ``u`` in [0, 1) are drawn in the order
     height, pitch, roll, field of view (whether or not a field is None), and each value is ``low + (high - low) u``.
     The field of view is then rounded to whole pixels of the render (below; steps of 2 pixels, kept inside the range
-    where a step allows); that rounded value is the one used and recorded.
+    where a step allows); that rounded value is the one used and recorded. With ``CameraConfig.aim`` each frame's
+    heading is then drawn too, from a stream of its own (:func:`aim_poses`).
 
 Rendering and framing
     The grid stays the model's grid, aligned with the camera (the grid's pose is the camera's pose). The camera
@@ -57,7 +58,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -99,8 +100,19 @@ class CameraConfig:
     hfov: tuple[float, float] | None = None
     """Horizontal field of view, degrees, in (0, 180), rounded to whole pixels of the render; None: the grid's. The
     render's size grows with it (``SimConfig`` refuses a render side over :data:`MAX_RENDER_SIDE`)."""
+    aim: float | None = None
+    """Where each frame looks, in the horizontal plane: None, along the robot's heading (its own mount); a number
+    in [0, 180] degrees, from the robot's position towards the middle of the room, turned by a uniform angle within
+    +- ``aim`` / 2 (:func:`aim_poses`): a person points a camera at the room, where a robot's camera driving along
+    a wall sees the wall from close by."""
+
+    RECORDED_BEFORE: ClassVar[dict[str, Any]] = {"aim": None}
+    """Fields added after data sets were recorded, with what those data sets were made with (``aim``: the heading)."""
 
     def __post_init__(self) -> None:
+        if self.aim is not None and (isinstance(self.aim, bool) or not isinstance(self.aim, (int, float)) or
+                                     not 0.0 <= float(self.aim) <= 180.0):
+            raise ConfigError(f"camera.aim must be None or a number of degrees in [0, 180], got {self.aim!r}")
         for name, (lo_bound, hi_bound) in _LIMITS.items():
             value = getattr(self, name)
             if value is None:
@@ -119,9 +131,10 @@ class CameraConfig:
 
 ROBOT_CAMERA = CameraConfig()
 """The robot's fixed mount (``TrajectoryConfig.mount``, level, the grid's field of view): today's samples."""
-ANY_CAMERA = CameraConfig(height=(0.3, 1.9), pitch=(-20.0, 40.0), roll=(-10.0, 10.0), hfov=(50.0, 80.0))
+ANY_CAMERA = CameraConfig(height=(0.3, 1.9), pitch=(-20.0, 40.0), roll=(-10.0, 10.0), hfov=(50.0, 80.0),
+                          aim=120.0)
 """Any camera (issue 38): 0.3 to 1.9 m above the floor, pitch -20 to +40 degrees, roll within +-10, 50 to 80
-degrees across."""
+degrees across, looking towards the room's middle within +-60 degrees."""
 CAMERAS: dict[str, CameraConfig] = {"robot": ROBOT_CAMERA, "any": ANY_CAMERA}
 """The named camera configs (``fruxel-sim --camera NAME``)."""
 
@@ -302,6 +315,37 @@ def roll_poses(poses: np.ndarray, roll: float) -> np.ndarray:
     c, s = math.cos(math.radians(roll)), math.sin(math.radians(roll))
     out = np.array(poses, dtype=np.float64)
     out[..., :3, :3] = out[..., :3, :3] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return out
+
+
+def aim_poses(poses: np.ndarray, centre: Any, mount: Mount, aim: float, seed: Any) -> np.ndarray:
+    """The frames of a trajectory turned to look towards the room (:attr:`CameraConfig.aim`), before the roll.
+
+    Each frame keeps its camera's position, height and pitch; its heading becomes the direction from the camera
+    to ``centre`` plus ``(u - 0.5) aim`` degrees, ``u`` the frame's uniform number from the camera seed's child
+    stream with spawn key 1 (one per frame, in order: apart from the mount's four draws, module docstring).
+
+    Args:
+        poses: ``(N, 4, 4)`` float64 camera-to-world, OpenCV axes, world frame z up, of the level-rolled robot camera.
+        centre: ``(2,)`` world xy the cameras look towards, metres (the room's middle).
+        mount: the trajectory's camera (its height and pitch).
+        aim: the spread, degrees.
+        seed: the trajectory's camera seed (:func:`.config.camera_seed`: a ``SeedSequence``, or an int).
+
+    Returns:
+        ``(N, 4, 4)`` float64 camera-to-world poses.
+    """
+    from .robot import CameraMount, camera_poses
+
+    pos = np.asarray(poses, dtype=np.float64)[:, :2, 3]
+    parent = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
+    u = np.random.default_rng(np.random.SeedSequence(parent.entropy, spawn_key=(*parent.spawn_key, 1))
+                              ).random(len(pos))
+    to_centre = np.asarray(centre, dtype=np.float64).reshape(1, 2) - pos
+    theta = np.arctan2(to_centre[:, 1], to_centre[:, 0]) + np.radians((u - 0.5) * float(aim))
+    out = camera_poses(pos, theta, CameraMount(height=mount.height, tilt=mount.pitch, offset=(0.0, 0.0),
+                                               hfov=mount.hfov))
+    out[:, 2, 3] = np.asarray(poses)[:, 2, 3]
     return out
 
 

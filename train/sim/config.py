@@ -422,8 +422,11 @@ def _from_plain(cls: type, d: Any, what: str) -> Any:
     if not isinstance(d, Mapping):
         raise ConfigError(f"{what} must be a JSON object, got {type(d).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    _expect_keys(what, d, list(fields))
-    kwargs = {}
+    # A field added after data sets were written is absent from their manifests: it reads as what those data sets
+    # were made with (the class's RECORDED_BEFORE), not as today's default.
+    before = dict(getattr(cls, "RECORDED_BEFORE", {}))
+    _expect_keys(what, d, [n for n in fields if n not in before], optional=tuple(before))
+    kwargs = {n: v for n, v in before.items() if n not in d}
     for name, value in d.items():
         default = _field_default(fields[name])
         if dataclasses.is_dataclass(default) and not isinstance(default, type):

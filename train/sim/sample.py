@@ -186,7 +186,11 @@ class SampleMaker:
             self._room = None
             mesh_set = room.mesh_set(backend=self.backend, device=self.device)
             self.timings["upload"] += time.perf_counter() - t2
-            poses = cameras.roll_poses(np.asarray(traj.poses, dtype=np.float64), mount.roll)
+            poses = np.asarray(traj.poses, dtype=np.float64)
+            if cfg.camera.aim is not None:
+                poses = cameras.aim_poses(poses, np.asarray(room.room_size, dtype=np.float64)[:2] / 2, mount,
+                                          cfg.camera.aim, camera_seed(self.seed, split, scene))
+            poses = cameras.roll_poses(poses, mount.roll)
             self._room = _Room((split, scene), room, poses, mesh_set, s_seed, mount,
                                cameras.coverage(cfg, mount.hfov))
             return self._room

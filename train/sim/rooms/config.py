@@ -9,7 +9,7 @@ angles in degrees.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from fruxel.errors import ConfigError
 
@@ -137,8 +137,8 @@ class HomeConfig:
     label_thickness: float = 0.12
     """Thinnest upright slab in the labels, metres: a door leaf, a painting, a pane or another thin upright part of
     a door, window, furniture, sculpture or object is labelled as a slab this thick about its middle
-    (:func:`.solids.thicken_slabs`; images show it as it is). The default is the depth of a 64^3 grid's slices
-    over 0.5-8 m, so that every column that sees it finds a cell centre inside it."""
+    (:func:`.solids.thicken_slabs`; images show it as it is); 0: none. The default is the depth of a 64^3 grid's
+    slices over 0.5-8 m, so that every column that sees it finds a cell centre inside it."""
     wall_art: tuple[int, int] = (2, 7)
     """Number of paintings and posters on the walls."""
     plants: tuple[int, int] = (1, 3)
@@ -169,6 +169,10 @@ class HomeConfig:
     materials: MaterialConfig = field(default_factory=MaterialConfig)
     """How surfaces draw their materials."""
 
+    RECORDED_BEFORE: ClassVar[dict[str, Any]] = {"label_thickness": 0.0}
+    """Fields added after data sets were recorded, with what those data sets were made with (``label_thickness``
+    0: no slab thickened)."""
+
     def __post_init__(self) -> None:
         if isinstance(self.room_types, str) or not self.room_types or \
                 not set(self.room_types) <= set(ROOM_TYPES) or len(set(self.room_types)) != len(self.room_types):
@@ -195,7 +199,7 @@ class HomeConfig:
         for name in ("slab_thickness", "min_gap", "door_clearance", "free_space_resolution", "label_thickness"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 10.0 or \
-                    (v == 0 and name != "min_gap"):
+                    (v == 0 and name not in ("min_gap", "label_thickness")):
                 raise ConfigError(f"home.{name} must be a length in metres, > 0 and < 10, got {v!r}")
         if isinstance(self.placement_tries, bool) or not isinstance(self.placement_tries, int) or \
                 not 1 <= self.placement_tries <= 10_000:
