@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from fruxel.grid import FruxelGrid
-from fruxel.kernels.fruxelize import fruxelize, prepare_meshes
+from fruxel.kernels.fruxelize import fruxelize
 from fruxel.train.sim.rooms import solids
 
 
@@ -102,7 +102,9 @@ def test_a_furnished_room_labels_its_pieces_by_their_solids(pack_dir: Path, tmp_
     assert open_pack, "the tiny pack's room has no piece from an open mesh"
     for o in open_pack:
         assert o.label_mesh is not None
-        assert (prepare_meshes([(o.label_mesh[0], o.label_mesh[1], 1)]).part_kind == 0).mean() > 0.5
+        # a solid: its faces enclose a positive volume (wound outwards), whatever the pack mesh's winding was
+        tri = o.label_mesh[0][o.label_mesh[1]]
+        assert np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6 > 1e-4
     meshes = scene.labelled_meshes()
     by_name = [o for o in scene.objects if o.solid]
     assert all(np.array_equal(m[0], o.label_mesh[0]) for m, o in zip(meshes, by_name, strict=True)
@@ -115,3 +117,28 @@ def test_a_furnished_room_labels_its_pieces_by_their_solids(pack_dir: Path, tmp_
     assert all(np.array_equal(a.label_mesh[0], b.label_mesh[0]) for a, b in zip(scene.objects, again.objects,
                                                                                strict=True)
                if a.label_mesh is not None)
+
+
+def test_a_home_config_recorded_before_the_solids_makes_the_rooms_it_made(pack_dir: Path) -> None:
+    """A data set's config written before the label solids (no ``filled_solids``, no ``label_thickness`` in its
+    ``home``) reads as labelling every mesh as it is, so that its missing shards are made as its others were."""
+    from fruxel.classes import HOME_CLASSES
+    from fruxel.train.sim.config import SimConfig
+    from fruxel.train.sim.rooms import HomeConfig, make_home
+
+    config = SimConfig(world="home", renderer="raytrace", classes=HOME_CLASSES, assets=str(pack_dir))
+    d = config.to_dict()
+    d["home"] = {k: v for k, v in d.get("home", _plain_home()).items()
+                 if k not in ("filled_solids", "label_thickness")}
+    old = SimConfig.from_dict(d).home
+    assert old.filled_solids is False and old.label_thickness == 0.0
+    assert HomeConfig().filled_solids is True and HomeConfig().label_thickness == pytest.approx(0.12)
+    scene = make_home(3, old, HOME_CLASSES, assets=str(pack_dir), split="train")
+    assert all(o.label_mesh is None for o in scene.objects)
+
+
+def _plain_home() -> dict:
+    from fruxel.train.sim.config import _plain
+    from fruxel.train.sim.rooms import HomeConfig
+
+    return _plain(HomeConfig())

@@ -134,6 +134,9 @@ class HomeConfig:
     """Number of rugs (under the main group's furniture, or free on the floor)."""
     rug_thickness: tuple[float, float] = (0.008, 0.025)
     """Rug thickness, metres; furniture standing on a rug is raised by it."""
+    filled_solids: bool = True
+    """Label a pack mesh that is not closed by its filled solid (:mod:`.solids`); False: by the mesh itself, whose
+    inside (a winding number over 0.5) is scattered cells for most of them (what data sets made before had)."""
     label_thickness: float = 0.12
     """Thinnest upright slab in the labels, metres: a door leaf, a painting, a pane or another thin upright part of
     a door, window, furniture, sculpture or object is labelled as a slab this thick about its middle
@@ -169,9 +172,9 @@ class HomeConfig:
     materials: MaterialConfig = field(default_factory=MaterialConfig)
     """How surfaces draw their materials."""
 
-    RECORDED_BEFORE: ClassVar[dict[str, Any]] = {"label_thickness": 0.0}
-    """Fields added after data sets were recorded, with what those data sets were made with (``label_thickness``
-    0: no slab thickened)."""
+    RECORDED_BEFORE: ClassVar[dict[str, Any]] = {"filled_solids": False, "label_thickness": 0.0}
+    """Fields added after data sets were recorded, with what those data sets were made with (pack meshes labelled
+    as they are, no slab thickened)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.room_types, str) or not self.room_types or \
@@ -196,6 +199,8 @@ class HomeConfig:
         for name in ("double_door", "open_door", "french_window", "curtains", "baseboard", "crown", "radiator",
                      "procedural", "sculpture_figures", "sun"):
             _probability(name, getattr(self, name))
+        if not isinstance(self.filled_solids, bool):
+            raise ConfigError(f"home.filled_solids must be true or false, got {self.filled_solids!r}")
         for name in ("slab_thickness", "min_gap", "door_clearance", "free_space_resolution", "label_thickness"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 10.0 or \

@@ -118,9 +118,8 @@ def make_home(seed: int, config: HomeConfig | None = None, classes: ClassTable =
         lights, ambient = room_lights(h)
     with _stage(timings, "objects"):
         pieces = sorted(h.pieces, key=lambda p: LAYERS.index(p.layer))
-        objects = tuple(_object(p, ids, lib, m) for p, m in zip(pieces, _label_meshes(pieces, lib,
-                                                                                        cfg.label_thickness),
-                                                                  strict=True))
+        label_meshes = _label_meshes(pieces, lib, cfg.label_thickness, cfg.filled_solids)
+        objects = tuple(_object(p, ids, lib, m) for p, m in zip(pieces, label_meshes, strict=True))
     with _stage(timings, "free_space"):
         free = _free_space(lx, ly, [p.slot.fp for p in h.pieces if _blocks(p)], cfg.free_space_resolution)
     return Scene(objects, np.array([lx, ly, lz]), tuple(lights), free, int(seed), classes, ambient=ambient)
@@ -142,14 +141,14 @@ def _object(p: Piece, ids: dict[str, int], lib: Library, label_mesh: tuple[np.nd
                        p.prop.asset if p.prop is not None else None, label_mesh)
 
 
-def _label_meshes(pieces: list[Piece], lib: Library, thickness: float
+def _label_meshes(pieces: list[Piece], lib: Library, thickness: float, filled: bool = True
                   ) -> list[tuple[np.ndarray, np.ndarray] | None]:
     """Per piece, the solid it is labelled by when it is not its mesh (:mod:`.solids`), or None.
 
-    A piece made from a pack mesh that is not closed is labelled by the mesh's filled solid, placed as the piece is
-    (the affine map from the pack mesh to the piece's vertices: rotation, position, lift, scale; a piece that is
-    more than its prop, a statue on a pedestal, keeps its mesh); then the thin upright parts of doors, windows,
-    furniture, sculptures and objects are thickened to ``thickness``, all pieces in one call.
+    With ``filled``, a piece made from a pack mesh that is not closed is labelled by the mesh's filled solid, placed
+    as the piece is (the affine map from the pack mesh to the piece's vertices: rotation, position, lift, scale; a
+    piece that is more than its prop, a statue on a pedestal, keeps its mesh); then the thin upright parts of doors,
+    windows, furniture, sculptures and objects are thickened to ``thickness`` (0: none), all pieces in one call.
     """
     from .solids import THICKENED_LABELS, affine_map, thicken_slabs
 
@@ -157,7 +156,7 @@ def _label_meshes(pieces: list[Piece], lib: Library, thickness: float
     for p in pieces:
         v, f = np.asarray(p.vertices, dtype=np.float64), np.asarray(p.faces, dtype=np.int64)
         filled = False
-        if p.solid and p.prop is not None and p.prop.asset:
+        if filled and p.solid and p.prop is not None and p.prop.asset:
             solid = lib.solid(p.prop.asset)
             m = None if solid is None else affine_map(lib.prop(p.prop.asset).vertices, v)
             if m is not None:
