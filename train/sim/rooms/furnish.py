@@ -152,10 +152,9 @@ def furnish(h: Home, room_type: str) -> None:
 def _group(h: Home, group: str) -> None:
     if group.startswith("storage:"):
         role = group.split(":", 1)[1]
-        prop = prop_for(h, role)
-        placed = along_wall(h, prop, role) if prop is not None else None
-        if placed is not None and role == "dresser" and h.rng.uniform() < 0.5:
-            placed[0].wants.append("table_lamp")
+        found = _against_wall(h, role)
+        if found is not None and role == "dresser" and h.rng.uniform() < 0.5:
+            found[1][0].wants.append("table_lamp")
         return
     {"sofa_group": _sofa_group, "bed": _bed, "dining": _dining, "small_dining": lambda x: _dining(x, small=True),
      "desk": _desk, "kitchen": _kitchen, "armchair": _free_seat,
@@ -164,20 +163,26 @@ def _group(h: Home, group: str) -> None:
      "side_table": lambda x: _simple(x, "side_table")}[group](h)
 
 
-def _simple(h: Home, role: str) -> Piece | None:
+def _against_wall(h: Home, role: str) -> tuple[Prop, tuple[Piece, int, float]] | None:
+    """A prop for ``role`` with its back to a wall (:func:`along_wall`): ``(prop, (piece, wall, position))``, or
+    None when the pack has none or no wall has room."""
     prop = prop_for(h, role)
     placed = along_wall(h, prop, role) if prop is not None else None
-    return placed[0] if placed else None
+    return (prop, placed) if placed is not None else None
+
+
+def _simple(h: Home, role: str) -> Piece | None:
+    found = _against_wall(h, role)
+    return found[1][0] if found else None
 
 
 def _bed(h: Home) -> None:
     """A bed with its head to a wall, nightstands beside the head, maybe a rug under its foot half."""
     rng = h.rng
-    prop = prop_for(h, "bed")
-    placed = along_wall(h, prop, "bed") if prop is not None else None
-    if placed is None:
+    found = _against_wall(h, "bed")
+    if found is None:
         return
-    bed, k, s = placed
+    prop, (bed, k, s) = found
     width = float(prop.size[0])
     for side in (-1.0, 1.0):
         if rng.uniform() < 0.8:
@@ -198,11 +203,10 @@ def _sofa_group(h: Home) -> None:
     """A sofa against a wall, a coffee table in front, armchairs facing the table, a side table, a TV unit
     against the opposite wall facing the sofa, and a rug under the table."""
     rng = h.rng
-    prop = prop_for(h, "sofa")
-    placed = along_wall(h, prop, "sofa") if prop is not None else None
-    if placed is None:
+    found = _against_wall(h, "sofa")
+    if found is None:
         return
-    sofa, k, s = placed
+    prop, (sofa, k, s) = found
     x, y, _, yaw = sofa.pose
     centre, front, right = np.array([x, y]), _front(yaw), _right(yaw)
     table_at = centre + front * (prop.size[1] / 2 + 0.85)
@@ -298,11 +302,10 @@ def _chairs_around(h: Home, table: Piece, prop: Prop, chair: Prop) -> None:
 def _desk(h: Home) -> None:
     """A desk against a wall with a chair at it, facing it."""
     rng = h.rng
-    prop = prop_for(h, "desk")
-    placed = along_wall(h, prop, "desk") if prop is not None else None
-    if placed is None:
+    found = _against_wall(h, "desk")
+    if found is None:
         return
-    desk = placed[0]
+    prop, (desk, _, _) = found
     desk.wants.append("computer" if rng.uniform() < 0.5 else "table_lamp")
     chair = prop_for(h, "chair")
     if chair is not None:
