@@ -6,10 +6,10 @@ median of centroids) on the host, ``"lbvh"`` (Morton codes, bottom-up) on a CUDA
 furnished rooms mix wall-sized triangles with small furniture parts, where the builders differ most.
 
 For each room (furnished, any camera, the simulator's own rooms and poses) and each constructor, in rounds that
-alternate the constructors' order: the room uploaded with that constructor (its ``bvh`` stage: build and upload),
-then ``--images`` images traced with the renderer's profile on; reported per constructor: milliseconds per image of
-the tracing stages (camera rays, lights, occlusion) and of the whole image, the BVH build per room, and each
-constructor's time over SAH's.
+alternate the constructors' order: the room uploaded by a fresh renderer with that constructor (its ``bvh`` stage:
+build and upload), then ``--images`` images of the grid's own view traced with the renderer's profile on; reported
+per constructor: milliseconds per image of the tracing stages (camera rays, lights, occlusion) and of the whole
+image, the BVH build per room, and each constructor's time over SAH's.
 
     python benchmarks/bench_bvh.py                                    # this machine's CPU device: bvh-cpu.json
     python benchmarks/bench_bvh.py --device cuda:0 --tag h100 --no-write --json $OUT/bvh-h100.json
@@ -41,43 +41,40 @@ IMAGE_STAGES = (*TRACE_STAGES, "resolve", "response")
 
 def measure(device: str, constructors: list[str], rooms: int, images: int, size: int) -> list[dict[str, Any]]:
     """Per constructor: the median over rooms of ms per image (tracing stages, whole image) and of the build."""
+    from bench_sim import make_config
+
     import fruxel.train.sim.raytrace.renderer as renderer_module
     from fruxel.train.sim.config import augment_rng
     from fruxel.train.sim.sample import SampleMaker
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_sim import make_config
-
     cfg = make_config(size, 64, 16 * rooms, 64, camera="any", renderer="raytrace", world="home")
+    sps = cfg.samples_per_scene
     per: dict[str, dict[str, list[float]]] = {c: {"trace": [], "image": [], "build": []} for c in constructors}
     faces: list[int] = []
     with SampleMaker(cfg, 0, device=device) as maker:
         for r in range(rooms):
-            room, _ = maker._locate("train", r * cfg.samples_per_scene)
-            order = constructors if r % 2 == 0 else constructors[::-1]
-            for ctor in order:
+            # the room and its frames' poses; drawn at the grid's own view (the tree is the same for any camera)
+            scene = maker.scene_of("train", r * sps)[0]
+            poses = [maker.scene_of("train", r * sps + k)[1] for k in range(min(sps, images + 1))]
+            faces.append(sum(len(o.mesh.faces) for o in scene.objects))
+            for ctor in (constructors if r % 2 == 0 else constructors[::-1]):
                 renderer_module.BVH_CONSTRUCTOR = ctor
-                rend = maker._renderer or renderer_module.RaytraceRenderer(cfg, device)
-                maker._renderer = rend
-                rend.close()  # drop the room, so that set_scene builds it again with this constructor
-                rend.profile = True
-                rend.timings = dict.fromkeys(rend.timings, 0.0)
-                maker._render(room, room.poses[0], augment_rng(0, "train", 0))  # uploads; warms the kernels
-                per[ctor]["build"].append(rend.timings["bvh"] * 1000)
-                rend.timings = dict.fromkeys(rend.timings, 0.0)
-                for k in range(images):
-                    pose = room.poses[(1 + k) % len(room.poses)]
-                    maker._render(room, pose, augment_rng(0, "train", 1 + k))
-                per[ctor]["trace"].append(sum(rend.timings[s] for s in TRACE_STAGES) * 1000 / images)
-                per[ctor]["image"].append(sum(rend.timings[s] for s in IMAGE_STAGES) * 1000 / images)
-            faces.append(int(len(rend._room.arrays.faces)))
+                with renderer_module.RaytraceRenderer(cfg, device) as rend:
+                    rend.profile = True
+                    rend.set_scene(scene)
+                    rend.render(poses[0], augment_rng(0, "train", 0))  # warms the kernels
+                    per[ctor]["build"].append(rend.timings["bvh"] * 1000)
+                    rend.timings = dict.fromkeys(rend.timings, 0.0)
+                    for k in range(images):
+                        rend.render(poses[(1 + k) % len(poses)], augment_rng(0, "train", 1 + k))
+                    per[ctor]["trace"].append(sum(rend.timings[s] for s in TRACE_STAGES) * 1000 / images)
+                    per[ctor]["image"].append(sum(rend.timings[s] for s in IMAGE_STAGES) * 1000 / images)
     renderer_module.BVH_CONSTRUCTOR = "sah"
     rows = [{"constructor": c, **{f"{k}_ms": statistics.median(v) for k, v in per[c].items()}} for c in constructors]
     base = next((r for r in rows if r["constructor"] == "sah"), rows[0])
     for r in rows:
-        r["trace_over_sah"] = r["trace_ms"] / base["trace_ms"]
-    for r in rows:
-        r.update(rooms=rooms, images_per_room=images, image=size, median_faces=int(statistics.median(faces)))
+        r.update(trace_over_sah=r["trace_ms"] / base["trace_ms"], rooms=rooms, images_per_room=images, image=size,
+                 median_faces=int(statistics.median(faces)))
     return rows
 
 

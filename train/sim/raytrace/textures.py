@@ -22,6 +22,7 @@ Filtering
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -140,29 +141,30 @@ class TextureLayers:
             if self.pack is None:
                 raise RuntimeError("TextureLayers without a pack cannot load assets")
             if role == "image":
-                self._index[key] = self._albedo.add(self._texels(asset_id, "image"))
+                self._index[key] = self._albedo.add(
+                    self._texels(asset_id, "image", lambda: albedo_texels(self.pack.image(asset_id).pixels, self.size)))
             else:
-                self._index[("albedo", asset_id)] = self._albedo.add(self._texels(asset_id, "albedo"))
-                self._index[("normal", asset_id)] = self._normal.add(self._texels(asset_id, "normal"))
+                decoded: list[Any] = []
+
+                def texture() -> Any:  # albedo and normal map decode together: once for both layers
+                    if not decoded:
+                        decoded.append(self.pack.texture(asset_id))
+                    return decoded[0]
+
+                self._index[("albedo", asset_id)] = self._albedo.add(
+                    self._texels(asset_id, "albedo", lambda: albedo_texels(texture().albedo, self.size)))
+                self._index[("normal", asset_id)] = self._normal.add(
+                    self._texels(asset_id, "normal", lambda: normal_texels(texture().normal, self.size)))
                 w, h = self.pack.entry(asset_id).size_m
                 self._aspect[asset_id] = float(h / w) if w > 0 and h > 0 else 1.0
         return self._index[key]
 
-    def _texels(self, asset_id: str, role: str) -> np.ndarray:
+    def _texels(self, asset_id: str, role: str, compute: Callable[[], np.ndarray]) -> np.ndarray:
         """One layer's texels, ``(layer_stride(size), 4)`` uint8: read from the machine's derived arrays, else
-        decoded from the pack and kept there (:mod:`..assetpack.derived`)."""
+        ``compute()``-d from the pack's file of ``role`` and kept there (:mod:`..assetpack.derived`)."""
         from ..assetpack.derived import code_digest, derived_arrays
 
-        entry = self.pack.entry(asset_id)
-        source = "image" if role == "image" else role
-
-        def compute() -> np.ndarray:
-            if role == "image":
-                return albedo_texels(self.pack.image(asset_id).pixels, self.size)
-            tex = self.pack.texture(asset_id)
-            return albedo_texels(tex.albedo, self.size) if role == "albedo" else normal_texels(tex.normal, self.size)
-
-        name = f"{role}-{entry.sha256[source][:32]}-{self.size}-{code_digest(__name__)}"
+        name = f"{role}-{self.pack.entry(asset_id).sha256[role][:32]}-{self.size}-{code_digest(__name__)}"
         return derived_arrays().get(name, (layer_stride(self.size), 4), np.uint8, compute)
 
     def tile_aspect(self, texture_id: str) -> float:
