@@ -33,7 +33,7 @@ def example_sheet(samples: list[dict[str, Any]], grid: FruxelGrid, classes: Clas
     from PIL import Image, ImageDraw
 
     from fruxel.render.compat import default_font
-    from fruxel.render.legend import draw_legend
+    from fruxel.render.legend import draw_legend, wrap_text
     from fruxel.render.raycast import raycast_image
 
     from .metrics import first_surface
@@ -58,13 +58,15 @@ def example_sheet(samples: list[dict[str, Any]], grid: FruxelGrid, classes: Clas
     key = draw_legend(np.full((min(sheet.shape[0], 240), 130, 3), 255, np.uint8), classes, sorted(present - {0}))
     font = default_font(13)
     line = 18
-    top = line * (2 if title else 1)
+    # A long title (several camera settings, say) wraps rather than runs off the sheet.
+    titles = wrap_text(title, sheet.shape[1] + key.shape[1] - 8, font) if title else []
+    top = line * (len(titles) + 1)
     canvas = Image.new("RGB", (sheet.shape[1] + key.shape[1], sheet.shape[0] + top), (255, 255, 255))
     canvas.paste(Image.fromarray(sheet), (0, top))
     canvas.paste(Image.fromarray(key), (sheet.shape[1], canvas.height - key.shape[0]))
     draw = ImageDraw.Draw(canvas)
-    if title:
-        draw.text((4, 2), title, fill=(0, 0, 0), font=font)
+    for k, text in enumerate(titles):
+        draw.text((4, 2 + k * line), text, fill=(0, 0, 0), font=font)
     for i, h in enumerate(HEADINGS):
         draw.text((i * tile + 4, top - line + 2), h, fill=(0, 0, 0), font=font)
     with atomic_path(path) as tmp:
