@@ -22,6 +22,8 @@ from fruxel.kernels.wp.runtime import warp
 from .buffers import Buffers, RayBuffers
 from .surfaces import (
     FAR,
+    R2_1,
+    R2_2,
     LightData,
     SceneData,
     cone_direction,
@@ -35,8 +37,6 @@ from .surfaces import (
 wp = warp()
 wp.set_module_options({"enable_backward": False})
 
-ALPHA_1 = wp.constant(0.7548776662466927)
-ALPHA_2 = wp.constant(0.5698402909980532)
 SHADOW_OFFSET = wp.constant(5.0e-4)
 """Metres a shadow ray starts off its surface, along the face normal."""
 
@@ -138,7 +138,7 @@ def shade_lights_kernel(scene: SceneData, width: int, spp: int, shadow_samples: 
         rot2 = wp.randf(r)
         for s in range(shadow_samples):
             j = k * shadow_samples + s
-            e = direct_light(scene, light, p, n, g, stratified(rot1, j, ALPHA_1), stratified(rot2, j, ALPHA_2))
+            e = direct_light(scene, light, p, n, g, stratified(rot1, j, R2_1), stratified(rot2, j, R2_2))
             irr = wp.vec3(e[0], e[1], e[2]) * scale
             diffuse += irr
             if e[3] > 0.0:

@@ -24,13 +24,11 @@ from typing import Any
 from fruxel.kernels.wp.runtime import warp
 
 from .buffers import Buffers, RayBuffers
-from .surfaces import SceneData, cosine_direction, open_distance, stratified
+from .surfaces import R2_1, R2_2, SceneData, cosine_direction, open_distance, stratified
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
 
-ALPHA_1 = wp.constant(0.7548776662466927)
-ALPHA_2 = wp.constant(0.5698402909980532)
 AO_OFFSET = wp.constant(5.0e-4)
 """Metres an ambient ray starts off its surface, along the face normal."""
 
@@ -93,7 +91,7 @@ def trace_ambient_kernel(scene: SceneData, width: int, spp: int, ao_samples: int
         open_sum = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
         for a in range(ao_samples):
             j = k * ao_samples + a
-            d = cosine_direction(n, stratified(rot1, j, ALPHA_1), stratified(rot2, j, ALPHA_2))
+            d = cosine_direction(n, stratified(rot1, j, R2_1), stratified(rot2, j, R2_2))
             below = wp.dot(d, g)
             if below < 0.01:
                 # A normal-mapped normal tilts the lobe below the face: mirror such directions back above it.
@@ -106,7 +104,7 @@ def trace_ambient_kernel(scene: SceneData, width: int, spp: int, ao_samples: int
     sky = wp.vec3(0.0, 0.0, 0.0)
     for a in range(window_samples):
         j = k * window_samples + a
-        q = sample_portal(scene, stratified(rot3, j, ALPHA_1), wp.randf(r), wp.randf(r))
+        q = sample_portal(scene, stratified(rot3, j, R2_1), wp.randf(r), wp.randf(r))
         w = q.point - start
         d2 = wp.dot(w, w)
         dist = wp.sqrt(d2)

@@ -16,14 +16,10 @@ import numpy as np
 from fruxel.kernels.wp.runtime import warp
 
 from .buffers import Buffers, PixelBuffers, RayBuffers
-from .surfaces import SceneData, stratified, surface_at, trace
+from .surfaces import R2_1, R2_2, SceneData, stratified, surface_at, trace
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
-
-ALPHA_X = wp.constant(0.7548776662466927)
-ALPHA_Y = wp.constant(0.5698402909980532)
-"""The R2 sequence's steps (Roberts 2018): evenly spread sample positions within a pixel."""
 
 
 @wp.kernel
@@ -59,8 +55,8 @@ def trace_primary_kernel(
         rays.material[i] = -1
         return
     r = wp.rand_init(seed, pixel)
-    a = stratified(wp.randf(r), k, ALPHA_X)
-    b = stratified(wp.randf(r), k, ALPHA_Y)
+    a = stratified(wp.randf(r), k, R2_1)
+    b = stratified(wp.randf(r), k, R2_2)
     cam = wp.vec3((float(x) + a - intrinsics[2]) / intrinsics[0], (float(y) + b - intrinsics[3]) / intrinsics[1],
                   1.0)
     d = wp.normalize(rot * cam)

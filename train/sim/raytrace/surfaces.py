@@ -170,6 +170,12 @@ def cone_direction(axis: wp.vec3, cos_max: float, r1: float, r2: float) -> wp.ve
     return orthonormal_basis(axis) * wp.vec3(s * wp.cos(phi), s * wp.sin(phi), c)
 
 
+R2_1 = wp.constant(0.7548776662466927)
+R2_2 = wp.constant(0.5698402909980532)
+"""The R2 sequence's two steps (Roberts 2018), the ``alpha`` of :func:`stratified` for a pair of numbers that
+spread evenly over the unit square (pixel positions, light points, ray directions)."""
+
+
 @wp.func
 def stratified(rotation: float, k: int, alpha: float) -> float:
     """Sample ``k`` of a pixel's additive recurrence (``alpha`` irrational), rotated by a per-pixel random
