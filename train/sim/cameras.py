@@ -343,10 +343,8 @@ def aim_poses(poses: np.ndarray, centre: Any, mount: Mount, aim: float, seed: An
                               ).random(len(pos))
     to_centre = np.asarray(centre, dtype=np.float64).reshape(1, 2) - pos
     theta = np.arctan2(to_centre[:, 1], to_centre[:, 0]) + np.radians((u - 0.5) * float(aim))
-    out = camera_poses(pos, theta, CameraMount(height=mount.height, tilt=mount.pitch, offset=(0.0, 0.0),
-                                               hfov=mount.hfov))
-    out[:, 2, 3] = np.asarray(poses)[:, 2, 3]
-    return out
+    return camera_poses(pos, theta, CameraMount(height=mount.height, tilt=mount.pitch, offset=(0.0, 0.0),
+                                                hfov=mount.hfov))
 
 
 def gravity_in_camera(pose: Any) -> np.ndarray:
