@@ -327,8 +327,9 @@ class RunConfig:
     """A model file (shipped ``.safetensors`` or training checkpoint), or a shipped model's name (``ssz64``,
     ``ssz128``), whose network weights start the run instead of a fresh initialisation ("" = none): fine-tuning.
     Parameters the file lacks (a layer the architecture gained since) keep their fresh initialisation and are named
-    at the start; a parameter of another shape, or one the architecture does not have, stops the run. The
-    optimiser, schedule and discriminator start afresh."""
+    at the start. A file with other classes gives each class of this model's table that it has (by name) its
+    weights, and a new class keeps its fresh ones; any other parameter of another shape, or one the architecture
+    does not have, stops the run. The optimiser, schedule and discriminator start afresh."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "log_every"):
@@ -434,10 +435,13 @@ def _presets() -> dict[str, TrainConfig]:
         "ssz64": TrainConfig(name="ssz64", model=SSZConfig(detail_branch=24, classes=DEFAULT_CLASSES), data=shipped,
                              run=RunConfig(compile=True)),
         # ssz64's architecture reading the camera (issue 39), for the furnished rooms from any camera: the default
-        # model's training. Cameras withheld at random (data.camera_dropout) so that "unknown" works.
+        # model's training. Cameras withheld at random (data.camera_dropout) so that "unknown" works. It starts from
+        # the shipped ssz64 (its seven classes by name; ceiling, object and the camera inputs fresh) at half ssz64's
+        # learning rate: a lent GPU's half hour a session does not train one from nothing.
         "ssz64-any": TrainConfig(name="ssz64-any", model=SSZConfig(detail_branch=24, camera_inputs=True),
                                  data=dataclasses.replace(shipped, world="home", camera="any"),
-                                 run=RunConfig(compile=True)),
+                                 optim=OptimConfig(lr=1e-3, warmup=300),
+                                 run=RunConfig(compile=True, init="ssz64")),
         # The shipped ssz128's: ssz64 below a refinement level, 512 x 512 images, fine-tuned from the shipped ssz64
         # with the whole network training (its last two stages; the level started alone: docs/model.md).
         "ssz128": TrainConfig(

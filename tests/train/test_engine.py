@@ -21,7 +21,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
-from fruxel.classes import DEFAULT_CLASSES  # noqa: E402
+from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES  # noqa: E402
 from fruxel.train.config import TrainConfig, override  # noqa: E402
 from fruxel.train.engine.checkpoint import (  # noqa: E402
     FORMAT,
@@ -484,6 +484,40 @@ def test_run_init_starts_from_a_model_file_and_keeps_new_layers_fresh(tmp_path: 
     with pytest.raises(TrainingError, match=r"plain\.safetensors: run.init does not fit the model config: "
                                             r"parameters \d+ of another shape"):
         trainer.build()
+
+
+def test_run_init_from_a_model_of_other_classes_takes_each_shared_class_by_name(tmp_path: Path) -> None:
+    """Fine-tuning to a class table that grew (the shipped ssz64's seven classes -> the furnished rooms' nine): the
+    class-indexed rows of the heads are taken by class name (the order may differ), a new class keeps its fresh
+    rows, entries after the classes follow them; every other weight is taken as it is."""
+    names = ["empty", "floor", "wall", "window", "furniture", "door", "sculpture"]  # two swapped, two missing
+    colours = [[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4], [5, 5, 5], [6, 6, 6]]
+    fewer = tiny({"model": {"classes": {"names": names, "colours": colours}}})
+    torch.manual_seed(5)
+    source = fewer.model.build()
+    path = tmp_path / "fewer.safetensors"
+    save_model(path, source, fewer.model, half=False)
+    config = tiny({"model": {"classes": HOME_CLASSES.to_dict()}, "run": {"init": str(path)}})
+    state, _ = Trainer(config, tmp_path / "run", device="cpu", progress=False).build()
+    torch.manual_seed(config.run.seed)
+    fresh = config.model.build().state_dict()
+    got, want = state.network.state_dict(), source.state_dict()
+    own_names = list(config.model.classes.names)
+    reshaped = [k for k in want if want[k].shape != got[k].shape]
+    assert "head.weight" in reshaped and "head.bias" in reshaped, reshaped
+    def source_index(i: int) -> int | None:  # this model's entry i of a class dimension, in the file
+        if i >= len(own_names):
+            return len(names) + i - len(own_names)
+        return names.index(own_names[i]) if own_names[i] in names else None
+
+    for key in reshaped:
+        theirs, own, new = want[key].numpy(), got[key].numpy(), fresh[key].numpy()
+        for index in np.ndindex(own.shape):
+            mapped = [source_index(i) if a != b else i for i, a, b in zip(index, theirs.shape, own.shape, strict=True)]
+            expected = new[index] if None in mapped else theirs[tuple(mapped)]
+            assert own[index] == expected, (key, index)
+    kept = [k for k in want if k not in reshaped]
+    _assert_same_tensors({k: got[k] for k in kept}, {k: want[k] for k in kept})
 
 
 def test_shell_losses_settings_reach_the_shell_loss(tmp_path: Path, shards: Path) -> None:

@@ -16,7 +16,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -191,18 +191,26 @@ class Trainer:
         """Load ``run.init``'s network weights into the fresh network (see :class:`~fruxel.train.config.RunConfig`)."""
         from ..model_files import read_model_file
 
-        state = read_model_file(path).state
+        init = read_model_file(path)
         own = network.state_dict()
-        foreign = sorted(k for k in state if k not in own)
-        reshaped = sorted(k for k in state if k in own and state[k].shape != own[k].shape)
-        if foreign or reshaped:
+        state = {k: v for k, v in init.state.items() if k in own}
+        foreign = sorted(k for k in init.state if k not in own)
+        reshaped = sorted(k for k in state if state[k].shape != own[k].shape)
+        mapped = {k: _by_class(state[k], own[k], init.config.classes.names, self.config.model.classes.names)
+                  for k in reshaped}
+        unfit = [k for k, v in mapped.items() if v is None]
+        if foreign or unfit:
             what = [f"{len(foreign)} it does not have ({', '.join(foreign[:3])})"] if foreign else []
-            what += [f"{len(reshaped)} of another shape ({', '.join(reshaped[:3])})"] if reshaped else []
+            what += [f"{len(unfit)} of another shape ({', '.join(unfit[:3])})"] if unfit else []
             raise TrainingError(f"{path}: run.init does not fit the model config: parameters {'; '.join(what)}")
+        state.update(mapped)
         network.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=False)
         fresh = sorted(k for k in own if k not in state)
-        if fresh and self.progress:
-            print(f"run.init {path}: kept the fresh initialisation of {', '.join(fresh)}", file=sys.stderr)
+        new_classes = [n for n in self.config.model.classes.names if n not in init.config.classes.names]
+        if self.progress and (fresh or (reshaped and new_classes)):
+            kept = ([", ".join(fresh)] if fresh else []) + ([f"the classes {', '.join(new_classes)}"]
+                                                            if reshaped and new_classes else [])
+            print(f"run.init {path}: kept the fresh initialisation of {'; '.join(kept)}", file=sys.stderr)
 
     def _batches(self) -> Any:
         """The rank's training batches from the state's data position."""
@@ -380,3 +388,44 @@ def train(config: TrainConfig, run_dir: str, *, resume: bool = False, device: st
         return trainer.fit()
     finally:
         distributed.teardown()
+
+
+def _by_class(theirs: torch.Tensor, own: torch.Tensor, their_names: Sequence[str],
+              own_names: Sequence[str]) -> torch.Tensor | None:
+    """``theirs`` (a parameter of a model with other classes) laid out for this model's classes, or None.
+
+    Each dimension that differs must hold one entry per class (followed by any number of other entries, as many in
+    both): each class this model shares by name with the init model takes that class's entries, a new class keeps
+    ``own``'s fresh values and the trailing entries follow the classes. Any other difference gives None.
+
+    Args:
+        theirs: the init model's parameter, any shape and dtype.
+        own: the fresh parameter of this model, of the same rank.
+        their_names: the init model's class names (its class order).
+        own_names: this model's class names.
+
+    Returns:
+        A tensor of ``own``'s shape and ``theirs``'s dtype, or None when the shapes differ otherwise.
+    """
+    n_theirs, n_own = len(their_names), len(own_names)
+    their_names, own_names = list(their_names), list(own_names)
+    if theirs.dim() != own.dim():
+        return None
+    src: list[torch.Tensor] = []
+    dst: list[torch.Tensor] = []
+    for a, b in zip(theirs.shape, own.shape, strict=True):
+        pairs = [(i, i) for i in range(a)]
+        if a != b:
+            extra = a - n_theirs
+            if extra < 0 or b - n_own != extra:
+                return None
+            pairs = [(their_names.index(n), i) for i, n in enumerate(own_names) if n in their_names]
+            pairs += [(n_theirs + j, n_own + j) for j in range(extra)]
+        # Index tensors shaped to broadcast as an outer product (numpy's ix_) over all dimensions.
+        shape = [1] * theirs.dim()
+        shape[len(src)] = -1
+        src.append(torch.tensor([p[0] for p in pairs], dtype=torch.long).reshape(shape))
+        dst.append(torch.tensor([p[1] for p in pairs], dtype=torch.long).reshape(shape))
+    out = own.detach().clone().to(theirs.dtype)
+    out[tuple(dst)] = theirs[tuple(src)]
+    return out
