@@ -53,8 +53,8 @@ normals), per image the rest (``response`` includes the image's download and JPE
 BVH_CONSTRUCTOR = "sah"
 """Warp's BVH builder for a room's mesh, on every device. SAH (built on the host, then uploaded to a CUDA device)
 traces the furnished rooms, wall-sized triangles beside small furniture parts, much faster than a split at the
-centroids' spatial median, and CUDA's own default, LBVH, splits on Morton codes of the centroids too
-(BENCHMARKS.md, "## BVH constructors", ``benchmarks/bench_bvh.py``)."""
+centroids' spatial median and somewhat faster than CUDA's own default, LBVH, whose GPU build is cheaper than SAH's
+host build (BENCHMARKS.md, "## BVH constructors", ``benchmarks/bench_bvh.py``: the trade per sample)."""
 
 _PACKS: dict[str, Any] = {}
 """Asset packs opened in this process, by resolved folder."""
