@@ -349,7 +349,6 @@ def _model_rules(args: argparse.Namespace, m: Any, device: Any) -> tuple[dict[st
 def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     started = time.perf_counter()
     _check_options(args)
-    import numpy as np
     import torch
 
     from fruxel.kernels.registry import describe
@@ -357,7 +356,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from fruxel.train.engine.data import to_device
     from fruxel.train.eval.baselines import oracle_prediction
     from fruxel.train.eval.by_camera import CameraBinned, CameraBins
-    from fruxel.train.eval.evaluate import evaluate_predictions
+    from fruxel.train.eval.evaluate import evaluate_predictions, spread
     from fruxel.train.eval.report import build_report
     from fruxel.train.model_files import load_model
     from fruxel.train.samples import split_batches
@@ -389,9 +388,9 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
     with torch.no_grad():
         # Examples spread over the samples: consecutive samples are frames of one room.
-        shown = np.unique(np.linspace(0, count - 1, min(args.examples, count)).round().astype(int))  # 0: none
+        shown = spread(count, args.examples)
         accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), mc.grid,
-                                          mc.classes, device=device, backend=args.backend, keep=shown.tolist(),
+                                          mc.classes, device=device, backend=args.backend, keep=shown,
                                           by_camera=binned)
     machine = machine_info(str(device))
     machine.update(device=str(device), kernels=describe(args.backend, None, torch.zeros(1, device=device)))

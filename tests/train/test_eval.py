@@ -20,7 +20,7 @@ from fruxel.train.eval.baselines import (  # noqa: E402 - needs torch
     oracle_prediction,
     prior_prediction,
 )
-from fruxel.train.eval.evaluate import evaluate_predictions  # noqa: E402
+from fruxel.train.eval.evaluate import evaluate_predictions, spread  # noqa: E402
 from fruxel.train.eval.metrics import (  # noqa: E402
     Accumulator,
     completion_iou,
@@ -273,3 +273,12 @@ def test_report_names_the_inference_rules() -> None:
     assert rules_text({"fill_columns": False, "empty_offset": 0.0, "first_hit_label": False}) == "none (plain argmax)"
     assert (rules_text({"flip_average": True, "fill_columns": True, "empty_offset": 1.0, "fill_threshold": 0.8})
             == "flip_average, empty logit +1, fill_columns (threshold 0.8)")
+
+
+def test_examples_are_spread_over_the_samples() -> None:
+    """Sixteen samples share a room: the examples of a 256-sample evaluation come from four rooms, not one."""
+    shown = spread(256, 4)
+    assert shown == [0, 85, 170, 255]
+    assert len({i // 16 for i in shown}) == 4
+    assert spread(3, 4) == [0, 1, 2] and spread(1, 4) == [0]
+    assert spread(0, 4) == [] and spread(10, 0) == []

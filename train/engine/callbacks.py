@@ -158,7 +158,7 @@ class Evaluation(Callback):
         distributed.barrier(trainer.dist)
 
     def _evaluate(self, trainer: Trainer) -> dict[str, Any]:
-        from ..eval.evaluate import evaluate
+        from ..eval.evaluate import evaluate, spread
         from ..models.conditioning import KNOWN
         from ..rules import NO_RULES
         from ..samples import SampleSource, load_split
@@ -176,7 +176,8 @@ class Evaluation(Callback):
                    + (({k: v[i:i + bs] for k, v in self._set[2].items()},) if reads else ())
                    for i in range(0, len(images), bs))
         acc, kept = evaluate(trainer.state.network, NO_RULES, batches, c.model.grid, c.model.classes, device=dev,
-                             autocast=trainer.autocast, keep=4, camera_known=KNOWN if reads else None)
+                             autocast=trainer.autocast, keep=spread(len(images), 4),
+                             camera_known=KNOWN if reads else None)
         summary = acc.summary(c.model.classes.names)
         self.pending = (kept, f"{c.name}, step {trainer.state.step}: held-out rooms, mIoU {summary['miou']:.1f}")
         return summary

@@ -17,6 +17,12 @@ from .by_camera import CameraBinned
 from .metrics import Accumulator
 
 
+def spread(count: int, n: int) -> list[int]:
+    """Positions of ``n`` examples spread evenly over ``count`` samples, first and last included (fewer when
+    ``count < n``; none for ``n = 0``): consecutive samples share a room, so the first few would show one."""
+    return np.unique(np.linspace(0, count - 1, min(n, count)).round().astype(int)).tolist() if count > 0 else []
+
+
 def novel_cameras(grid: FruxelGrid) -> list[Any]:
     """The novel views of conventions section 9: ``orbit_cameras(grid, 4)`` at the grid's own width and height."""
     from fruxel.kernels import orbit_cameras
