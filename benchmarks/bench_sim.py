@@ -51,9 +51,9 @@ import common  # noqa: E402
 CHART = common.RESULTS / "sim.png"
 SECTION = "## Simulator"
 
-VARIANT_DEFAULTS = {"camera": "robot", "renderer": "pyrender", "world": "flat"}
-"""What a case is made with unless ``--camera``, ``--renderer`` or ``--world`` say otherwise (results record only
-the choices that differ)."""
+VARIANT_DEFAULTS = {"camera": "robot", "renderer": "pyrender", "world": "flat", "rays": ""}
+"""What a case is made with unless ``--camera``, ``--renderer``, ``--world`` or ``--rays`` say otherwise (results
+record only the choices that differ)."""
 TARGETS = {("cpu", "256x64"): 10.0, ("cpu", "512x128"): 2.0, ("h100", "128x64"): 150.0}
 """Samples per second asked for, by (machine tag, case)."""
 TARGET_MODES = {"cpu": ("generate",), "h100": ("streaming",)}
@@ -69,19 +69,26 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
 
 
 def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True, camera: str = "robot",
-                renderer: str = "pyrender", world: str = "flat") -> Any:
+                renderer: str = "pyrender", world: str = "flat", rays: str = "") -> Any:
     """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels, the cameras
     named ``camera`` (``fruxel.train.sim.cameras.CAMERAS``), drawn by ``renderer`` in ``world`` (the home world's
-    classes, :data:`fruxel.classes.HOME_CLASSES`)."""
+    classes, :data:`fruxel.classes.HOME_CLASSES`); ``rays`` ``"spp/edge/ao"`` sets the ray tracer's camera, edge
+    and occlusion rays (``""``: its defaults)."""
+    import dataclasses
+
     from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES
     from fruxel.grid import FruxelGrid
     from fruxel.train.sim.cameras import camera_named
     from fruxel.train.sim.config import AugmentConfig, ImageConfig, SimConfig
+    from fruxel.train.sim.raytrace import RaytraceConfig
 
+    counts = dict(zip(("samples_per_pixel", "edge_samples", "ao_samples"), map(int, rays.split("/")), strict=True)
+                  ) if rays else {}
     return SimConfig(grid=FruxelGrid(grid, grid, grid, 0.5, 8.0, 60.0),
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
                      shard_size=shard_size, splits=(("train", samples),), camera=camera_named(camera),
-                     renderer=renderer, world=world, classes=HOME_CLASSES if world == "home" else DEFAULT_CLASSES)
+                     renderer=renderer, world=world, classes=HOME_CLASSES if world == "home" else DEFAULT_CLASSES,
+                     raytrace=dataclasses.replace(RaytraceConfig(), **counts))
 
 
 # ---------------------------------------------------------------------------------------------------- measuring
@@ -243,8 +250,8 @@ def section(runs: list[dict[str, Any]]) -> str:
             plain = all(r.get(k, v) == v for k, v in VARIANT_DEFAULTS.items())
             target = _target(run["tag"], case, r["mode"]) if plain else None
             met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
-            extra = ", ".join(str(r[k]) for k in ("world", "renderer") if r.get(k, VARIANT_DEFAULTS[k]) !=
-                              VARIANT_DEFAULTS[k])
+            extra = ", ".join(("rays " if k == "rays" else "") + str(r[k]) for k in ("world", "renderer", "rays")
+                              if r.get(k, VARIANT_DEFAULTS[k]) != VARIANT_DEFAULTS[k])
             mode = r["mode"] + (f" ({extra})" if extra else "")
             lines.append(f"| {run['tag']} | {mode} | {_image(r)} | {r['grid']}^3 | {r['workers']} | "
                          f"{r['samples']} | {r['steady_sps']:.1f} | {r['end_to_end_sps']:.1f} | "
@@ -316,7 +323,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--json", default=None, help="also copy the JSON here (e.g. $OUT/sim-h100.json)")
     p.add_argument("--camera", default="robot", choices=("robot", "any"),
                    help="the cameras of the samples: the robot's own mount (default) or any camera")
+    p.add_argument("--rays", default="", metavar="SPP/EDGE/AO",
+                   help="the ray tracer's camera rays per pixel, extra rays on edges and occlusion rays, e.g. 1/3/2 "
+                        "(default: RaytraceConfig's; benchmarks/bench_raytrace_samples.py says what they cost)")
     args = p.parse_args(argv)
+    if args.rays and (len(args.rays.split("/")) != 3 or not all(v.isdigit() for v in args.rays.split("/"))):
+        p.error(f"--rays wants SPP/EDGE/AO, e.g. 1/3/2; got {args.rays!r}")
     if args.report:
         runs = load_results()
         common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
@@ -324,7 +336,7 @@ def main(argv: list[str] | None = None) -> None:
         print(section(runs))
         return
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
-    variant = {"camera": args.camera, "renderer": args.renderer, "world": args.world}
+    variant = {"camera": args.camera, "renderer": args.renderer, "world": args.world, "rays": args.rays}
     info = machine()
     results: list[dict[str, Any]] = []
     guess = {64: 12.0, 128: 3.0}
