@@ -22,8 +22,6 @@ BENCHMARKS.md is rebuilt from every ``bvh-*.json`` there.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -83,11 +81,7 @@ def section(runs: list[dict[str, Any]]) -> str:
     lines = [SECTION, "", "`python benchmarks/bench_bvh.py` (its docstring has the GPU command): the ray tracer on "
              "the furnished rooms from any camera with each BVH constructor, rooms and constructors alternated; "
              "medians over rooms of milliseconds per image with the device synchronised after each stage.", ""]
-    for run in runs:
-        m = run["machine"]
-        gpu = f", {m['gpu']}" if m.get("gpu") else ""
-        lines.append(f"- **{run['tag']}**: {m['cpu']}{gpu}; device {run['device']}; run {run['date']}; Warp "
-                     f"{m.get('warp')}.")
+    lines += [common.device_run_line(run) for run in runs]
     lines += ["", "| machine | device | image | rooms x images | faces (median) | constructor | tracing ms/image | "
               "image ms | build ms/room | tracing / SAH's |", "| --- | --- | ---: | ---: | ---: | --- | ---: | ---: | "
               "---: | ---: |"]
@@ -96,41 +90,23 @@ def section(runs: list[dict[str, Any]]) -> str:
             lines.append(f"| {run['tag']} | {run['device']} | {r['image']}^2 | {r['rooms']} x {r['images_per_room']}"
                          f" | {r['median_faces']} | {r['constructor']} | {r['trace_ms']:.2f} | {r['image_ms']:.2f} | "
                          f"{r['build_ms']:.1f} | {r['trace_over_sah']:.2f} |")
-    notes = [n for run in runs for n in run.get("notes", [])]
-    return "\n".join(lines + ([""] + [f"- {n}" for n in notes] if notes else [])) + "\n"
+    return common.with_notes(lines, runs)
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda:N")
+    common.add_device_run_options(p)
     p.add_argument("--constructors", default=None, help="comma-separated (default: sah,median; on CUDA also lbvh)")
     p.add_argument("--rooms", type=int, default=3)
     p.add_argument("--images", type=int, default=4, help="images per room and constructor")
     p.add_argument("--image", type=int, default=128, help="image width in pixels (default 128)")
-    p.add_argument("--tag", default=None, help="result name (default: the device kind)")
-    p.add_argument("--note", action="append", default=[])
-    p.add_argument("--no-write", action="store_true", help="write the JSON only, not BENCHMARKS.md")
-    p.add_argument("--json", default=None, help="also copy the JSON here")
-    p.add_argument("--report", action="store_true", help="only rebuild the section from the stored results")
     args = p.parse_args(argv)
+    run = None
     if not args.report:
         cuda = args.device.startswith("cuda")
         ctors = (args.constructors or ("sah,lbvh,median" if cuda else "sah,median")).split(",")
-        tag = args.tag or ("cuda" if cuda else "cpu")
-        info = common.machine_info({"warp": "warp-lang", "numpy": "numpy"})
-        machine = {"cpu": common.cpu_description(), "gpu": info["gpu"] or "", **info["versions"]}
-        run = {"tag": tag, "date": dt.date.today().isoformat(), "device": args.device, "notes": args.note,
-               "machine": machine, "results": measure(args.device, ctors, args.rooms, args.images, args.image)}
-        text = json.dumps(run, indent=1)
-        common.write_text(common.RESULTS / f"bvh-{tag}.json", text)
-        if args.json:
-            common.write_text(Path(args.json), text)
-        print(text)
-        if args.no_write:
-            return
-    runs = [json.loads(f.read_text()) for f in sorted(common.RESULTS.glob("bvh-*.json"))]
-    common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
-    print(section(runs))
+        run = common.device_run(args, measure(args.device, ctors, args.rooms, args.images, args.image))
+    common.finish_device_run(args, run, "bvh", SECTION, section)
 
 
 if __name__ == "__main__":

@@ -23,8 +23,6 @@ counts" section of BENCHMARKS.md is rebuilt from every ``raytrace-samples-*.json
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -103,11 +101,8 @@ def section(runs: list[dict[str, Any]]) -> str:
              "room; medians over rooms of milliseconds per image (device synchronised after each stage) and over "
              f"images of the PSNR against {'/'.join(map(str, REFERENCE))} (camera/edge/occlusion rays), each image "
              "with its sample's camera response.", ""]
-    for run in runs:
-        m = run["machine"]
-        gpu = f", {m['gpu']}" if m.get("gpu") else ""
-        lines.append(f"- **{run['tag']}**: {m['cpu']}{gpu}; device {run['device']}; run {run['date']}; Warp "
-                     f"{m.get('warp')}; sheet `benchmarks/results/raytrace-samples-{run['tag']}.png`.")
+    lines += [common.device_run_line(run, f"sheet `benchmarks/results/raytrace-samples-{run['tag']}.png`")
+              for run in runs]
     lines += ["", "| machine | device | image | rooms x images | camera rays | edge rays | occlusion rays | ms/image | "
               "time / first row's | PSNR vs reference (dB) |",
               "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -116,48 +111,29 @@ def section(runs: list[dict[str, Any]]) -> str:
             lines.append(f"| {run['tag']} | {run['device']} | {r['image']}^2 | {r['rooms']} x {r['images_per_room']} "
                          f"| {r['spp']} | {r['edge']} | {r['ao']} | {r['image_ms']:.1f} | {r['ms_over_first']:.2f} | "
                          f"{r['psnr_db']:.1f} |")
-    notes = [n for run in runs for n in run.get("notes", [])]
-    return "\n".join(lines + ([""] + [f"- {n}" for n in notes] if notes else [])) + "\n"
+    return common.with_notes(lines, runs)
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda:N")
+    common.add_device_run_options(p)
     p.add_argument("--settings", default="2/2/2,1/3/2,1/3/1",
                    help="comma-separated camera/edge/occlusion rays (default 2/2/2,1/3/2,1/3/1)")
     p.add_argument("--rooms", type=int, default=3)
     p.add_argument("--images", type=int, default=2, help="images per room and setting")
     p.add_argument("--image", type=int, default=256, help="image width in pixels (default 256)")
-    p.add_argument("--tag", default=None, help="result name (default: the device kind)")
-    p.add_argument("--note", action="append", default=[])
-    p.add_argument("--no-write", action="store_true", help="write the JSON and sheet only, not BENCHMARKS.md")
-    p.add_argument("--json", default=None, help="also copy the JSON here")
-    p.add_argument("--report", action="store_true", help="only rebuild the section from the stored results")
     args = p.parse_args(argv)
+    run = None
     if not args.report:
         from PIL import Image
 
         from fruxel.io import atomic_write
 
-        settings = parse_settings(args.settings)
-        tag = args.tag or ("cuda" if args.device.startswith("cuda") else "cpu")
-        info = common.machine_info({"warp": "warp-lang", "numpy": "numpy"})
-        machine = {"cpu": common.cpu_description(), "gpu": info["gpu"] or "", **info["versions"]}
-        rows, sheet = measure(args.device, settings, args.rooms, args.images, args.image)
-        run = {"tag": tag, "date": dt.date.today().isoformat(), "device": args.device, "notes": args.note,
-               "machine": machine, "results": rows}
-        text = json.dumps(run, indent=1)
-        common.write_text(common.RESULTS / f"raytrace-samples-{tag}.json", text)
-        with atomic_write(common.RESULTS / f"raytrace-samples-{tag}.png", "wb") as f:
+        rows, sheet = measure(args.device, parse_settings(args.settings), args.rooms, args.images, args.image)
+        run = common.device_run(args, rows)
+        with atomic_write(common.RESULTS / f"raytrace-samples-{run['tag']}.png", "wb") as f:
             Image.fromarray(sheet).save(f, format="PNG")
-        if args.json:
-            common.write_text(Path(args.json), text)
-        print(text)
-        if args.no_write:
-            return
-    runs = [json.loads(f.read_text()) for f in sorted(common.RESULTS.glob("raytrace-samples-*.json"))]
-    common.replace_section(common.BENCHMARKS_MD, SECTION, section(runs))
-    print(section(runs))
+    common.finish_device_run(args, run, "raytrace-samples", SECTION, section)
 
 
 if __name__ == "__main__":

@@ -295,3 +295,56 @@ def write_result(result: dict[str, Any], out: Path, chart: Callable[[dict[str, A
     replace_section(BENCHMARKS_MD, heading, section([json.loads(f.read_text()) for f in files]))
     print(f"wrote {out.with_suffix('.json')}, {png} and the {heading!r} section of {BENCHMARKS_MD.name}")
 
+
+
+# ------------------------------------------------------------------------- runs of one Warp device (bvh, rays)
+def add_device_run_options(p: Any) -> None:
+    """The options of a script that measures one Warp device and stores one JSON per run: ``--device``, ``--tag``,
+    ``--note``, ``--no-write``, ``--json``, ``--report`` (read back by :func:`device_run` and
+    :func:`finish_device_run`)."""
+    p.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda:N")
+    p.add_argument("--tag", default=None, help="result name (default: the device kind)")
+    p.add_argument("--note", action="append", default=[])
+    p.add_argument("--no-write", action="store_true", help="write the results only, not BENCHMARKS.md")
+    p.add_argument("--json", default=None, help="also copy the JSON here")
+    p.add_argument("--report", action="store_true", help="only rebuild the section from the stored results")
+
+
+def device_run(args: Any, results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The stored form of a run: tag (``--tag``, else ``cpu`` / ``cuda``), date, device, notes, machine
+    (CPU, GPU, Warp and numpy versions) and ``results``."""
+    info = machine_info({"warp": "warp-lang", "numpy": "numpy"})
+    tag = args.tag or ("cuda" if args.device.startswith("cuda") else "cpu")
+    return {"tag": tag, "date": dt.date.today().isoformat(), "device": args.device, "notes": args.note,
+            "machine": {"cpu": cpu_description(), "gpu": info["gpu"] or "", **info["versions"]}, "results": results}
+
+
+def device_run_line(run: dict[str, Any], extra: str = "") -> str:
+    """The Markdown bullet that says where a :func:`device_run` ran (``extra``: more to say, e.g. its picture)."""
+    m = run["machine"]
+    gpu = f", {m['gpu']}" if m.get("gpu") else ""
+    return (f"- **{run['tag']}**: {m['cpu']}{gpu}; device {run['device']}; run {run['date']}; Warp {m.get('warp')}"
+            f"{'; ' + extra if extra else ''}.")
+
+
+def with_notes(lines: list[str], runs: list[dict[str, Any]]) -> str:
+    """A section's ``lines`` and then every run's notes as bullets, as one text ending in a newline."""
+    notes = [n for run in runs for n in run.get("notes", [])]
+    return "\n".join(lines + ([""] + [f"- {n}" for n in notes] if notes else [])) + "\n"
+
+
+def finish_device_run(args: Any, run: dict[str, Any] | None, prefix: str, heading: str,
+                      section: Callable[[list[dict[str, Any]]], str]) -> None:
+    """Store ``run`` (None with ``--report``) as ``RESULTS/{prefix}-{tag}.json`` (and ``--json``), then, unless
+    ``--no-write``, rebuild the ``heading`` section of BENCHMARKS.md from every ``{prefix}-*.json``."""
+    if run is not None:
+        text = json.dumps(run, indent=1)
+        write_text(RESULTS / f"{prefix}-{run['tag']}.json", text)
+        if args.json:
+            write_text(Path(args.json), text)
+        print(text)
+        if args.no_write:
+            return
+    runs = [json.loads(f.read_text()) for f in sorted(RESULTS.glob(f"{prefix}-*.json"))]
+    replace_section(BENCHMARKS_MD, heading, section(runs))
+    print(section(runs))
