@@ -255,6 +255,28 @@ def test_resume_equals_an_uninterrupted_run(tmp_path: Path, shards: Path, monkey
 
 
 @pytest.mark.slow
+def test_a_run_resumes_on_more_ranks(tmp_path: Path, shards: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run started in one process goes on under two DDP ranks (a lent machine with more GPUs): the global batch
+    is split between them, the step count and samples go on from the checkpoint, and the checkpoint it writes
+    resumes again in one process."""
+    config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"steps": 6, "batch_size": 4}})
+    with monkeypatch.context() as m:
+        _interrupt_at(m, 2)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(config, tmp_path, device="cpu", progress=False, evaluation=False).fit()
+    before = read_checkpoint(tmp_path / LATEST).state
+    assert before["step"] == 2
+    torch.multiprocessing.spawn(_resume_rank, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    assert (tmp_path / "resumed.txt").read_text().split() == ["4", "16"]
+    after = read_checkpoint(tmp_path / LATEST).state
+    assert after["step"] == 4 and after["samples"] == 16
+    assert any(not torch.equal(a, b) for a, b in zip(before["generator"].values(), after["generator"].values(),
+                                                      strict=True))
+    assert Trainer(None, tmp_path, resume=True, device="cpu", progress=False, evaluation=False,
+                   overrides={"steps": 5}).fit().step == 5
+
+
+@pytest.mark.slow
 def test_ctrl_c_before_the_loop_and_resuming_a_finished_run(tmp_path: Path, shards: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """Ctrl-C at step 0 still leaves a checkpoint (the class weights it needs included); a run resumed at its
@@ -307,6 +329,18 @@ def _ddp_rank(rank: int, world: int, port: int, config_json: str, batch_file: st
         grads[mode] = {n: p.grad.clone() for n, p in state.network.named_parameters()}
     torch.save(grads, os.path.join(out, f"grads{rank}.pt"))
     distributed.teardown()
+
+
+def _resume_rank(rank: int, world: int, port: int, out: str) -> None:
+    """One process of :func:`test_a_run_resumes_on_more_ranks`: the engine under ``torchrun``'s environment (gloo),
+    resuming the run in ``out``; rank 0 writes what it did."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    result = Trainer(None, out, resume=True, device="cpu", progress=False, evaluation=False,
+                     overrides={"steps": 4}).fit()
+    if rank == 0:
+        Path(out, "resumed.txt").write_text(f"{result.step} {result.samples}")
 
 
 def _objectives(config: TrainConfig, weights: torch.Tensor) -> dict[str, SSZObjective]:
