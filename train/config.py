@@ -327,9 +327,10 @@ class RunConfig:
     """A model file (shipped ``.safetensors`` or training checkpoint), or a shipped model's name (``ssz64``,
     ``ssz128``), whose network weights start the run instead of a fresh initialisation ("" = none): fine-tuning.
     Parameters the file lacks (a layer the architecture gained since) keep their fresh initialisation and are named
-    at the start. A file with other classes gives each class of this model's table that it has (by name) its
-    weights, and a new class keeps its fresh ones; any other parameter of another shape, or one the architecture
-    does not have, stops the run. The optimiser, schedule and discriminator start afresh."""
+    at the start. A file with another number of classes gives each class of this model's table that it has (by
+    name) its weights, and a new class keeps its fresh ones; as many classes must be the same, in order. Any other
+    parameter of another shape, or one the architecture does not have, stops the run. The optimiser, schedule and
+    discriminator start afresh."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "log_every"):

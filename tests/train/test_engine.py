@@ -552,6 +552,11 @@ def test_run_init_from_a_model_of_other_classes_takes_each_shared_class_by_name(
             assert own[index] == expected, (key, index)
     kept = [k for k in want if k not in reshaped]
     _assert_same_tensors({k: got[k] for k in kept}, {k: want[k] for k in kept})
+    # As many classes in another order: which rows are per class cannot be told from the shapes, so it stops.
+    swapped = tiny({"model": {"classes": {"names": names, "colours": colours}}})
+    save_model(path, swapped.model.build(), swapped.model, half=False)
+    with pytest.raises(TrainingError, match="as many classes must have the same names in order"):
+        Trainer(tiny({"run": {"init": str(path)}}), tmp_path / "run3", device="cpu", progress=False).build()
 
 
 def test_shell_losses_settings_reach_the_shell_loss(tmp_path: Path, shards: Path) -> None:

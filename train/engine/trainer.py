@@ -192,12 +192,16 @@ class Trainer:
         from ..model_files import read_model_file
 
         init = read_model_file(path)
+        theirs_names, own_names = list(init.config.classes.names), list(self.config.model.classes.names)
+        if theirs_names != own_names and len(theirs_names) == len(own_names):
+            # Same shapes: which parameters hold one entry per class cannot be told, so none could be mapped.
+            raise TrainingError(f"{path}: run.init has {len(theirs_names)} other classes than the model config's "
+                                f"({', '.join(theirs_names)}); as many classes must have the same names in order")
         own = network.state_dict()
         state = {k: v for k, v in init.state.items() if k in own}
         foreign = sorted(k for k in init.state if k not in own)
         reshaped = sorted(k for k in state if state[k].shape != own[k].shape)
-        mapped = {k: _by_class(state[k], own[k], init.config.classes.names, self.config.model.classes.names)
-                  for k in reshaped}
+        mapped = {k: _by_class(state[k], own[k], theirs_names, own_names) for k in reshaped}
         unfit = [k for k, v in mapped.items() if v is None]
         if foreign or unfit:
             what = [f"{len(foreign)} it does not have ({', '.join(foreign[:3])})"] if foreign else []
@@ -206,7 +210,7 @@ class Trainer:
         state.update(mapped)
         network.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=False)
         fresh = sorted(k for k in own if k not in state)
-        new_classes = [n for n in self.config.model.classes.names if n not in init.config.classes.names]
+        new_classes = [n for n in own_names if n not in theirs_names]
         if self.progress and (fresh or (reshaped and new_classes)):
             kept = ([", ".join(fresh)] if fresh else []) + ([f"the classes {', '.join(new_classes)}"]
                                                             if reshaped and new_classes else [])
