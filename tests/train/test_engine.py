@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import os
 import socket
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES  # noqa: E402
 from fruxel.train.config import TrainConfig, override  # noqa: E402
+from fruxel.train.engine.callbacks import TimeLimit  # noqa: E402
 from fruxel.train.engine.checkpoint import (  # noqa: E402
     FORMAT,
     LATEST,
@@ -341,6 +343,41 @@ def _resume_rank(rank: int, world: int, port: int, out: str) -> None:
                      overrides={"steps": 4}).fit()
     if rank == 0:
         Path(out, "resumed.txt").write_text(f"{result.step} {result.samples}")
+
+
+def _time_limit_rank(rank: int, world: int, port: int, out: str, config_json: str) -> None:
+    """One process of :func:`test_ranks_stop_together_at_a_time_limit`: rank 0's time limit is over when the loop
+    starts, rank 1's far off (clocks that started apart, exaggerated); each writes the step it stopped at."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    config = override(TrainConfig.from_json(config_json), {"run": {"time_limit": 1e-6 if rank == 0 else 1e6}}, "")
+    from fruxel.train.engine import distributed
+
+    try:
+        result = Trainer(config, out, device="cpu", progress=False, evaluation=False).fit()
+    finally:
+        distributed.teardown()
+    Path(out, f"stopped{rank}.txt").write_text(f"{result.step} {int(result.interrupted)}")
+
+
+@pytest.mark.slow
+def test_ranks_stop_together_at_a_time_limit(tmp_path: Path, shards: Path) -> None:
+    """A time limit that one rank reaches before the other stops every rank at the same step, with the checkpoint
+    of that step (a rank stopping alone left the other waiting in its next all-reduce: the run hung)."""
+    config = tiny({"data": {"source": "shards", "root": str(shards)}, "run": {"steps": 40, "batch_size": 4}})
+    ctx = torch.multiprocessing.start_processes(_time_limit_rank, args=(2, _free_port(), str(tmp_path),
+                                                                          config.to_json()),
+                                                nprocs=2, join=False, start_method="spawn")
+    deadline = time.monotonic() + 120
+    while not ctx.join(timeout=5):
+        if time.monotonic() > deadline:
+            for p in ctx.processes:
+                p.kill()
+            pytest.fail("the ranks did not finish within 120 s (one waits for the other)")
+    every = TimeLimit.AGREE_EVERY
+    assert [(tmp_path / f"stopped{r}.txt").read_text() for r in range(2)] == [f"{every} 1"] * 2
+    assert read_checkpoint(tmp_path / LATEST).state["step"] == every
 
 
 def _objectives(config: TrainConfig, weights: torch.Tensor) -> dict[str, SSZObjective]:

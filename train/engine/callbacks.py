@@ -80,13 +80,19 @@ class MetricLog(Callback):
         if step % trainer.config.run.log_every == 0 or step == trainer.config.run.steps:
             self.flush(trainer)
 
-    def flush(self, trainer: Trainer) -> None:
-        """Log the window's means (after a resume within a window, over fewer than ``log_every`` steps)."""
+    def flush(self, trainer: Trainer, agree: bool = True) -> None:
+        """Log the window's means (after a resume within a window, over fewer than ``log_every`` steps).
+
+        Args:
+            agree: average the losses over the ranks (a collective: every rank must flush at the same step).
+                False after Ctrl-C, which each rank meets at its own step: rank 0's own means are logged.
+        """
         steps, start, samples = self._window
         if not steps:
             return
         values = {f"loss/{k}": float(v) / steps for k, v in self._sums.items()}
-        values = distributed.mean_scalars(trainer.dist, values)
+        if agree:
+            values = distributed.mean_scalars(trainer.dist, values)
         trainer.state.losses = {k.split("/", 1)[1]: v for k, v in values.items()}
         now = time.perf_counter()
         values["samples_per_s"] = samples / max(now - start, 1e-9)
@@ -210,7 +216,7 @@ class Checkpoints(Callback):
             self.save(trainer)
 
     def on_stop(self, trainer: Trainer, interrupted: bool) -> None:
-        self.log.flush(trainer)
+        self.log.flush(trainer, agree=not interrupted)
         self.save(trainer)
 
     def save(self, trainer: Trainer) -> None:
@@ -243,12 +249,24 @@ class Checkpoints(Callback):
 
 
 class TimeLimit(Callback):
-    """Stops the run after ``run.time_limit`` seconds (checkpointed and evaluated as at its end)."""
+    """Stops the run after ``run.time_limit`` seconds (checkpointed and evaluated as at its end).
+
+    Under DDP the ranks decide together, every :attr:`AGREE_EVERY` steps: each rank's clock started a little apart,
+    and a rank that stopped alone left the others waiting in their next all-reduce (a two-GPU run hung at the end of
+    its time slice)."""
+
+    AGREE_EVERY = 10
+    """Steps between the ranks' joint decisions (one tiny all-reduce each); a run stops at most this late."""
 
     def on_start(self, trainer: Trainer) -> None:
         limit = trainer.config.run.time_limit
         self.stop_at = time.perf_counter() + limit if limit else math.inf
 
     def on_step(self, trainer: Trainer, terms: dict[str, torch.Tensor]) -> None:
-        if time.perf_counter() > self.stop_at:
+        over = time.perf_counter() > self.stop_at
+        if trainer.dist.distributed:
+            if trainer.state.step % self.AGREE_EVERY:
+                return
+            over = distributed.any_rank(trainer.dist, over)
+        if over:
             trainer.stop = True

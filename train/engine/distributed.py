@@ -72,6 +72,15 @@ def barrier(d: Dist) -> None:
         dist.barrier()
 
 
+def any_rank(d: Dist, flag: bool) -> bool:
+    """True on every rank when ``flag`` is true on any (one all-reduce; every rank must call it at the same step)."""
+    if not d.distributed:
+        return flag
+    t = torch.tensor([1 if flag else 0], dtype=torch.int32, device=d.device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
 def mean_scalars(d: Dist, values: dict[str, float]) -> dict[str, float]:
     """The mean of each scalar over the ranks (one all-reduce for all of them)."""
     if not d.distributed or not values:
