@@ -181,8 +181,11 @@ class Trainer:
             from torch.nn.parallel import DistributedDataParallel as DDP
 
             ids = [dev.index] if dev.type == "cuda" else None
-            model = DDP(model, device_ids=ids)
-            d_model = DDP(d_model, device_ids=ids) if d_model is not None else None
+            # No broadcast of batch norm's running statistics before each forward pass: a collective there made
+            # every forward wait for the slowest rank. Training normalises with each batch's own statistics anyway;
+            # the running ones (evaluation's) are rank 0's, which the checkpoints hold.
+            model = DDP(model, device_ids=ids, broadcast_buffers=False)
+            d_model = DDP(d_model, device_ids=ids, broadcast_buffers=False) if d_model is not None else None
         if c.run.compile:
             model = torch.compile(model)
         return state, Step(model, d_model, None, self.autocast, self.timer)
