@@ -129,13 +129,16 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as d:
         ranks = _torchrun(n, [*base, "--steps", str(args.steps), "--time-limit", str(args.time_limit)], Path(d))
     r0 = ranks[0]
-    rates = r0["rates"][args.skip_windows:] or r0["rates"]
+    rates = r0["rates"][args.skip_windows:]
+    if not rates:
+        print(f"{n} GPU(s): {r0['steps']} steps, {len(r0['rates'])} logged windows, none after the "
+              f"{args.skip_windows} start-up ones: no rate (raise --time-limit or --steps)", flush=True)
     row: dict[str, Any] = {
         "gpus": n, "workers_per_rank": workers, "global_batch": r0["global_batch"], "steps": r0["steps"],
-        "samples_per_s": statistics.median(rates) if rates else 0.0,
+        "windows": len(rates), "samples_per_s": statistics.median(rates) if rates else None,
         "data_wait": [round(r["data_s"] / max(r["train_s"], 1e-9), 4) for r in ranks],
         "peak_memory_gib": max(r["peak_memory"] for r in ranks) / 2**30}
-    row["per_gpu"] = row["samples_per_s"] / n
+    row["per_gpu"] = row["samples_per_s"] / n if rates else None
     if args.profile:
         with tempfile.TemporaryDirectory() as d:
             prof = _torchrun(n, [*base, "--steps", str(args.profile_steps), "--time-limit", "0", "--profile-run",
@@ -148,9 +151,22 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any]:
                                 "--workers", str(workers), "--override", args.override, "--sim-seconds",
                                 str(args.sim_seconds)], Path(d))
         row["sim_alone_samples_per_s"] = sum(r["samples_per_s"] for r in sim)
-    print(f"{n} GPU(s), {workers} workers each: {row['samples_per_s']:.0f} samples/s ({row['per_gpu']:.0f} per GPU), "
-          f"data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB", flush=True)
+    print(f"{n} GPU(s), {workers} workers each: {_num(row['samples_per_s'])} samples/s ({_num(row['per_gpu'])} per "
+          f"GPU), data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB", flush=True)
     return row
+
+
+def _num(value: float | None) -> str:
+    """A rate for the table, or "-" where none was measured."""
+    return "-" if value is None else f"{value:.0f}"
+
+
+def _rate(row: dict[str, Any]) -> float | None:
+    """The row's samples/s, or None where the throughput run saw no logged window past its start-up (runs stored
+    before rows said how many they had: fewer than 100 steps)."""
+    if row.get("windows", 1 if row["steps"] >= 100 else 0) == 0:
+        return None
+    return row["samples_per_s"]
 
 
 def curves(args: argparse.Namespace, n: int, png: Path) -> dict[str, Any]:
@@ -188,13 +204,15 @@ def section(runs: list[dict[str, Any]]) -> str:
                   "| GPUs | workers per GPU | global batch | samples/s | per GPU | efficiency | data wait (per rank) "
                   "| peak memory (GiB) | simulator alone (samples/s) |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
-        one = next((r["per_gpu"] for r in run["rows"] if r["gpus"] == 1), None)
+        one = next((_rate(r) for r in run["rows"] if r["gpus"] == 1), None)
         for r in run["rows"]:
-            eff = f"{100 * r['per_gpu'] / one:.0f} %" if one else "-"
-            waits = ", ".join(f"{100 * w:.0f} %" for w in r["data_wait"])
+            rate = _rate(r)
+            per_gpu = None if rate is None else rate / r["gpus"]
+            eff = f"{100 * per_gpu / one:.0f} %" if one and per_gpu is not None else "-"
+            waits = ", ".join(f"{100 * w:.0f} %" for w in r["data_wait"]) if rate is not None else "-"
             sim = f"{r['sim_alone_samples_per_s']:.0f}" if "sim_alone_samples_per_s" in r else "-"
-            lines.append(f"| {r['gpus']} | {r['workers_per_rank']} | {r['global_batch']} | {r['samples_per_s']:.0f} | "
-                         f"{r['per_gpu']:.0f} | {eff} | {waits} | {r['peak_memory_gib']:.1f} | {sim} |")
+            lines.append(f"| {r['gpus']} | {r['workers_per_rank']} | {r['global_batch']} | {_num(rate)} | "
+                         f"{_num(per_gpu)} | {eff} | {waits} | {r['peak_memory_gib']:.1f} | {sim} |")
         phases = [(r["gpus"], r["phases_ms"][0]) for r in run["rows"] if r.get("phases_ms")]
         if phases:
             names = sorted({k for _, p in phases for k in p})
