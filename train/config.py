@@ -320,7 +320,9 @@ class RunConfig:
     checkpoint_every: int = 2_000
     """Steps between checkpoints (one is always written at the end and on Ctrl-C)."""
     time_limit: float = 0.0
-    """Seconds after which the run checkpoints and stops (0 = none): for machines lent in time slices."""
+    """Seconds of the training loop (from its first step, compilation included) after which the run evaluates,
+    checkpoints and stops (0 = none): for machines lent in time slices. Leave room after it for the start-up before
+    the loop and the final evaluation and checkpoint. Under DDP the ranks agree on the stop every 10 steps."""
     tensorboard: bool = True
     """Also write TensorBoard event files (when TensorBoard is installed)."""
     init: str = ""
