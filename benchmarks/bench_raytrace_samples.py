@@ -4,8 +4,7 @@ a converged reference.
 The renderer's cost per image grows with its camera rays per pixel (``samples_per_pixel``, plus ``edge_samples``
 where a pixel is on an edge) and the rays each camera ray sends (shadow, occlusion, window rays:
 ``fruxel.train.sim.raytrace.RaytraceConfig``). For each setting ``spp/edge/ao`` of ``--settings`` and the
-reference setting (8/8/8, shadow rays to every light; ``/pick``: each shadow ray to one light picked at random,
-``RaytraceConfig.pick_light``), on the furnished rooms from any camera (the simulator's own rooms and poses), in rounds
+reference setting (8/8/8), on the furnished rooms from any camera (the simulator's own rooms and poses), in rounds
 that alternate the settings' order per room: ``--images`` images of each room with the renderer's profile on
 (the device synchronised after each stage), each image with the same camera response as the reference's. Reported
 per setting: the median over rooms of milliseconds per image (tracing, filter and response stages), that time over
@@ -40,24 +39,18 @@ REFERENCE = (8, 8, 8)
 """The converged stand-in: 8 camera rays per pixel (+8 on edges), 8 occlusion rays each."""
 
 
-def parse_settings(text: str) -> list[tuple[int, int, int, bool]]:
-    """``"2/2/2,2/2/2/pick"`` -> ``[(2, 2, 2, False), (2, 2, 2, True)]`` (camera rays, edge rays, occlusion rays,
-    whether each shadow ray goes to one light picked at random: ``RaytraceConfig.pick_light``)."""
-    out = []
-    for s in text.split(","):
-        parts = s.split("/")
-        pick = len(parts) == 4 and parts[3] == "pick"
-        try:
-            counts = tuple(int(v) for v in parts[:3])
-        except ValueError:
-            counts = ()
-        if len(counts) != 3 or len(parts) not in (3, 4) or (len(parts) == 4 and not pick):
-            raise SystemExit(f"bench_raytrace_samples: --settings wants spp/edge/ao[/pick][,...], got {text!r}")
-        out.append((*counts, pick))
+def parse_settings(text: str) -> list[tuple[int, int, int]]:
+    """``"2/2/2,1/3/2"`` -> ``[(2, 2, 2), (1, 3, 2)]`` (camera rays, edge rays, occlusion rays)."""
+    try:
+        out = [tuple(int(v) for v in s.split("/")) for s in text.split(",")]
+    except ValueError:
+        out = []
+    if not out or any(len(s) != 3 for s in out):
+        raise SystemExit(f"bench_raytrace_samples: --settings wants spp/edge/ao[,spp/edge/ao...], got {text!r}")
     return out  # type: ignore[return-value]
 
 
-def measure(device: str, settings: list[tuple[int, int, int, bool]], rooms: int, images: int,
+def measure(device: str, settings: list[tuple[int, int, int]], rooms: int, images: int,
             size: int) -> tuple[list[dict[str, Any]], Any]:
     """Per setting: median ms per image over rooms and median PSNR against :data:`REFERENCE`; and the sheet."""
     import dataclasses
@@ -71,16 +64,15 @@ def measure(device: str, settings: list[tuple[int, int, int, bool]], rooms: int,
 
     cfg = make_config(size, 64, 16 * rooms, 64, camera="any", renderer="raytrace", world="home")
     sps = cfg.samples_per_scene
-    every = [*settings, (*REFERENCE, False)]
-    ms: dict[tuple[int, int, int, bool], list[float]] = {s: [] for s in every}
-    shots: dict[tuple[int, int, int, bool], list[np.ndarray]] = {s: [] for s in every}
+    every = [*settings, REFERENCE]
+    ms: dict[tuple[int, int, int], list[float]] = {s: [] for s in every}
+    shots: dict[tuple[int, int, int], list[np.ndarray]] = {s: [] for s in every}
     with SampleMaker(cfg, 0, device=device) as maker:
         for r in range(rooms):
             scene = maker.scene_of("train", r * sps)[0]
             poses = [maker.scene_of("train", r * sps + 1 + k * sps // images)[1] for k in range(images)]
             for s in (every if r % 2 == 0 else every[::-1]):
-                rt = dataclasses.replace(cfg.raytrace, samples_per_pixel=s[0], edge_samples=s[1], ao_samples=s[2],
-                                         pick_light=s[3])
+                rt = dataclasses.replace(cfg.raytrace, samples_per_pixel=s[0], edge_samples=s[1], ao_samples=s[2])
                 with RaytraceRenderer(dataclasses.replace(cfg, raytrace=rt), device) as rend:
                     rend.profile = True
                     rend.set_scene(scene)
@@ -91,8 +83,8 @@ def measure(device: str, settings: list[tuple[int, int, int, bool]], rooms: int,
     rows = []
     for s in settings:
         psnr = [10 * np.log10(255.0**2 / max(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2), 1e-12))
-                for a, b in zip(shots[s], shots[every[-1]], strict=True)]
-        rows.append({"spp": s[0], "edge": s[1], "ao": s[2], "pick_light": s[3], "image_ms": statistics.median(ms[s]),
+                for a, b in zip(shots[s], shots[REFERENCE], strict=True)]
+        rows.append({"spp": s[0], "edge": s[1], "ao": s[2], "image_ms": statistics.median(ms[s]),
                      "psnr_db": float(statistics.median(psnr)), "rooms": rooms, "images_per_room": images,
                      "image": size})
     for r in rows:
@@ -111,24 +103,22 @@ def section(runs: list[dict[str, Any]]) -> str:
              "with its sample's camera response.", ""]
     lines += [common.device_run_line(run, f"sheet `benchmarks/results/raytrace-samples-{run['tag']}.png`")
               for run in runs]
-    lines += ["", "| machine | device | image | rooms x images | camera rays | edge rays | occlusion rays | "
-              "shadow rays to | ms/image | time / first row's | PSNR vs reference (dB) |",
-              "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: |"]
+    lines += ["", "| machine | device | image | rooms x images | camera rays | edge rays | occlusion rays | ms/image | "
+              "time / first row's | PSNR vs reference (dB) |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for run in runs:
         for r in run["results"]:
-            to = "a picked light" if r.get("pick_light") else "every light"
             lines.append(f"| {run['tag']} | {run['device']} | {r['image']}^2 | {r['rooms']} x {r['images_per_room']} "
-                         f"| {r['spp']} | {r['edge']} | {r['ao']} | {to} | {r['image_ms']:.1f} | "
-                         f"{r['ms_over_first']:.2f} | {r['psnr_db']:.1f} |")
+                         f"| {r['spp']} | {r['edge']} | {r['ao']} | {r['image_ms']:.1f} | {r['ms_over_first']:.2f} | "
+                         f"{r['psnr_db']:.1f} |")
     return common.with_notes(lines, runs)
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     common.add_device_run_options(p)
-    p.add_argument("--settings", default="2/2/2,2/2/2/pick,1/3/2,1/3/2/pick",
-                   help="comma-separated camera/edge/occlusion rays, /pick: each shadow ray to one light picked at "
-                        "random (default 2/2/2,2/2/2/pick,1/3/2,1/3/2/pick)")
+    p.add_argument("--settings", default="2/2/2,1/3/2,1/3/1",
+                   help="comma-separated camera/edge/occlusion rays (default 2/2/2,1/3/2,1/3/1)")
     p.add_argument("--rooms", type=int, default=3)
     p.add_argument("--images", type=int, default=2, help="images per room and setting")
     p.add_argument("--image", type=int, default=256, help="image width in pixels (default 256)")

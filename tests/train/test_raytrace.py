@@ -212,38 +212,6 @@ def test_a_light_behind_an_occluder_casts_a_soft_shadow_where_geometry_puts_it(p
     assert penumbra(soft) >= penumbra(hard) + 2
 
 
-def test_picking_a_light_per_shadow_ray_keeps_the_image(pack_dir: Path) -> None:
-    """``pick_light``: with one light the image is bit for bit that of every light's shadow rays; with three lights
-    of other colours and strengths, one of them hidden from part of the floor by a slab, the image is the same on
-    average (many camera rays a pixel), in the lit floor, the slab's shadow and over the whole image."""
-    grey = Material((0.6, 0.6, 0.6))
-    floor = _box("floor", [-4.0, -4.0, -0.1], [4.0, 4.0, 0.0], grey, label=2)
-    slab = _box("slab", [-1.05, -0.5, 0.2], [-0.95, 0.5, 1.5], grey)
-    pose = _look([0.5, 0.0, 5.0], [0.5, 0.0, 0.0])
-
-    def light(position: list[float], colour: tuple[float, float, float], intensity: float) -> Light:
-        at = np.eye(4)
-        at[:3, 3] = position
-        return Light("point", colour, intensity, at, radius=0.1)
-
-    one = [light([-2.0, 0.0, 2.0], (1.0, 1.0, 1.0), 20.0)]
-    three = [*one, light([2.5, 1.5, 2.5], (1.0, 0.6, 0.3), 12.0), light([0.0, -2.5, 1.5], (0.3, 0.5, 1.0), 6.0)]
-
-    def image(lights: list[Light], pick: bool, spp: int) -> tuple[np.ndarray, SimConfig]:
-        config = _config(pack_dir, 48, **{**NO_AMBIENT, "samples_per_pixel": spp, "edge_samples": 0,
-                                          "pick_light": pick, "denoise_radius": 0})
-        return _radiance(config, _scene([floor, slab], lights), pose), config
-
-    assert np.array_equal(image(one, True, 2)[0], image(one, False, 2)[0])
-    every, config = image(three, False, 16)
-    picked = image(three, True, 16)[0]
-    assert not np.array_equal(picked, every)  # another estimate of the same light
-    shadow, lit = _pixel(config, pose, [0.5, 0.0, 0.0]), _pixel(config, pose, [0.5, 2.0, 0.0])
-    for rc in (shadow, lit):
-        np.testing.assert_allclose(_patch(picked, rc, 3), _patch(every, rc, 3), rtol=0.06)
-    np.testing.assert_allclose(picked.mean(axis=(0, 1)), every.mean(axis=(0, 1)), rtol=0.02)
-
-
 def test_glass_shows_the_emissive_view_behind_it(pack_dir: Path) -> None:
     """Through an opening in a wall, an emitter behind it shows at its radiance; glass in the opening lets
     ``(1 - opacity) (1 - F)`` of it through (F = 0.04 head on); an opaque pane hides it."""
@@ -642,11 +610,6 @@ def test_config_serialises_without_changing_default_digests() -> None:
     d = traced.to_dict()
     assert d["raytrace"]["samples_per_pixel"] == 3 and d["raytrace"]["response"]["steps"] == ["exposure", "jpeg"]
     assert SimConfig.from_dict(d) == traced and traced.digest() != SimConfig(renderer="raytrace").digest()
-    # A raytrace config as data sets recorded it before pick_light: the same digest, read back as it was made.
-    assert SimConfig(renderer="raytrace").digest() == "100e7faca40e6cb6246154210d5ed484345bcb60cfb44394f3bfb9e73537e6ca"
-    picked = SimConfig(renderer="raytrace", raytrace=RaytraceConfig(pick_light=True))
-    assert SimConfig.from_dict(picked.to_dict()) == picked
-    assert picked.digest() != SimConfig(renderer="raytrace").digest()
     tuned = plain.replace(raytrace=RaytraceConfig(ao_samples=2))
     assert SimConfig.from_dict(tuned.to_dict()) == tuned
     with pytest.raises(ConfigError, match="samples_per_pixel must be an integer in"):

@@ -395,16 +395,9 @@ class SimConfig:
 
 
 def _plain(obj: Any) -> Any:
-    """Dataclasses, tuples and numpy scalars as plain JSON values (dataclasses become dictionaries).
-
-    A dataclass's field named in its ``OMITTED_WHEN`` is left out while it holds the value given there: a field
-    added after data sets recorded the class, whose old behaviour is that value, so that their configs keep their
-    digests (the class's ``RECORDED_BEFORE`` reads it back).
-    """
+    """Dataclasses, tuples and numpy scalars as plain JSON values (dataclasses become dictionaries)."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        omitted = getattr(type(obj), "OMITTED_WHEN", {})
-        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)
-                if not (f.name in omitted and getattr(obj, f.name) == omitted[f.name])}
+        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, (tuple, list)):
         return [_plain(v) for v in obj]
     if isinstance(obj, np.ndarray):

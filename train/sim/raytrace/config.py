@@ -8,7 +8,7 @@ a data set whose config names the ``"raytrace"`` renderer.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
@@ -118,13 +118,7 @@ class RaytraceConfig:
     """More camera rays at pixels on an edge (anti-aliasing where it shows), 0-14; at most 16 rays a pixel in
     all."""
     shadow_samples: int = 1
-    """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft); with
-    :attr:`pick_light`, per camera ray whatever the number of lights."""
-    pick_light: bool = False
-    """Each shadow ray goes to one light picked at random, in proportion to the light it would bring unshadowed,
-    and brings that light divided by the chance (unbiased: the same image on average, with some grain where
-    several lights are shadowed differently); False: every light gets its shadow rays, so the cost grows with
-    the lights that are on."""
+    """Shadow rays per light and camera ray, 1-16 (a light's size makes its shadows soft)."""
     ao_samples: int = 2
     """Ambient-occlusion rays per camera ray, 0-16 (0: the ambient light is not occluded)."""
     window_samples: int = 1
@@ -152,18 +146,10 @@ class RaytraceConfig:
     response: CameraResponseConfig = field(default_factory=CameraResponseConfig)
     """The camera response applied to every image."""
 
-    RECORDED_BEFORE: ClassVar[dict[str, Any]] = {"pick_light": False}
-    """Fields added after data sets recorded this config, with what those data sets were made with."""
-    OMITTED_WHEN: ClassVar[dict[str, Any]] = {"pick_light": False}
-    """Fields left out of the recorded config while they hold these values: the configs of data sets made before
-    them keep their digests."""
-
     def __post_init__(self) -> None:
         _check_int("samples_per_pixel", self.samples_per_pixel, 1, 16)
         _check_int("edge_samples", self.edge_samples, 0, 16 - self.samples_per_pixel)
         _check_int("shadow_samples", self.shadow_samples, 1, 16)
-        if not isinstance(self.pick_light, bool):
-            raise ConfigError(f"pick_light must be true or false, got {self.pick_light!r}")
         _check_int("ao_samples", self.ao_samples, 0, 16)
         _check_int("window_samples", self.window_samples, 0, 16)
         _check_int("glass_layers", self.glass_layers, 0, 8)

@@ -103,56 +103,16 @@ def direct_light(scene: SceneData, light: LightData, p: wp.vec3, n: wp.vec3, g: 
     return wp.vec4(e[0], e[1], e[2], wp.max(wp.dot(n, s.centre), 0.0))
 
 
-PICK_FLOOR = wp.constant(0.05)
-"""Added to the cosine a light is picked by, so that a light the centre's direction puts behind a surface, whose
-sampled points may still light it at a grazing angle, keeps a chance (the estimate stays unbiased)."""
-R1 = wp.constant(0.6180339887498949)
-"""The golden ratio's step: the additive recurrence of the pixel's light choices (:func:`stratified`)."""
-
-
-@wp.func
-def pick_weight(light: LightData, p: wp.vec3, n: wp.vec3) -> float:
-    """The weight ``light`` is picked by at world point ``p`` (shading normal ``n``): the luminance of its
-    irradiance from its centre, unshadowed, times the cosine there plus :data:`PICK_FLOOR`; 0 only where it brings
-    nothing (a spot light's outside its cone)."""
-    s = sample_light(light, p, 0.5, 0.5)
-    lum = 0.2126 * s.irradiance[0] + 0.7152 * s.irradiance[1] + 0.0722 * s.irradiance[2]
-    return wp.max(lum, 0.0) * (wp.max(wp.dot(n, s.centre), 0.0) + PICK_FLOOR)
-
-
-@wp.func
-def picked_light(scene: SceneData, p: wp.vec3, n: wp.vec3, u: float) -> int:
-    """The light whose share of the pick weights' running sum holds ``u`` (in ``[0, total)``); the last light of
-    positive weight when rounding leaves ``u`` past the sum."""
-    chosen = int(-1)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    last = int(-1)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    acc = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    for li in range(scene.lights.shape[0]):
-        w = pick_weight(scene.lights[li], p, n)
-        if w > 0.0:
-            last = li
-            acc += w
-            if chosen < 0 and u < acc:
-                chosen = li
-    if chosen < 0:
-        chosen = last
-    return chosen
-
-
 @wp.kernel
-def shade_lights_kernel(scene: SceneData, width: int, spp: int, shadow_samples: int, pick: int, seed: int,
+def shade_lights_kernel(scene: SceneData, width: int, spp: int, shadow_samples: int, seed: int,
                         rays: RayBuffers):
     """One thread sums the light reaching camera ray ``k`` of pixel ``(x, y)``'s surface: ``rays.diffuse`` (the
     lights' irradiance, vec3) and ``rays.specular`` (their reflected specular radiance, vec3) at entry
     ``(y * W + x) * spp + k``; zero where the ray found no lit surface.
 
-    ``pick`` 0: each of ``shadow_samples`` samples goes to every light. ``pick`` 1: each sample goes to one light,
-    picked in proportion to :func:`pick_weight` and its light divided by that chance (one shadow ray a sample
-    however many lights are on; unbiased; a single light gives the same image as ``pick`` 0).
-
     Launch dims ``(H, W, spp)``. Reads ``rays`` flag, pos, normal, geometric, view, albedo, rough_metal (world
-    frame); ``scene.lights`` ``(L,)``; ``seed``: this kernel's seed (one random stream per pixel: two numbers per
-    light, or with ``pick`` two and then one for the choices).
+    frame); ``scene.lights`` ``(L,)``; ``shadow_samples`` shadow rays per light; ``seed``: this kernel's seed
+    (one random stream per pixel, two numbers per light).
     """
     y, x, k = wp.tid()
     pixel = y * width + x
@@ -172,29 +132,6 @@ def shade_lights_kernel(scene: SceneData, width: int, spp: int, shadow_samples: 
     alpha = rm[0] * rm[0]
     r = wp.rand_init(seed, pixel)
     scale = 1.0 / float(shadow_samples)
-    if pick != 0:
-        total = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-        for li in range(scene.lights.shape[0]):
-            total += pick_weight(scene.lights[li], p, n)
-        if total > 0.0:
-            # The first two numbers are those the first light draws without picking: one light, the same image.
-            rot1 = wp.randf(r)
-            rot2 = wp.randf(r)
-            rot0 = wp.randf(r)
-            for s in range(shadow_samples):
-                j = k * shadow_samples + s
-                li = picked_light(scene, p, n, stratified(rot0, j, R1) * total)
-                light = scene.lights[li]
-                e = direct_light(scene, light, p, n, g, stratified(rot1, j, R2_1), stratified(rot2, j, R2_2))
-                irr = wp.vec3(e[0], e[1], e[2]) * (scale * total / pick_weight(light, p, n))
-                diffuse += irr
-                if e[3] > 0.0:
-                    ls = sample_light(light, p, 0.5, 0.5)
-                    wide = wp.min(1.0, alpha + 0.5 * ls.spread)
-                    specular += wp.cw_mul(ggx_specular(n, v, ls.centre, wide, f0), irr)
-        rays.diffuse[i] = diffuse
-        rays.specular[i] = specular
-        return
     for li in range(scene.lights.shape[0]):
         light = scene.lights[li]
         rot1 = wp.randf(r)
@@ -212,9 +149,7 @@ def shade_lights_kernel(scene: SceneData, width: int, spp: int, shadow_samples: 
     rays.specular[i] = specular
 
 
-def shade_lights(scene: Any, buffers: Buffers, shadow_samples: int, pick: bool, seed: int, device: str) -> None:
-    """Launch :func:`shade_lights_kernel` for one image (after :func:`.primary.trace_primary`); ``pick``: each
-    shadow sample goes to one light picked at random (``RaytraceConfig.pick_light``)."""
+def shade_lights(scene: Any, buffers: Buffers, shadow_samples: int, seed: int, device: str) -> None:
+    """Launch :func:`shade_lights_kernel` for one image (after :func:`.primary.trace_primary`)."""
     wp.launch(shade_lights_kernel, dim=(buffers.height, buffers.width, buffers.spp), device=device,
-              inputs=[scene, buffers.width, buffers.spp, int(shadow_samples), int(bool(pick)), int(seed),
-                      buffers.rays])
+              inputs=[scene, buffers.width, buffers.spp, int(shadow_samples), int(seed), buffers.rays])

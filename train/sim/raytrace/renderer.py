@@ -226,7 +226,7 @@ class RaytraceRenderer:
         trace_primary(room.data, b, pose, (cam.fx, cam.fy, cam.cx, cam.cy), irradiance / np.pi, seeds[0], spp,
                       self.device)
         t1 = self._mark("primary", t0)
-        shade_lights(room.data, b, rt.shadow_samples, rt.pick_light, seeds[1], self.device)
+        shade_lights(room.data, b, rt.shadow_samples, seeds[1], self.device)
         t2 = self._mark("lights", t1)
         trace_ambient(room.data, b, rt.ao_samples, rt.window_samples, rt.ao_distance, seeds[2], self.device)
         t3 = self._mark("occlusion", t2)
