@@ -181,7 +181,7 @@ class Trainer:
             from torch.nn.parallel import DistributedDataParallel as DDP
 
             ids = [dev.index] if dev.type == "cuda" else None
-            # No broadcast of batch norm's running statistics before each forward pass: a collective there made
+            # No broadcast of batch norm's running statistics before each forward pass: that collective makes
             # every forward wait for the slowest rank. Training normalises with each batch's own statistics anyway;
             # the running ones (evaluation's) are rank 0's, which the checkpoints hold.
             model = DDP(model, device_ids=ids, broadcast_buffers=False)
