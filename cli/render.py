@@ -125,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="MODEL may be a .npz fruxel model or logits file (fruxel.save_logits), or a bare logits tensor "
         "(C,D,H,W) in .npy/.pt, which takes its grid from --grid, a .pt dict {'logits', 'grid'} or a JSON sidecar "
         "X.json beside X.npy. Default view: "
-        "oblique, 30 deg right and 35 deg above the grid camera's side, fitted to the frustum.",
+        "oblique, 30 deg right and 35 deg above the grid camera's side, fitted to the model's occupied cells (to "
+        "the frustum with --frustum or when the model is empty).",
     )
     p.add_argument("model", nargs="?", metavar="MODEL",
                    help="model or logits .npz, a logits tensor .npy/.pt, or a photo (.png, .jpg, ...) to predict a "
@@ -698,7 +699,10 @@ def run_render(args: argparse.Namespace) -> list[Path]:
     from fruxel.render.frames import DEFAULT_SIZE, default_camera
 
     if photo is None:
-        camera = given_camera or default_camera(inp.grid, *(args.size or DEFAULT_SIZE))
+        # Fitted to what the model holds: a model of a near wall fills a tenth of a view fitted to the frustum,
+        # in its corner. With --frustum drawn, the frustum is what must fit.
+        points = None if opts.frustum else frames.model_points()
+        camera = given_camera or default_camera(inp.grid, *(args.size or DEFAULT_SIZE), points=points)
     else:
         from fruxel.render.compare import PhotoComparison
 

@@ -17,7 +17,8 @@ into labels for the mesh.
 
 Views (:func:`fruxel.camera.look_at_grid` frames them all): the default still view stands 30 degrees right of
 and 35 degrees above the grid camera's side with a 50 degree field of view, at the distance where the whole
-frustum just fits the image, aimed so that the frustum's image is centred; :func:`orbit` turns one circle at
+frustum (or the points given, such as the model's occupied cells, as ``fruxel-render`` does) just fits the
+image, aimed so that their image is centred; :func:`orbit` turns one circle at
 that elevation around the model's occupied cells, at the distance where they fit every frame.
 """
 

@@ -21,12 +21,14 @@ import fruxel
 from fruxel import kernels
 from fruxel.cli.render import main
 from fruxel.data import SAMPLE_ROOM
-from fruxel.render.frames import default_camera
+from fruxel.render.frames import default_camera, occupied_points
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = "96x72"
 BACKEND = "warp" if any(b.startswith("warp") for b in kernels.available_backends()) else "opencl"
 MODEL = fruxel.load(SAMPLE_ROOM)
+VIEW = default_camera(MODEL.grid, 96, 72, points=occupied_points(MODEL.labels, MODEL.grid))
+"""The default view of the sample room at :data:`SIZE`: fitted to its occupied cells."""
 PALETTE = MODEL.classes.palette()
 WALL, FLOOR, FURNITURE = (MODEL.classes.index(n) for n in ("wall", "floor", "furniture"))
 HEAVY = ("torch", "warp", "pyrender", "pyopencl", "OpenGL")
@@ -141,7 +143,7 @@ def test_raycast_image_is_first_hit(tmp_path: Path) -> None:
     assert run_cli("--backend", BACKEND, "--mode", "raycast", "--shading", "flat", "--no-legend", "--size", SIZE,
                    "--out", tmp_path) == 0
     img = read_png(tmp_path / "sample_room_raycast.png")
-    hits = kernels.first_hit(MODEL.labels, MODEL.grid, default_camera(MODEL.grid, 96, 72), backend=BACKEND)
+    hits = kernels.first_hit(MODEL.labels, MODEL.grid, VIEW, backend=BACKEND)
     expected = np.where((hits.label != 0)[..., None], PALETTE[hits.label], 255)
     assert np.array_equal(img, expected)
 
@@ -566,7 +568,7 @@ def test_raycast_shows_the_shell_asked_for(tmp_path: Path) -> None:
     assert not np.array_equal(images["own"], images["none"]) and not np.array_equal(images["poses"], images["none"])
     # The own-view shell keeps only what the grid camera sees: the ray cast through it shows less of the model.
     hits = kernels.first_hit(kernels.shell(MODEL.labels, MODEL.grid, MODEL.grid.camera(), backend=BACKEND),
-                             MODEL.grid, default_camera(MODEL.grid, 96, 72), backend=BACKEND)
+                             MODEL.grid, VIEW, backend=BACKEND)
     np.testing.assert_array_equal(images["own"], np.where((hits.label != 0)[..., None], PALETTE[hits.label], 255))
 
 
@@ -587,6 +589,27 @@ def test_orbit_frames_the_model(tmp_path: Path) -> None:
             # centre of the model's bounding box, so perspective moves its image a little).
             assert max((x1 - x0) / 120, (y1 - y0) / 90) > 0.6
             assert abs((x0 + x1) / 2 - 60) < 0.15 * 120 and abs((y0 + y1) / 2 - 45) < 0.15 * 90
+
+
+def test_default_view_frames_the_model_and_with_frustum_the_frustum(tmp_path: Path) -> None:
+    """A model that holds only cells near the camera (a photo of a near wall) fills the default view, about
+    centred; with --frustum the view fits the frustum, where the same model is small."""
+    labels = np.zeros_like(MODEL.labels)
+    near = (slice(0, 16), slice(None), slice(None))  # the 16 nearest depth slices
+    labels[near] = MODEL.labels[near]
+    labels[12:16][labels[12:16] == 0] = WALL
+    fruxel.save(tmp_path / "near.npz", fruxel.FruxelModel(labels, MODEL.grid, MODEL.classes))
+    spans = {}
+    for extra in ([], ["--frustum"]):
+        out = tmp_path / f"near{len(extra)}.png"
+        assert run_cli(tmp_path / "near.npz", "--backend", BACKEND, "--mode", "raycast", "--shading", "flat",
+                       "--no-legend", "--size", "120x90", *extra, "--out", out) == 0
+        fg = np.argwhere(np.any(read_png(out) != 255, axis=-1))
+        (y0, x0), (y1, x1) = fg.min(axis=0), fg.max(axis=0)
+        spans[bool(extra)] = max((x1 - x0) / 120, (y1 - y0) / 90)
+        if not extra:
+            assert abs((x0 + x1) / 2 - 60) < 0.15 * 120 and abs((y0 + y1) / 2 - 45) < 0.15 * 90
+    assert spans[False] > 0.7 and spans[True] < 0.6 * spans[False]
 
 
 def test_view_shell_frames_shade_each_new_mesh_once(monkeypatch: pytest.MonkeyPatch) -> None:
