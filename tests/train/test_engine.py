@@ -320,6 +320,8 @@ def _ddp_rank(rank: int, world: int, port: int, config_json: str, batch_file: st
     trainer = Trainer(config, out, device="cpu", progress=False)
     state, step = trainer.build()
     assert isinstance(step.model, DistributedDataParallel) and trainer.dist.world == world
+    # No buffer sync before each forward (a wait for the slowest rank); the attribute's name is torch's older one.
+    assert step.model.broadcast_buffers is False
     batch = torch.load(batch_file, weights_only=True)
     per = len(batch["image"]) // world
     half = slice(rank * per, (rank + 1) * per)

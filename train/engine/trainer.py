@@ -178,14 +178,9 @@ class Trainer:
             model = channels_last(network)
         d_model = state.discriminator
         if self.dist.distributed:
-            from torch.nn.parallel import DistributedDataParallel as DDP
-
             ids = [dev.index] if dev.type == "cuda" else None
-            # No broadcast of batch norm's running statistics before each forward pass: that collective makes
-            # every forward wait for the slowest rank. Training normalises with each batch's own statistics anyway;
-            # the running ones (evaluation's) are rank 0's, which the checkpoints hold.
-            model = DDP(model, device_ids=ids, broadcast_buffers=False)
-            d_model = DDP(d_model, device_ids=ids, broadcast_buffers=False) if d_model is not None else None
+            model = _ddp(model, ids)
+            d_model = _ddp(d_model, ids) if d_model is not None else None
         if c.run.compile:
             model = torch.compile(model)
         return state, Step(model, d_model, None, self.autocast, self.timer)
@@ -395,6 +390,23 @@ def train(config: TrainConfig, run_dir: str, *, resume: bool = False, device: st
         return trainer.fit()
     finally:
         distributed.teardown()
+
+
+def _ddp(module: torch.nn.Module, device_ids: list[int] | None) -> torch.nn.Module:
+    """``module`` in DistributedDataParallel without the sync of its buffers before each forward pass.
+
+    That sync (of batch norm's running statistics) is a collective where every forward waits for the slowest rank.
+    Training normalises with each batch's own statistics anyway; the running ones (evaluation's) are rank 0's,
+    which the checkpoints hold. torch 2.13 names the switch ``forward_sync_buffers`` (still syncing once at the
+    start); earlier versions ``broadcast_buffers``.
+    """
+    import inspect
+
+    from torch.nn.parallel import DistributedDataParallel as DDP
+
+    names = inspect.signature(DDP.__init__).parameters
+    off = {"forward_sync_buffers": False} if "forward_sync_buffers" in names else {"broadcast_buffers": False}
+    return DDP(module, device_ids=device_ids, **off)
 
 
 def _by_class(theirs: torch.Tensor, own: torch.Tensor, their_names: Sequence[str],
