@@ -101,7 +101,7 @@ def test_a_furnished_room_labels_its_pieces_by_their_solids(pack_dir: Path, tmp_
     open_pack = [o for o in scene.objects if o.asset and o.solid and lib.solid(o.asset) is not None]
     assert open_pack, "the tiny pack's room has no piece from an open mesh"
     for o in open_pack:
-        assert o.label_mesh is not None
+        assert o.label_mesh is not None and solids.is_closed(*o.label_mesh), o.name
         # a solid: its faces enclose a positive volume (wound outwards), whatever the pack mesh's winding was
         tri = o.label_mesh[0][o.label_mesh[1]]
         assert np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6 > 1e-4

@@ -155,15 +155,15 @@ def _label_meshes(pieces: list[Piece], lib: Library, thickness: float, filled: b
     bases: list[tuple[np.ndarray, np.ndarray, bool]] = []
     for p in pieces:
         v, f = np.asarray(p.vertices, dtype=np.float64), np.asarray(p.faces, dtype=np.int64)
-        filled = False
+        is_filled = False
         if filled and p.solid and p.prop is not None and p.prop.asset:
             solid = lib.solid(p.prop.asset)
             m = None if solid is None else affine_map(lib.prop(p.prop.asset).vertices, v)
             if m is not None:
-                v, f, filled = np.column_stack([solid[0], np.ones(len(solid[0]))]) @ m, solid[1], True
-        bases.append((v, f, filled))
+                v, f, is_filled = np.column_stack([solid[0], np.ones(len(solid[0]))]) @ m, solid[1], True
+        bases.append((v, f, is_filled))
     thin = [k for k, p in enumerate(pieces) if p.solid and p.label in THICKENED_LABELS]
-    out: list[tuple[np.ndarray, np.ndarray] | None] = [(v, f) if filled else None for v, f, filled in bases]
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [(v, f) if is_filled else None for v, f, is_filled in bases]
     if thin:
         offsets = np.cumsum([0] + [len(bases[k][0]) for k in thin])
         stacked = thicken_slabs(np.concatenate([bases[k][0] for k in thin]),
