@@ -698,19 +698,17 @@ def run_render(args: argparse.Namespace) -> list[Path]:
     pictures: Any = frames
     from fruxel.render.frames import DEFAULT_SIZE, default_camera
 
-    if photo is None:
-        # Fitted to what the model holds: a model of a near wall fills a tenth of a view fitted to the frustum,
-        # in its corner. With --frustum drawn, the frustum is what must fit.
-        points = None if opts.frustum else frames.model_points()
-        camera = given_camera or default_camera(inp.grid, *(args.size or DEFAULT_SIZE), points=points)
-    else:
+    if photo is not None:
         from fruxel.render.compare import PhotoComparison
 
         truth = FrameRenderer(photo.truth, opts) if photo.truth is not None else None
         pictures = PhotoComparison(photo.framed, frames, truth, title=photo.title,
                                    headings=("photo, in the model's view", "SSZ prediction", "ground truth"))
-        # Fitted to what the models hold: the grid's far end is mostly empty.
-        camera = given_camera or default_camera(inp.grid, *(args.size or PHOTO_SIZE), points=pictures.model_points())
+    # Views fit what the models hold: the grid's far end is mostly empty, and a model of a near wall filled a tenth
+    # of a view fitted to the frustum, in its corner. A still view with --frustum drawn fits the frustum.
+    points = pictures.model_points() if given_camera is None or args.orbit is not None else None
+    size = args.size or (DEFAULT_SIZE if photo is None else PHOTO_SIZE)
+    camera = given_camera or default_camera(inp.grid, *size, points=None if photo is None and opts.frustum else points)
     if target is None:
         open_viewer(inp, opts, camera)
         return []
@@ -718,7 +716,7 @@ def run_render(args: argparse.Namespace) -> list[Path]:
     if args.orbit is not None:
         from tqdm import tqdm
 
-        cams = orbit(inp.grid, camera, args.orbit, points=pictures.model_points())
+        cams = orbit(inp.grid, camera, args.orbit, points=points)
         # stderr, like the error lines; the bar disappears when done so scripts see only the written paths.
         images = pictures.images(tqdm(cams, desc="orbit", unit="frame", leave=False, disable=None))
         keep = [(255, 255, 255), *inp.classes.palette()[1:]]
