@@ -11,6 +11,13 @@ backward with DDP's all-reduce, optimiser; the profiler synchronises at each bou
 ``--sim-alone`` also times the simulator streaming alone on every rank at once (no training), which tells whether
 the simulator or the GPU limits a run.
 
+``--variants`` measures other ways of compiling the network beside the engine's own (``split``), each on every
+GPU count: ``whole`` (``torch._dynamo.config.optimize_ddp`` off: the DDP-wrapped network compiled as one graph,
+DDP's all-reduce after the backward), ``inside`` (DDP around the compiled network: the same compilation as on one
+GPU) and ``cudagraphs`` (``inside`` with ``mode="reduce-overhead"``: CUDA graphs replay the compiled network's
+kernels). On one GPU ``whole`` and ``inside`` are ``split``, so their 1-GPU rows are left out. Experiments of
+issue 37: the engine keeps ``split`` until one of them is measured better.
+
 ``--curves`` trains 1 GPU and N GPUs at the same global batch for ``--curve-steps`` steps and draws both loss
 curves in one PNG (the DDP run must learn as the single-GPU run does).
 
@@ -52,10 +59,12 @@ def rank_run(args: argparse.Namespace) -> None:
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
+    compiled_inside = _apply_variant(args.variant, world)
     changes = {"data": {"workers": int(args.workers), "frequency_samples": 64},
                "run": {"steps": args.steps, "batch_size": args.batch_per_gpu * world if not args.global_batch
                        else args.global_batch, "eval_every": 0, "checkpoint_every": 0, "log_every": args.log_every,
-                       "tensorboard": False, "time_limit": args.time_limit}}
+                       "tensorboard": False, "time_limit": args.time_limit,
+                       **({"compile": False} if compiled_inside else {})}}
     config = override(override(preset(args.preset), changes, ""), json.loads(args.override), "")
     torch.cuda.reset_peak_memory_stats() if torch.cuda.is_available() else None
     trainer = Trainer(config, args.run_dir, device="cuda" if torch.cuda.is_available() else "cpu",
@@ -68,6 +77,41 @@ def rank_run(args: argparse.Namespace) -> None:
            "workers": config.data.workers, "global_batch": config.run.batch_size, "losses": _loss_rows(args.run_dir)
            if rank == 0 else []}
     Path(args.json.format(rank=rank)).write_text(json.dumps(out) + "\n", encoding="utf-8")
+
+
+VARIANTS = ("split", "whole", "inside", "cudagraphs")
+"""Ways of compiling the trained network (see the module's docstring); ``split`` is the engine's own."""
+
+
+def _apply_variant(variant: str, world: int) -> bool:
+    """Set this rank's process up for ``variant``; whether the network is now compiled inside DDP (then the trainer
+    must not compile the DDP-wrapped network again)."""
+    import functools
+
+    import torch
+
+    from fruxel.train.engine import trainer
+
+    mode = {"cudagraphs": "reduce-overhead"}.get(variant)
+    if mode:
+        from fruxel.train.engine.step import Step
+
+        step = Step.__call__
+
+        def marked(self: Step, *a: Any, **k: Any) -> Any:
+            torch.compiler.cudagraph_mark_step_begin()  # each step's graphs may reuse the last step's memory
+            return step(self, *a, **k)
+
+        Step.__call__ = marked
+    if variant == "whole":
+        torch._dynamo.config.optimize_ddp = False
+    if variant in ("inside", "cudagraphs") and world > 1:
+        plain = trainer._ddp
+        trainer._ddp = lambda module, ids: plain(torch.compile(module, mode=mode), ids)
+        return True
+    if mode:
+        torch.compile = functools.partial(torch.compile, mode=mode)
+    return False
 
 
 def _loss_rows(run_dir: str) -> list[tuple[int, float]]:
@@ -121,11 +165,12 @@ def _workers(args: argparse.Namespace, n: int) -> int:
     return max(1, (common.usable_cores() - n) // n)
 
 
-def measure(args: argparse.Namespace, n: int) -> dict[str, Any]:
-    """Throughput, data wait, peak memory and (profiled) phases of training on ``n`` GPUs."""
+def measure(args: argparse.Namespace, n: int, variant: str = "split") -> dict[str, Any]:
+    """Throughput, data wait, peak memory and (profiled) phases of training on ``n`` GPUs, the network compiled as
+    ``variant`` says."""
     workers = _workers(args, n)
     base = ["--rank-run", "--preset", args.preset, "--batch-per-gpu", str(args.batch_per_gpu), "--workers",
-            str(workers), "--override", args.override, "--log-every", str(args.log_every)]
+            str(workers), "--override", args.override, "--log-every", str(args.log_every), "--variant", variant]
     with tempfile.TemporaryDirectory() as d:
         ranks = _torchrun(n, [*base, "--steps", str(args.steps), "--time-limit", str(args.time_limit)], Path(d))
     r0 = ranks[0]
@@ -134,7 +179,8 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any]:
         print(f"{n} GPU(s): {r0['steps']} steps, {len(r0['rates'])} logged windows, none after the "
               f"{args.skip_windows} start-up ones: no rate (raise --time-limit or --steps)", flush=True)
     row: dict[str, Any] = {
-        "gpus": n, "workers_per_rank": workers, "global_batch": r0["global_batch"], "steps": r0["steps"],
+        "gpus": n, "variant": variant, "workers_per_rank": workers, "global_batch": r0["global_batch"],
+        "steps": r0["steps"],
         "windows": len(rates), "samples_per_s": statistics.median(rates) if rates else None,
         "data_wait": [round(r["data_s"] / max(r["train_s"], 1e-9), 4) for r in ranks],
         "peak_memory_gib": max(r["peak_memory"] for r in ranks) / 2**30}
@@ -151,8 +197,9 @@ def measure(args: argparse.Namespace, n: int) -> dict[str, Any]:
                                 "--workers", str(workers), "--override", args.override, "--sim-seconds",
                                 str(args.sim_seconds)], Path(d))
         row["sim_alone_samples_per_s"] = sum(r["samples_per_s"] for r in sim)
-    print(f"{n} GPU(s), {workers} workers each: {_num(row['samples_per_s'])} samples/s ({_num(row['per_gpu'])} per "
-          f"GPU), data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB", flush=True)
+    print(f"{n} GPU(s), {variant}, {workers} workers each: {_num(row['samples_per_s'])} samples/s "
+          f"({_num(row['per_gpu'])} per GPU), data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB",
+          flush=True)
     return row
 
 
@@ -204,14 +251,15 @@ def section(runs: list[dict[str, Any]]) -> str:
                   "| GPUs | workers per GPU | global batch | samples/s | per GPU | efficiency | data wait (per rank) "
                   "| peak memory (GiB) | simulator alone (samples/s) |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
-        one = next((_rate(r) for r in run["rows"] if r["gpus"] == 1), None)
+        variants = any(r.get("variant", "split") != "split" for r in run["rows"])
         for r in run["rows"]:
-            rate = _rate(r)
+            rate, one = _rate(r), _one_gpu_rate(run["rows"], r.get("variant", "split"))
             per_gpu = None if rate is None else rate / r["gpus"]
             eff = f"{100 * per_gpu / one:.0f} %" if one and per_gpu is not None else "-"
             waits = ", ".join(f"{100 * w:.0f} %" for w in r["data_wait"]) if rate is not None else "-"
             sim = f"{r['sim_alone_samples_per_s']:.0f}" if "sim_alone_samples_per_s" in r else "-"
-            lines.append(f"| {r['gpus']} | {r['workers_per_rank']} | {r['global_batch']} | {_num(rate)} | "
+            gpus = f"{r['gpus']} ({r.get('variant', 'split')})" if variants else str(r["gpus"])
+            lines.append(f"| {gpus} | {r['workers_per_rank']} | {r['global_batch']} | {_num(rate)} | "
                          f"{_num(per_gpu)} | {eff} | {waits} | {r['peak_memory_gib']:.1f} | {sim} |")
         phases = [(r["gpus"], r["phases_ms"][0]) for r in run["rows"] if r.get("phases_ms")]
         if phases:
@@ -224,6 +272,16 @@ def section(runs: list[dict[str, Any]]) -> str:
             lines += ["", f"![loss curves]({run['curves_png']})"]
         lines += [""] + [f"- {n}" for n in run.get("notes", [])] + [""]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _one_gpu_rate(rows: list[dict[str, Any]], variant: str) -> float | None:
+    """The 1-GPU samples/s that ``variant``'s rows are compared with: its own 1-GPU row, else ``split``'s (which
+    compiles one GPU's network as ``whole`` and ``inside`` do)."""
+    for name in (variant, "split"):
+        rate = next((_rate(r) for r in rows if r["gpus"] == 1 and r.get("variant", "split") == name), None)
+        if rate is not None:
+            return rate
+    return None
 
 
 def report() -> None:
@@ -239,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-per-gpu", type=int, default=32)
     p.add_argument("--global-batch", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--workers", default="auto", help="simulator processes per rank (auto: cores shared out)")
+    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=["split"],
+                   help="ways of compiling the network to measure (split: the engine's own)")
+    p.add_argument("--variant", choices=VARIANTS, default="split", help=argparse.SUPPRESS)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--time-limit", type=float, default=0.0, help="seconds a throughput run may train (0: none)")
     p.add_argument("--log-every", type=int, default=20)
@@ -275,8 +336,10 @@ def main(argv: list[str] | None = None) -> int:
                                           "cpu": common.cpu_description()},
                               "rows": []}
     # Written again after each GPU count, so that a run cut short (a lent machine's time limit) keeps what it measured.
-    for n in args.gpus:
-        result["rows"].append(measure(args, n))
+    for variant, n in ((v, n) for v in args.variants for n in args.gpus):
+        if n == 1 and variant in ("whole", "inside"):
+            continue  # on one GPU these compile the network as split does
+        result["rows"].append(measure(args, n, variant))
         common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
     if args.curves and max(args.gpus) > 1:
         png = Path(f"{out}-curves.png")
