@@ -11,12 +11,15 @@ backward with DDP's all-reduce, optimiser; the profiler synchronises at each bou
 ``--sim-alone`` also times the simulator streaming alone on every rank at once (no training), which tells whether
 the simulator or the GPU limits a run.
 
-``--variants`` measures other ways of compiling the network beside the engine's own (``split``), each on every
-GPU count: ``whole`` (``torch._dynamo.config.optimize_ddp`` off: the DDP-wrapped network compiled as one graph,
+``--variants`` measures other ways of running the step beside the engine's own (``split``), each on every GPU
+count: ``whole`` (``torch._dynamo.config.optimize_ddp`` off: the DDP-wrapped network compiled as one graph,
 DDP's all-reduce after the backward), ``inside`` (DDP around the compiled network: the same compilation as on one
 GPU) and ``cudagraphs`` (``inside`` with ``mode="reduce-overhead"``: CUDA graphs replay the compiled network's
-kernels). On one GPU ``whole`` and ``inside`` are ``split``, so their 1-GPU rows are left out. Experiments of
-issue 37: the engine keeps ``split`` until one of them is measured better.
+kernels), and ``gcfreeze`` (``split`` with ``gc.freeze()`` after the start-up windows: the objects made until then,
+most of them the compiler's, leave the garbage collector's generations, whose collections stall one rank at a time).
+On one GPU ``whole`` and ``inside`` are ``split``, so their 1-GPU rows are left out. Experiments of issue 37: the
+engine keeps ``split`` until one of them is measured better. Each rank also records the time between its steps and
+its collections (``StepClock``): a rank that stalls makes the others wait at the next all-reduce.
 
 ``--curves`` trains 1 GPU and N GPUs at the same global batch for ``--curve-steps`` steps and draws both loss
 curves in one PNG (the DDP run must learn as the single-GPU run does).
@@ -69,9 +72,13 @@ def rank_run(args: argparse.Namespace) -> None:
     torch.cuda.reset_peak_memory_stats() if torch.cuda.is_available() else None
     trainer = Trainer(config, args.run_dir, device="cuda" if torch.cuda.is_available() else "cpu",
                       progress=False, profile=args.profile_run, warm=args.warm, evaluation=False, overwrite=True)
+    clock = StepClock(freeze_at=args.skip_windows * args.log_every if args.variant == "gcfreeze" else None)
+    trainer.callbacks.append(clock)
     t = time.perf_counter()
     result = trainer.fit()
-    out = {"rank": rank, "world": world, "steps": result.step, "samples": result.samples,
+    skip = args.skip_windows * args.log_every
+    out = {"rank": rank, "step_ms": clock.percentiles(skip), "gc": clock.gc_summary(skip), "world": world,
+           "steps": result.step, "samples": result.samples,
            "wall_s": time.perf_counter() - t, "train_s": result.seconds, "data_s": result.data_seconds,
            "rates": trainer.rates, "timings": result.timings, "peak_memory": result.peak_memory,
            "workers": config.data.workers, "global_batch": config.run.batch_size, "losses": _loss_rows(args.run_dir)
@@ -79,8 +86,66 @@ def rank_run(args: argparse.Namespace) -> None:
     Path(args.json.format(rank=rank)).write_text(json.dumps(out) + "\n", encoding="utf-8")
 
 
-VARIANTS = ("split", "whole", "inside", "cudagraphs")
-"""Ways of compiling the trained network (see the module's docstring); ``split`` is the engine's own."""
+class StepClock:
+    """A trainer callback (duck-typed) that keeps the wall time between consecutive steps and the pauses of Python's
+    garbage collector in this rank: a rank whose steps stall now and then (a collection, a late batch) makes every
+    other rank wait for it at the next all-reduce, so the spread of step times, not only their mean, decides how
+    well N GPUs scale."""
+
+    def __init__(self, freeze_at: int | None = None) -> None:
+        import gc
+
+        self.freeze_at = freeze_at
+        """Step after which ``gc.freeze()`` moves every object made so far out of the collector's generations."""
+        self.marks: list[float] = []
+        self.pauses: list[tuple[int, float, int]] = []
+        self._gc_start = 0.0
+        gc.callbacks.append(self._on_gc)
+
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            self._gc_start = time.perf_counter()
+        else:
+            self.pauses.append((info["generation"], time.perf_counter() - self._gc_start, len(self.marks)))
+
+    def on_start(self, trainer: Any) -> None:
+        self.marks.append(time.perf_counter())
+
+    def on_step(self, trainer: Any, terms: Any) -> None:
+        self.marks.append(time.perf_counter())
+        if self.freeze_at is not None and len(self.marks) == self.freeze_at:
+            import gc
+
+            gc.collect()
+            gc.freeze()
+
+    def on_stop(self, trainer: Any, interrupted: bool = False) -> None:
+        pass
+
+    def on_close(self, trainer: Any) -> None:
+        pass
+
+    def percentiles(self, skip: int) -> dict[str, float]:
+        """Milliseconds between steps after the first ``skip`` steps: median, 90th and 99th percentile, maximum."""
+        gaps = sorted(1000.0 * (b - a) for a, b in zip(self.marks[skip:], self.marks[skip + 1:], strict=False))
+        if not gaps:
+            return {}
+        pick = lambda q: gaps[min(len(gaps) - 1, int(q * len(gaps)))]  # noqa: E731
+        return {"p50": round(pick(0.5), 2), "p90": round(pick(0.9), 2), "p99": round(pick(0.99), 2),
+                "max": round(gaps[-1], 2), "mean": round(statistics.fmean(gaps), 2)}
+
+    def gc_summary(self, skip: int) -> dict[str, float]:
+        """Collections after the first ``skip`` steps: how many of the oldest generation, their total and longest
+        milliseconds; how many of any generation and their total milliseconds."""
+        late = [(g, p) for g, p, at in self.pauses if at > skip]
+        old = [p for g, p in late if g == 2]
+        return {"gen2": len(old), "gen2_ms": round(1000.0 * sum(old), 1),
+                "gen2_max_ms": round(1000.0 * max(old, default=0.0), 1), "all": len(late),
+                "all_ms": round(1000.0 * sum(p for _, p in late), 1)}
+
+
+VARIANTS = ("split", "whole", "inside", "cudagraphs", "gcfreeze")
+"""Ways of running the step (see the module's docstring); ``split`` is the engine's own."""
 
 
 def _apply_variant(variant: str, world: int) -> bool:
@@ -183,7 +248,8 @@ def measure(args: argparse.Namespace, n: int, variant: str = "split") -> dict[st
         "steps": r0["steps"],
         "windows": len(rates), "samples_per_s": statistics.median(rates) if rates else None,
         "data_wait": [round(r["data_s"] / max(r["train_s"], 1e-9), 4) for r in ranks],
-        "peak_memory_gib": max(r["peak_memory"] for r in ranks) / 2**30}
+        "peak_memory_gib": max(r["peak_memory"] for r in ranks) / 2**30,
+        "step_ms": [r.get("step_ms", {}) for r in ranks], "gc": [r.get("gc", {}) for r in ranks]}
     row["per_gpu"] = row["samples_per_s"] / n if rates else None
     if args.profile:
         with tempfile.TemporaryDirectory() as d:
@@ -261,6 +327,7 @@ def section(runs: list[dict[str, Any]]) -> str:
             gpus = f"{r['gpus']} ({r.get('variant', 'split')})" if variants else str(r["gpus"])
             lines.append(f"| {gpus} | {r['workers_per_rank']} | {r['global_batch']} | {_num(rate)} | "
                          f"{_num(per_gpu)} | {eff} | {waits} | {r['peak_memory_gib']:.1f} | {sim} |")
+        lines += _step_spread(run["rows"], variants)
         phases = [(r["gpus"], r["phases_ms"][0]) for r in run["rows"] if r.get("phases_ms")]
         if phases:
             names = sorted({k for _, p in phases for k in p})
@@ -272,6 +339,22 @@ def section(runs: list[dict[str, Any]]) -> str:
             lines += ["", f"![loss curves]({run['curves_png']})"]
         lines += [""] + [f"- {n}" for n in run.get("notes", [])] + [""]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _step_spread(rows: list[dict[str, Any]], variants: bool) -> list[str]:
+    """The table of each rank's time between steps and its garbage collections (rows measured with them)."""
+    timed = [r for r in rows if any(r.get("step_ms", []))]
+    if not timed:
+        return []
+    lines = ["", "Time between steps on each rank (ms: median / 90th percentile / longest, after the start-up "
+             "windows), and the collections of Python's oldest generation (count, longest ms):", "",
+             "| GPUs | step ms per rank | gen-2 collections per rank |", "| ---: | --- | --- |"]
+    for r in timed:
+        gpus = f"{r['gpus']} ({r.get('variant', 'split')})" if variants else str(r["gpus"])
+        steps = "; ".join(f"{t['p50']:.1f} / {t['p90']:.1f} / {t['max']:.0f}" if t else "-" for t in r["step_ms"])
+        gcs = "; ".join(f"{g['gen2']}, {g['gen2_max_ms']:.0f}" if g else "-" for g in r["gc"])
+        lines.append(f"| {gpus} | {steps} | {gcs} |")
+    return lines
 
 
 def _one_gpu_rate(rows: list[dict[str, Any]], variant: str) -> float | None:
@@ -298,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--global-batch", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--workers", default="auto", help="simulator processes per rank (auto: cores shared out)")
     p.add_argument("--variants", nargs="+", choices=VARIANTS, default=["split"],
-                   help="ways of compiling the network to measure (split: the engine's own)")
+                   help="ways of running the step to measure (split: the engine's own)")
     p.add_argument("--variant", choices=VARIANTS, default="split", help=argparse.SUPPRESS)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--time-limit", type=float, default=0.0, help="seconds a throughput run may train (0: none)")
