@@ -2,7 +2,8 @@
 the kernels of this package for each image.
 
 Per room (:meth:`RaytraceRenderer.set_scene`)
-    every triangle of every object, solid or not, into one ``wp.Mesh`` (BVH) with each face's material, the
+    every triangle of every object, solid or not, into one ``wp.Mesh`` (BVH) with each face's material (and two
+    more BVHs, of the faces that stop light and of the glass and shining ones, for the shadow and ambient rays), the
     material table, the lights (:mod:`.scene_arrays`), the textures and images the materials name (loaded from
     the asset pack once per process and kept on the device across rooms, :mod:`.textures`), and the room's
     ambient light and the radiance of its window panes (:mod:`.ambient`).
@@ -83,10 +84,32 @@ class _Room:
 
     scene: Any
     arrays: SceneArrays
-    mesh: Any
+    meshes: tuple[Any, ...]
+    """The ``wp.Mesh`` objects ``data`` names (kept so that their BVHs live as long as the room)."""
     data: Any
     ambient: np.ndarray
     """``(3,)`` the ambient irradiance estimate (before the per-sample factor)."""
+
+
+def _light_meshes(arrays: SceneArrays, points: Any, device: Any) -> tuple[Any, Any | None, np.ndarray]:
+    """The BVHs of the faces that stop light and of the others (:class:`~.surfaces.SceneData`).
+
+    Returns:
+        ``(opaque, clear, clear_face)``: the ``wp.Mesh`` of the faces whose material is opaque and does not shine,
+        that of the rest (None when there is none) and ``(K,)`` int32 ``mesh`` face indices of ``clear``'s faces.
+    """
+    m, face_material = arrays.materials, arrays.face_material
+    stops = (m["opacity"][face_material] >= 1.0) & (m["emission"][face_material] <= 0.0)
+    faces = arrays.faces.astype(np.int32)
+
+    def bvh(rows: np.ndarray) -> Any:
+        return wp.Mesh(points=points, indices=wp.array(rows.ravel(), dtype=wp.int32, device=device),
+                       bvh_constructor=BVH_CONSTRUCTOR)
+
+    clear_face = np.flatnonzero(~stops).astype(np.int32)
+    # A room of glass alone would leave nothing that stops light: one degenerate face, which no ray hits.
+    opaque = bvh(faces[stops] if stops.any() else np.zeros((1, 3), np.int32))
+    return opaque, bvh(faces[clear_face]) if len(clear_face) else None, clear_face
 
 
 class RaytraceRenderer:
@@ -147,9 +170,14 @@ class RaytraceRenderer:
         points = wp.array(arrays.vertices, dtype=wp.vec3, device=dev)
         mesh = wp.Mesh(points=points, indices=wp.array(arrays.faces.ravel(), dtype=wp.int32, device=dev),
                        bvh_constructor=BVH_CONSTRUCTOR)
+        opaque, clear, clear_face = _light_meshes(arrays, points, dev)
         t2 = self._mark("bvh", t1)
         data = SceneData()
         data.mesh = mesh.id
+        data.opaque = opaque.id
+        data.clear = clear.id if clear is not None else 0
+        data.clear_face = wp.array(clear_face, dtype=wp.int32, device=dev)
+        data.clear_faces = len(clear_face)
         data.face_material = wp.array(arrays.face_material, dtype=wp.int32, device=dev)
         data.corner_normals = corner_normals(points, arrays.faces, rt.smooth_angle, dev)
         data.materials = wp.array(_structs(MaterialData, arrays.materials, MATERIAL_FIELDS), dtype=MaterialData,
@@ -168,7 +196,7 @@ class RaytraceRenderer:
         data.portal_radiance = wp.array(ambient_mod.measure_portals(data, len(arrays.portals), int(scene.seed), dev),
                                         dtype=wp.vec3, device=dev)
         self._mark("ambient", t3)
-        self._room = _Room(scene, arrays, mesh, data, ambient)
+        self._room = _Room(scene, arrays, (mesh, opaque, clear), data, ambient)
 
     def _sky(self, arrays: SceneArrays) -> np.ndarray:
         """Radiance of rays that leave the scene (``RaytraceConfig.sky``)."""

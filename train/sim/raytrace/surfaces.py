@@ -74,9 +74,19 @@ class LightData:
 
 @wp.struct
 class SceneData:
-    """A room on the device: the BVH of all its triangles, their materials, the lights and the texture layers."""
+    """A room on the device: the BVH of all its triangles, their materials, the lights and the texture layers.
+
+    Besides the BVH of every triangle (``mesh``: camera rays, which see glass and lamp shades), the triangles split
+    in two: ``opaque``, those that stop light (an opaque material that does not shine), and ``clear``, the rest
+    (glass, emitters), whose faces ``clear_face`` maps to ``mesh``'s; ``clear_faces`` is 0 where a room has none
+    (``clear`` is then no mesh). Shadow and ambient rays ask the first whether anything stops them, with one
+    any-hit query, and walk only the few faces of the second."""
 
     mesh: wp.uint64
+    opaque: wp.uint64
+    clear: wp.uint64
+    clear_face: wp.array(dtype=wp.int32)
+    clear_faces: int
     face_material: wp.array(dtype=wp.int32)
     corner_normals: wp.array(dtype=wp.vec3)
     materials: wp.array(dtype=MaterialData)
@@ -282,21 +292,27 @@ def trace(scene: SceneData, origin: wp.vec3, d: wp.vec3, ambient: wp.vec3) -> Hi
 @wp.func
 def transmittance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float) -> wp.vec3:
     """What reaches ``origin`` from ``distance`` along unit ``d``: 0 behind an opaque surface, the tint of the glass
-    in between otherwise; emitters let light through."""
+    in between otherwise (0 past more than ``glass_layers`` panes); emitters let light through."""
+    if wp.mesh_query_ray_anyhit(scene.opaque, origin, d, distance):
+        return wp.vec3(0.0, 0.0, 0.0)
     through = wp.vec3(1.0, 1.0, 1.0)
+    if scene.clear_faces == 0:
+        return through
     t0 = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    for layer in range(scene.glass_layers + 2):
+    panes = int(0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
+    for _ in range(scene.glass_layers + 4):  # the panes allowed and a lamp's shade, front and back
         if t0 >= distance:
             return through
-        q = wp.mesh_query_ray(scene.mesh, origin + t0 * d, d, distance - t0)
+        q = wp.mesh_query_ray(scene.clear, origin + t0 * d, d, distance - t0)
         if not q.result:
             return through
-        mat = scene.materials[scene.face_material[q.face]]
+        mat = scene.materials[scene.face_material[scene.clear_face[q.face]]]
         if mat.emission <= 0.0:
-            if mat.opacity >= 1.0 or layer >= scene.glass_layers:
+            if panes >= scene.glass_layers:
                 return wp.vec3(0.0, 0.0, 0.0)
             f = schlick(0.04, wp.abs(wp.dot(q.normal, d)))
             through = wp.cw_mul(through, glass_tint(mat.color)) * ((1.0 - mat.opacity) * (1.0 - f))
+            panes = panes + 1
         t0 = t0 + q.t + RAY_EPS
     return through
 
@@ -305,17 +321,9 @@ def transmittance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float
 def open_distance(scene: SceneData, origin: wp.vec3, d: wp.vec3, distance: float) -> float:
     """How far unit ray ``origin + t d`` goes before an opaque surface that does not shine, at most ``distance``
     (glass and emitters do not stop it: ambient light comes through windows and past lamp shades)."""
-    t0 = float(0.0)  # noqa: UP018 - Warp: a variable mutated later is declared dynamic
-    for _ in range(4):
-        if t0 >= distance:
-            return distance
-        q = wp.mesh_query_ray(scene.mesh, origin + t0 * d, d, distance - t0)
-        if not q.result:
-            return distance
-        mat = scene.materials[scene.face_material[q.face]]
-        if mat.opacity >= 1.0 and mat.emission <= 0.0:
-            return t0 + q.t
-        t0 = t0 + q.t + RAY_EPS
+    q = wp.mesh_query_ray(scene.opaque, origin, d, distance)
+    if q.result:
+        return q.t
     return distance
 
 
