@@ -219,6 +219,7 @@ def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | No
                             f"{', '.join(splits)})")
         return len(splits[split])
     if source.source != "shards":
+        _check_stream(source, model, split)
         return None
     from fruxel.train.sim.dataset import ShardDataset
     from fruxel.train.sim.shards import DatasetError
@@ -233,6 +234,21 @@ def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | No
     except DatasetError as e:
         raise DataError(str(e)) from None
     return sc.split_samples(split)
+
+
+def _check_stream(source: SampleSource, model: ModelConfig, split: str) -> None:
+    """Refuse a streamed ``split`` whose rooms need an asset pack that is not there, in this process: the workers
+    that would make the samples find it missing only after they start, each in its own traceback.
+
+    Raises:
+        ConfigError: see :func:`sim_config`; no asset pack where ``data.assets`` (or ``$FRUXEL_ASSETS``, or the
+            repository's ``assets/pack``) points.
+    """
+    config = sim_config(model, source, ((split, 1),))
+    if config.world == "home":
+        from fruxel.train.sim.rooms import resolve_pack
+
+        resolve_pack(config.assets, option="data.assets")
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
@@ -268,10 +284,7 @@ def split_batches(source: SampleSource, model: ModelConfig, split: str, count: i
     try:
         done = 0
         while done < count:
-            try:
-                b = next(loader)
-            except RuntimeError as e:
-                raise _worker_error(e) from None
+            b = next(loader)
             take = min(count - done, len(b["index"]))
             if camera:
                 yield b["image"][:take], b["labels"][:take], {k: v[:take] for k, v in b["camera"].items()}
@@ -387,19 +400,25 @@ def train_split_size(source: SampleSource, model: ModelConfig, streamed: int) ->
     return streamed if size is None else size
 
 
-def _worker_error(e: RuntimeError) -> BaseException:
-    """A fruxel error raised in a DataLoader worker (a corrupt shard, say) as one :class:`DataError`.
+def _worker_error(e: BaseException) -> BaseException:
+    """A fruxel error raised in a DataLoader worker (a corrupt shard, a missing asset) with its own one-line message.
 
-    The DataLoader re-raises a worker's exception as ``RuntimeError("Caught X in DataLoader worker process N ...
-    Original Traceback ... module.X: message")`` when ``X`` cannot be rebuilt from that text alone, as fruxel's
-    errors with a file and a problem cannot. Anything else (a bug) is returned as it was, traceback and all.
+    The DataLoader re-raises a worker's exception as ``X("Caught X in DataLoader worker process N ... Original
+    Traceback ... module.X: message")``, or as a ``RuntimeError`` of that text when ``X`` cannot be rebuilt from it
+    alone, as fruxel's errors with a file and a problem cannot (those become one :class:`DataError`). Anything else
+    (a bug) is returned as it was, traceback and all.
     """
     text = str(e)
     last = text.strip().splitlines()[-1] if text.strip() else ""
     kind, _, message = last.partition(": ")
-    if text.startswith("Caught ") and "DataLoader worker" in text and kind.startswith("fruxel.") and message:
-        return DataError(message)
-    return e
+    if not (text.startswith("Caught ") and "DataLoader worker" in text and kind.startswith("fruxel.") and message):
+        return e
+    if isinstance(e, FruxelError) and type(e).__name__ == kind.rpartition(".")[2]:
+        try:
+            return type(e)(message)
+        except TypeError:
+            pass
+    return DataError(message)
 
 
 def rank_range(samples: int, samples_per_scene: int, rank: int, world: int) -> tuple[int, int]:
@@ -614,7 +633,10 @@ class Batches:
         need = self.batch
         while need:
             if self._buf is None:
-                nxt = next(self._it, None)
+                try:
+                    nxt = next(self._it, None)
+                except Exception as e:  # noqa: BLE001 - a worker's error, cleaned up when it is fruxel's own
+                    raise _worker_error(e) from None
                 if nxt is None:  # a stream with a last block (stop_block) has ended
                     if not parts:
                         raise StopIteration

@@ -142,6 +142,18 @@ def test_runs_that_cannot_start_leave_nothing_behind(case: str, tmp_path: Path, 
     assert sorted(p.name for p in wrong.iterdir()) == ["readme.txt"]
 
 
+def test_a_missing_asset_pack_is_refused_before_the_run_starts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """The tiny preset streams the furnished rooms, which need the asset pack: without one the run is refused in
+    one line naming where it looked, before the run folder or any simulator worker is made."""
+    monkeypatch.setenv("FRUXEL_ASSETS", str(tmp_path / "nowhere"))
+    run = tmp_path / "run"
+    assert main(["--preset", "tiny", "--steps", "1", "--out", str(run)]) == 2
+    line = _error_line(capsys)
+    assert f"{tmp_path / 'nowhere'}: no asset pack there ($FRUXEL_ASSETS)" in line and "make assets" in line
+    assert not run.exists()
+
+
 @pytest.mark.parametrize("option", ["--out", "--data"])
 def test_an_empty_folder_name_is_refused(option: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                          capsys: pytest.CaptureFixture[str]) -> None:

@@ -411,3 +411,29 @@ def test_gpu_sharing_hint_names_mps_only_when_stream_workers_share_a_gpu_without
     assert gpu_sharing_hint(SampleSource("shards", str(tmp_path)), 15, "cuda:0") is None
     (pipe / "control").write_text("")  # the daemon's named pipe stands there while it runs
     assert gpu_sharing_hint(stream, 15, "cuda:0") is None
+
+
+def test_a_missing_asset_pack_is_one_line_from_the_check_and_from_a_spawned_worker(tmp_path: Path) -> None:
+    """The furnished rooms need the asset pack: the check before a run (``split_size``) names it at once, and a
+    spawned worker that meets it missing anyway (batches made without that check) says so in one line too, not with
+    the worker's traceback inside the message."""
+    from fruxel.errors import ConfigError
+    from fruxel.train.config import preset
+    from fruxel.train.samples import SampleSource, split_size, training_batches
+
+    model = preset("tiny").model
+    source = SampleSource(world="home", camera="any", assets=str(tmp_path / "nowhere"))
+    words = f"{tmp_path / 'nowhere'}: no asset pack there (data.assets)"
+    with pytest.raises(ConfigError) as e:
+        split_size(source, model, "train")
+    assert str(e.value).startswith(words) and "make assets" in str(e.value)
+    assert split_size(SampleSource(), model, "train") is None  # the flat world needs no pack
+    batches = training_batches(source, model, 64, batch=2, workers=1)
+    try:
+        with pytest.raises(ConfigError) as e:
+            next(batches)
+    finally:
+        batches.close()
+    message = str(e.value)
+    assert message.startswith(f"{tmp_path / 'nowhere'}: no asset pack there") and "make assets" in message
+    assert "\n" not in message and "Traceback" not in message and "DataLoader" not in message
