@@ -354,6 +354,16 @@ MPS_PIPE_DEFAULT = "/tmp/nvidia-mps"
 """Where CUDA's Multi-Process Service keeps its control pipe unless ``$CUDA_MPS_PIPE_DIRECTORY`` says otherwise."""
 
 
+def mps_pipe() -> str:
+    """The folder of CUDA MPS's control pipe (``$CUDA_MPS_PIPE_DIRECTORY``, else :data:`MPS_PIPE_DEFAULT`)."""
+    return os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or MPS_PIPE_DEFAULT
+
+
+def mps_running() -> bool:
+    """Whether CUDA MPS's control daemon runs on this machine (its control pipe stands in :func:`mps_pipe`)."""
+    return os.path.exists(os.path.join(mps_pipe(), "control"))
+
+
 def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> str | None:
     """A one-line hint when several simulator workers will share one GPU without CUDA's Multi-Process Service, else
     None.
@@ -370,8 +380,8 @@ def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> 
     """
     if source.source != "stream" or workers < 2 or not str(device or "").startswith("cuda"):
         return None
-    pipe = os.environ.get("CUDA_MPS_PIPE_DIRECTORY") or MPS_PIPE_DEFAULT
-    if os.path.exists(os.path.join(pipe, "control")):
+    pipe = mps_pipe()
+    if mps_running():
         return None
     return (f"note: {workers} simulator workers share {device} without CUDA MPS (no control pipe in {pipe}); "
             "`nvidia-cuda-mps-control -d` before training lets them run side by side (BENCHMARKS.md, Simulator)")

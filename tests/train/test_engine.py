@@ -663,3 +663,32 @@ def test_an_empty_or_truncated_checkpoint_is_one_error_naming_it(tmp_path: Path)
     path.write_bytes(path.read_bytes()[:100])
     with pytest.raises(CheckpointError, match=r"last\.pt: not a readable checkpoint"):
         read_checkpoint(path)
+
+
+@pytest.mark.parametrize("mps", [True, False])
+def test_a_cuda_device_that_cannot_be_used_is_one_line_that_says_what_to_do(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mps: bool) -> None:
+    """CUDA refuses the device (seen on a lent GPU after a killed run had left the CUDA MPS server unusable): the
+    set-up raises one TrainingError naming the device and, where MPS runs, how to restart it. The refusal itself is
+    CUDA's, which a machine without a GPU cannot give, so it is injected where torch would raise it."""
+    import torch
+
+    from fruxel.train.engine import distributed
+
+    def refuse(dev: Any) -> None:
+        raise RuntimeError("CUDA error: CUDA-capable device(s) is/are busy or unavailable\nCUDA kernel errors might "
+                           "be asynchronously reported at some other API call")
+
+    monkeypatch.setattr(torch.cuda, "set_device", refuse)
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(tmp_path))
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    if mps:
+        (tmp_path / "control").write_text("")
+    with pytest.raises(TrainingError) as e:
+        distributed.setup("cuda")
+    message = str(e.value)
+    assert message.startswith("cuda:0: CUDA cannot use this device (CUDA-capable device(s) is/are busy or unavailable)")
+    assert "\n" not in message
+    assert ("nvidia-cuda-mps-control -d" in message and str(tmp_path) in message) == mps
+    assert ("exclusive mode" in message) != mps

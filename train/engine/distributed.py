@@ -51,13 +51,37 @@ def setup(device: str | None = None) -> Dist:
     use_cuda = torch.cuda.is_available() if device is None else str(device).startswith("cuda")
     if use_cuda:
         dev = torch.device("cuda", local if world > 1 else torch.device(device or "cuda").index or 0)
-        torch.cuda.set_device(dev)
+        _use_cuda_device(dev)
     else:
         dev = torch.device("cpu")
     if world > 1 and not dist.is_initialized():
         os.environ.setdefault("NCCL_NVLS_ENABLE", "0")
         dist.init_process_group("nccl" if use_cuda else "gloo", rank=rank, world_size=world)
     return Dist(rank=rank, world=world, local_rank=local, device=dev)
+
+
+def _use_cuda_device(dev: torch.device) -> None:
+    """Make ``dev`` this process's CUDA device.
+
+    Raises:
+        TrainingError: CUDA cannot use the device (held in exclusive mode by another process, or served by a CUDA MPS
+            server that a killed run left unusable), in one line that says what to do.
+    """
+    try:
+        torch.cuda.set_device(dev)
+    except RuntimeError as e:  # torch.AcceleratorError
+        from ..samples import mps_pipe, mps_running
+        from .state import TrainingError
+
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        reason = reason.removeprefix("CUDA error: ")
+        if mps_running():
+            hint = (f"CUDA MPS runs here (control pipe in {mps_pipe()}), and a run killed while it held the GPU can "
+                    "leave its server unusable: restart it (`echo quit | nvidia-cuda-mps-control`, then "
+                    "`nvidia-cuda-mps-control -d`)")
+        else:
+            hint = "another process may hold it in exclusive mode (`nvidia-smi` lists the processes on each GPU)"
+        raise TrainingError(f"{dev}: CUDA cannot use this device ({reason}); {hint}") from None
 
 
 def teardown() -> None:
