@@ -629,11 +629,9 @@ def check_asset_pack(config: Any) -> None:
     Raises:
         ConfigError: no pack in the folder (one line naming it, where it came from and ``make assets``).
     """
-    if config.world != "home":
-        return
-    from fruxel.train.sim.rooms.library import resolve_pack
+    from fruxel.train.sim.rooms.library import check_pack
 
-    resolve_pack(config.assets, option="--assets")
+    check_pack(config, option="--assets")
 
 
 # ---------------------------------------------------------------------------------------------------- test sets

@@ -244,11 +244,9 @@ def _check_stream(source: SampleSource, model: ModelConfig, split: str) -> None:
         ConfigError: see :func:`sim_config`; no asset pack where ``data.assets`` (or ``$FRUXEL_ASSETS``, or the
             repository's ``assets/pack``) points.
     """
-    config = sim_config(model, source, ((split, 1),))
-    if config.world == "home":
-        from fruxel.train.sim.rooms import resolve_pack
+    from fruxel.train.sim.rooms import check_pack
 
-        resolve_pack(config.assets, option="data.assets")
+    check_pack(sim_config(model, source, ((split, 1),)), option="data.assets")
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from .config import ROOM_TYPES, HomeConfig, MaterialConfig
 from .home import CLASS_NAMES, STAGES, make_home
-from .library import ASSETS_ENV, library, resolve_pack
+from .library import ASSETS_ENV, check_pack, library, resolve_pack
 
-__all__ = ["ASSETS_ENV", "CLASS_NAMES", "ROOM_TYPES", "STAGES", "HomeConfig", "MaterialConfig", "library",
-           "make_home", "resolve_pack"]
+__all__ = ["ASSETS_ENV", "CLASS_NAMES", "ROOM_TYPES", "STAGES", "HomeConfig", "MaterialConfig", "check_pack",
+           "library", "make_home", "resolve_pack"]

@@ -65,6 +65,21 @@ def resolve_pack(path: str | os.PathLike[str] | None, *, option: str = "SimConfi
     return root
 
 
+def check_pack(config: Any, *, option: str = "SimConfig.assets") -> None:
+    """Check, before any slow work, that the asset pack a simulator config needs is there: the ``home`` world
+    furnishes its rooms from it; other configs need none.
+
+    Args:
+        config: the :class:`~fruxel.train.sim.config.SimConfig`.
+        option: what names ``config.assets`` to the user, for the message (:func:`resolve_pack`).
+
+    Raises:
+        ConfigError: no pack in the folder (one line naming it, where it came from and ``make assets``).
+    """
+    if config.world == "home":
+        resolve_pack(config.assets, option=option)
+
+
 @dataclass(frozen=True)
 class Role:
     """Which pack meshes can play one role in a room (module docstring)."""
