@@ -692,3 +692,24 @@ def test_a_cuda_device_that_cannot_be_used_is_one_line_that_says_what_to_do(
     assert "\n" not in message
     assert ("nvidia-cuda-mps-control -d" in message and str(tmp_path) in message) == mps
     assert ("exclusive mode" in message) != mps
+
+
+def test_ranks_wait_for_each_other_longer_than_nccls_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The process group is made with a timeout above NCCL's 10 minutes: the first all-reduce waits for every rank's
+    compilation, which on a loaded host ended minutes apart. The group itself is torch's; what the engine asks of it
+    is recorded here."""
+    import datetime
+
+    import torch.distributed as dist
+
+    from fruxel.train.engine import distributed
+
+    asked: dict[str, Any] = {}
+    monkeypatch.setattr(dist, "is_initialized", lambda: False)
+    monkeypatch.setattr(dist, "init_process_group", lambda backend, **kw: asked.update(backend=backend, **kw))
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    d = distributed.setup("cpu")
+    assert (d.rank, d.world, asked["backend"], asked["rank"], asked["world_size"]) == (1, 2, "gloo", 1, 2)
+    assert asked["timeout"] >= datetime.timedelta(minutes=30)

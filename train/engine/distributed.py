@@ -7,11 +7,17 @@ did.
 
 from __future__ import annotations
 
+import datetime
 import os
 from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
+
+TIMEOUT = datetime.timedelta(minutes=30)
+"""How long a collective waits for the other ranks before the run fails (NCCL's own default is 10 minutes). The
+first all-reduce waits for every rank's ``torch.compile``, and on 4 GPUs of one host, each rank compiling beside
+its simulator workers, ranks were seen waiting over 200 s for the others."""
 
 
 @dataclass(frozen=True)
@@ -56,7 +62,7 @@ def setup(device: str | None = None) -> Dist:
         dev = torch.device("cpu")
     if world > 1 and not dist.is_initialized():
         os.environ.setdefault("NCCL_NVLS_ENABLE", "0")
-        dist.init_process_group("nccl" if use_cuda else "gloo", rank=rank, world_size=world)
+        dist.init_process_group("nccl" if use_cuda else "gloo", rank=rank, world_size=world, timeout=TIMEOUT)
     return Dist(rank=rank, world=world, local_rank=local, device=dev)
 
 
