@@ -620,11 +620,7 @@ def add_assets_option(parser: Any, what: str = "the furnished rooms") -> None:
 
 
 def check_asset_pack(config: Any) -> None:
-    """Check, before any slow work, that the asset pack a simulator config needs is there: the ``home`` world
-    furnishes its rooms from it; other configs need none.
-
-    Args:
-        config: the :class:`fruxel.train.sim.config.SimConfig`; its ``assets`` comes from ``--assets``.
+    """:func:`fruxel.train.sim.rooms.check_pack` for a command, whose ``config.assets`` comes from ``--assets``.
 
     Raises:
         ConfigError: no pack in the folder (one line naming it, where it came from and ``make assets``).
