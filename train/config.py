@@ -311,6 +311,11 @@ class RunConfig:
     """``torch.compile`` the generator (fuses its elementwise work and cuts its kernel launches; BENCHMARKS.md).
     On in the GPU presets; compiling takes a while at the start of a run, and on the CPU it needs a C++
     compiler."""
+    cuda_graphs: bool = True
+    """With ``compile`` on CUDA, replay the compiled network's forward and backward passes as CUDA graphs
+    (``torch.compile(mode="reduce-overhead")``): the host no longer launches each kernel, which paced the steps on one
+    GPU and, under DDP, made every rank wait for the slowest launcher (BENCHMARKS.md "Multi-GPU training"). Off: the
+    kernels are launched one by one, as before. Ignored without ``compile`` and on the CPU."""
     checkpointing: bool = False
     """Recompute the 3D decoder's activations in the backward pass (less memory, more time)."""
     log_every: int = 50

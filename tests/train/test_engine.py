@@ -713,3 +713,31 @@ def test_ranks_wait_for_each_other_longer_than_nccls_default(monkeypatch: pytest
     d = distributed.setup("cpu")
     assert (d.rank, d.world, asked["backend"], asked["rank"], asked["world_size"]) == (1, 2, "gloo", 1, 2)
     assert asked["timeout"] >= datetime.timedelta(minutes=30)
+
+
+def test_the_network_is_compiled_before_ddp_wraps_it(tmp_path: Path) -> None:
+    """Every rank runs the graph one GPU runs: DDP wraps the compiled network. Compiling the DDP wrapper instead
+    lets DDPOptimizer split the graph at DDP's buckets, which two GPUs ran slower (issue 37)."""
+    import torch.distributed as dist
+    from torch._dynamo.eval_frame import OptimizedModule
+    from torch.nn.parallel import DistributedDataParallel
+
+    from fruxel.train.engine.trainer import training_module
+
+    net = torch.nn.Linear(3, 2)
+    dist.init_process_group("gloo", store=dist.FileStore(str(tmp_path / "store"), 1), rank=0, world_size=1)
+    try:
+        wrapped = training_module(net, compile=True, graphs=False, ddp=True)
+        assert isinstance(wrapped, DistributedDataParallel) and isinstance(wrapped.module, OptimizedModule)
+        assert wrapped.module._orig_mod is net
+        assert training_module(net, compile=False, graphs=False, ddp=False) is net
+    finally:
+        dist.destroy_process_group()
+
+
+def test_cuda_graphs_are_a_cuda_option(tmp_path: Path) -> None:
+    """``run.cuda_graphs`` is on by default; on the CPU the compiled step does not mark CUDA graph steps."""
+    config = tiny({"run": {"compile": True}})
+    assert config.run.cuda_graphs
+    state, step = Trainer(config, tmp_path / "run", device="cpu", progress=False).build()
+    assert step.graphs is False and step.model._orig_mod is state.network

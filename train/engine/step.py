@@ -68,6 +68,8 @@ class Step:
         objective: the loss terms.
         autocast: bfloat16 autocast (CUDA with ``run.precision = "bf16"``).
         timer: the phase timer.
+        graphs: ``model`` replays CUDA graphs (``run.cuda_graphs``): each step tells them that a new step begins, so
+            the graphs may reuse the memory of the last step's outputs.
     """
 
     model: nn.Module
@@ -75,6 +77,7 @@ class Step:
     objective: SSZObjective
     autocast: bool
     timer: PhaseTimer
+    graphs: bool = False
 
     def __call__(self, state: TrainingState, image: torch.Tensor, labels: torch.Tensor,
                  camera: CameraInput | None = None) -> dict[str, torch.Tensor]:
@@ -92,6 +95,8 @@ class Step:
         c, step, tick = state.config, state.step, self.timer.tick
         kind = image.device.type
         adv_w = adversarial_weight(c.loss, step)
+        if self.graphs:
+            torch.compiler.cudagraph_mark_step_begin()
         state.optimizer.zero_grad(set_to_none=True)
         with torch.autocast(kind, dtype=torch.bfloat16, enabled=self.autocast):
             out = run_network(self.model, image, camera)

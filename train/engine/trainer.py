@@ -176,14 +176,13 @@ class Trainer:
             from ..models.blocks import channels_last
 
             model = channels_last(network)
+        graphs = c.run.compile and c.run.cuda_graphs and dev.type == "cuda"
+        ids = [dev.index] if dev.type == "cuda" else None
+        model = training_module(model, compile=c.run.compile, graphs=graphs, ddp=self.dist.distributed, device_ids=ids)
         d_model = state.discriminator
-        if self.dist.distributed:
-            ids = [dev.index] if dev.type == "cuda" else None
-            model = _ddp(model, ids)
-            d_model = _ddp(d_model, ids) if d_model is not None else None
-        if c.run.compile:
-            model = torch.compile(model)
-        return state, Step(model, d_model, None, self.autocast, self.timer)
+        if self.dist.distributed and d_model is not None:
+            d_model = _ddp(d_model, ids)
+        return state, Step(model, d_model, None, self.autocast, self.timer, graphs=graphs)
 
     def _start_from(self, network: torch.nn.Module, path: str) -> None:
         """Load ``run.init``'s network weights into the fresh network (see :class:`~fruxel.train.config.RunConfig`)."""
@@ -390,6 +389,20 @@ def train(config: TrainConfig, run_dir: str, *, resume: bool = False, device: st
         return trainer.fit()
     finally:
         distributed.teardown()
+
+
+def training_module(model: torch.nn.Module, *, compile: bool, graphs: bool, ddp: bool,
+                    device_ids: list[int] | None = None) -> torch.nn.Module:
+    """``model`` as a run trains it: compiled (``run.compile``; its passes replayed as CUDA graphs with ``graphs``),
+    then, with ``ddp``, wrapped by DistributedDataParallel on ``device_ids`` (None on the CPU).
+
+    Compiled before DDP wraps it, every rank runs the graph one GPU runs: one graph, which CUDA graphs replay whole.
+    Compiling the DDP-wrapped network instead split it at DDP's buckets, and two GPUs scaled worse that way
+    (BENCHMARKS.md "Multi-GPU training").
+    """
+    if compile:
+        model = torch.compile(model, mode="reduce-overhead" if graphs else None)
+    return _ddp(model, device_ids) if ddp else model
 
 
 def _ddp(module: torch.nn.Module, device_ids: list[int] | None) -> torch.nn.Module:
