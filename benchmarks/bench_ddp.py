@@ -11,15 +11,16 @@ backward with DDP's all-reduce, optimiser; the profiler synchronises at each bou
 ``--sim-alone`` also times the simulator streaming alone on every rank at once (no training), which tells whether
 the simulator or the GPU limits a run.
 
-``--variants`` measures other ways of running the step beside the engine's own (``split``), each on every GPU
-count: ``whole`` (``torch._dynamo.config.optimize_ddp`` off: the DDP-wrapped network compiled as one graph,
-DDP's all-reduce after the backward), ``inside`` (DDP around the compiled network: the same compilation as on one
-GPU) and ``cudagraphs`` (``inside`` with ``mode="reduce-overhead"``: CUDA graphs replay the compiled network's
-kernels), and ``gcfreeze`` (``split`` with ``gc.freeze()`` after the start-up windows: the objects made until then,
-most of them the compiler's, leave the garbage collector's generations, whose collections stall one rank at a time).
-On one GPU ``whole`` and ``inside`` are ``split``, so their 1-GPU rows are left out. Experiments of issue 37: the
-engine keeps ``split`` until one of them is measured better. Each rank also records the time between its steps and
-its collections (``StepClock``): a rank that stalls makes the others wait at the next all-reduce.
+``--variants`` measures other ways of running the step beside the engine's own (``engine``: the network compiled
+before DDP wraps it, its passes replayed as CUDA graphs, ``run.cuda_graphs``), each on every GPU count: ``split``
+(the engine until issue 37: graphs off, the DDP-wrapped network compiled, which DDPOptimizer splits at DDP's
+buckets), ``whole`` (``split`` with ``torch._dynamo.config.optimize_ddp`` off: one graph, DDP's all-reduce after the
+backward), ``inside`` (the engine with graphs off) and ``gcfreeze`` (the engine with ``gc.freeze()`` after the
+start-up windows: the objects made until then, most of them the compiler's, leave the garbage collector's
+generations, whose collections stall one rank at a time). On one GPU ``whole`` is ``split``, so its 1-GPU row is
+left out. Stored rows without a variant ran ``split``; rows named ``cudagraphs`` ran what the engine does now. Each
+rank also records the time between its steps and its collections (``StepClock``): a rank that stalls makes the
+others wait at the next all-reduce.
 
 ``--curves`` trains 1 GPU and N GPUs at the same global batch for ``--curve-steps`` steps and draws both loss
 curves in one PNG (the DDP run must learn as the single-GPU run does).
@@ -62,12 +63,12 @@ def rank_run(args: argparse.Namespace) -> None:
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
-    compiled_inside = _apply_variant(args.variant, world)
+    variant_run = _apply_variant(args.variant, world)
     changes = {"data": {"workers": int(args.workers), "frequency_samples": 64},
                "run": {"steps": args.steps, "batch_size": args.batch_per_gpu * world if not args.global_batch
                        else args.global_batch, "eval_every": 0, "checkpoint_every": 0, "log_every": args.log_every,
                        "tensorboard": False, "time_limit": args.time_limit,
-                       **({"compile": False} if compiled_inside else {})}}
+                       **variant_run}}
     config = override(override(preset(args.preset), changes, ""), json.loads(args.override), "")
     torch.cuda.reset_peak_memory_stats() if torch.cuda.is_available() else None
     trainer = Trainer(config, args.run_dir, device="cuda" if torch.cuda.is_available() else "cpu",
@@ -144,39 +145,23 @@ class StepClock:
                 "all_ms": round(1000.0 * sum(p for _, p in late), 1)}
 
 
-VARIANTS = ("split", "whole", "inside", "cudagraphs", "gcfreeze")
-"""Ways of running the step (see the module's docstring); ``split`` is the engine's own."""
+VARIANTS = ("engine", "split", "whole", "inside", "gcfreeze")
+"""Ways of running the step (see the module's docstring); ``engine`` is the trainer's own."""
 
 
-def _apply_variant(variant: str, world: int) -> bool:
-    """Set this rank's process up for ``variant``; whether the network is now compiled inside DDP (then the trainer
-    must not compile the DDP-wrapped network again)."""
-    import functools
-
+def _apply_variant(variant: str, world: int) -> dict[str, Any]:
+    """Set this rank's process up for ``variant``; the run config's changes it needs."""
     import torch
 
     from fruxel.train.engine import trainer
 
-    mode = {"cudagraphs": "reduce-overhead"}.get(variant)
-    if mode:
-        from fruxel.train.engine.step import Step
-
-        step = Step.__call__
-
-        def marked(self: Step, *a: Any, **k: Any) -> Any:
-            torch.compiler.cudagraph_mark_step_begin()  # each step's graphs may reuse the last step's memory
-            return step(self, *a, **k)
-
-        Step.__call__ = marked
     if variant == "whole":
         torch._dynamo.config.optimize_ddp = False
-    if variant in ("inside", "cudagraphs") and world > 1:
+    if variant in ("split", "whole") and world > 1:
         plain = trainer._ddp
-        trainer._ddp = lambda module, ids: plain(torch.compile(module, mode=mode), ids)
-        return True
-    if mode:
-        torch.compile = functools.partial(torch.compile, mode=mode)
-    return False
+        trainer._ddp = lambda module, ids: torch.compile(plain(module, ids))
+        return {"cuda_graphs": False, "compile": False}  # compiled here, around DDP
+    return {"cuda_graphs": False} if variant in ("split", "inside") else {}
 
 
 def _loss_rows(run_dir: str) -> list[tuple[int, float]]:
@@ -230,7 +215,7 @@ def _workers(args: argparse.Namespace, n: int) -> int:
     return max(1, (common.usable_cores() - n) // n)
 
 
-def measure(args: argparse.Namespace, n: int, variant: str = "split") -> dict[str, Any]:
+def measure(args: argparse.Namespace, n: int, variant: str = "engine") -> dict[str, Any]:
     """Throughput, data wait, peak memory and (profiled) phases of training on ``n`` GPUs, the network compiled as
     ``variant`` says."""
     workers = _workers(args, n)
@@ -313,10 +298,10 @@ def section(runs: list[dict[str, Any]]) -> str:
              "per-GPU batch; targets " + ", ".join(f"{100 * v:.0f} % at {k}" for k, v in TARGETS.items()) + ".", ""]
     for run in runs:
         lines += [f"### {run['tag']}: {run['preset']}, {run['machine'].get('gpu') or 'no GPU'}, "
-                  f"{run['machine'].get('cores', '?')} cores, {run['date']}", "",
-                  "| GPUs | workers per GPU | global batch | samples/s | per GPU | efficiency | data wait (per rank) "
-                  "| peak memory (GiB) | simulator alone (samples/s) |",
-                  "| ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
+                  f"{run['machine'].get('cores', '?')} cores, {run['date']}"]
+        lines += ["", "| GPUs | workers per GPU | global batch | samples/s | per GPU | efficiency "
+                  "| data wait (per rank) | peak memory (GiB) | simulator alone (samples/s) |",
+                  "| ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"] if run["rows"] else []
         variants = any(r.get("variant", "split") != "split" for r in run["rows"])
         for r in run["rows"]:
             rate, one = _rate(r), _one_gpu_rate(run["rows"], r.get("variant", "split"))
@@ -335,6 +320,8 @@ def section(runs: list[dict[str, Any]]) -> str:
                       "phase, so these steps are slower than the rows above):", "",
                       "| GPUs | " + " | ".join(names) + " |", "| ---: |" + " ---: |" * len(names)]
             lines += [f"| {g} | " + " | ".join(f"{p.get(k, 0.0):.1f}" for k in names) + " |" for g, p in phases]
+        if run.get("curves"):
+            lines += ["", _curves_line(run["curves"])]
         if run.get("curves_png"):
             lines += ["", f"![loss curves]({run['curves_png']})"]
         lines += [""] + [f"- {n}" for n in run.get("notes", [])] + [""]
@@ -357,9 +344,22 @@ def _step_spread(rows: list[dict[str, Any]], variants: bool) -> list[str]:
     return lines
 
 
+def _curves_line(curves: dict[str, list[tuple[int, float]]]) -> str:
+    """How far the loss curves of the GPU counts in ``curves`` (``{gpus: [(step, loss)]}``) agree: each one's mean
+    training loss over the last third of its steps."""
+    means = {}
+    for gpus, rows in sorted(curves.items(), key=lambda kv: int(kv[0])):
+        last = max(s for s, _ in rows)
+        means[int(gpus)] = statistics.fmean(v for s, v in rows if s > 2 * last / 3)
+    one = means[min(means)]
+    parts = [f"{g} GPU{'s' if g > 1 else ''} {m:.3f}" + ("" if g == min(means) else f" ({m / one:.3f} of it)")
+             for g, m in means.items()]
+    return "Mean training loss over the last third of the steps: " + "; ".join(parts) + "."
+
+
 def _one_gpu_rate(rows: list[dict[str, Any]], variant: str) -> float | None:
     """The 1-GPU samples/s that ``variant``'s rows are compared with: its own 1-GPU row, else ``split``'s (which
-    compiles one GPU's network as ``whole`` and ``inside`` do)."""
+    compiles one GPU's network as ``whole`` does)."""
     for name in (variant, "split"):
         rate = next((_rate(r) for r in rows if r["gpus"] == 1 and r.get("variant", "split") == name), None)
         if rate is not None:
@@ -380,10 +380,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-per-gpu", type=int, default=32)
     p.add_argument("--global-batch", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--workers", default="auto", help="simulator processes per rank (auto: cores shared out)")
-    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=["split"],
-                   help="ways of running the step to measure (split: the engine's own)")
-    p.add_argument("--variant", choices=VARIANTS, default="split", help=argparse.SUPPRESS)
-    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--variants", nargs="+", choices=VARIANTS, default=["engine"],
+                   help="ways of running the step to measure (engine: the trainer's own)")
+    p.add_argument("--variant", choices=VARIANTS, default="engine", help=argparse.SUPPRESS)
+    p.add_argument("--steps", type=int, default=300, help="steps of each throughput run (0: none, e.g. --curves only)")
     p.add_argument("--time-limit", type=float, default=0.0, help="seconds a throughput run may train (0: none)")
     p.add_argument("--log-every", type=int, default=20)
     p.add_argument("--skip-windows", type=int, default=3, help="logged windows left out (compile, start-up)")
@@ -419,15 +419,15 @@ def main(argv: list[str] | None = None) -> int:
                                           "cpu": common.cpu_description()},
                               "rows": []}
     # Written again after each GPU count, so that a run cut short (a lent machine's time limit) keeps what it measured.
-    for variant, n in ((v, n) for v in args.variants for n in args.gpus):
-        if n == 1 and variant in ("whole", "inside"):
-            continue  # on one GPU these compile the network as split does
+    for variant, n in ((v, n) for v in args.variants for n in args.gpus if args.steps > 0):
+        if n == 1 and variant == "whole":
+            continue  # on one GPU it compiles the network as split does
         result["rows"].append(measure(args, n, variant))
         common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
     if args.curves and max(args.gpus) > 1:
         png = Path(f"{out}-curves.png")
         result["curves"] = curves(args, max(args.gpus), png)
-        result["curves_png"] = f"results/{png.name}"
+        result["curves_png"] = f"benchmarks/results/{png.name}"
         common.write_text(Path(f"{out}.json"), json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}.json")
     return 0
