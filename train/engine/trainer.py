@@ -156,8 +156,8 @@ class Trainer:
     # ------------------------------------------------------------------ set-up
     def build(self) -> tuple[TrainingState, Step]:
         """The run's state, fresh or as the checkpoint left it but for the models (:meth:`fit` restores those after
-        counting the class weights), and the step around it (the network wrapped as the run trains it: DDP under
-        distribution, compiled with ``run.compile``); :meth:`fit` calls it."""
+        counting the class weights), and the step around it (the network as the run trains it,
+        :func:`training_module`); :meth:`fit` calls it."""
         c, dev = self.config, self.dist.device
         if dev.type != "cuda" and c.data.workers and "OMP_NUM_THREADS" not in os.environ:
             # The simulator's workers take cores too; more compute threads than free cores made CPU steps many
