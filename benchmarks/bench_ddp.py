@@ -82,6 +82,7 @@ def rank_run(args: argparse.Namespace) -> None:
            "steps": result.step, "samples": result.samples,
            "wall_s": time.perf_counter() - t, "train_s": result.seconds, "data_s": result.data_seconds,
            "rates": trainer.rates, "timings": result.timings, "peak_memory": result.peak_memory,
+           "graph_skips": result.graph_skips,
            "workers": config.data.workers, "global_batch": config.run.batch_size, "losses": _loss_rows(args.run_dir)
            if rank == 0 else []}
     Path(args.json.format(rank=rank)).write_text(json.dumps(out) + "\n", encoding="utf-8")
@@ -234,7 +235,8 @@ def measure(args: argparse.Namespace, n: int, variant: str = "engine") -> dict[s
         "windows": len(rates), "samples_per_s": statistics.median(rates) if rates else None,
         "data_wait": [round(r["data_s"] / max(r["train_s"], 1e-9), 4) for r in ranks],
         "peak_memory_gib": max(r["peak_memory"] for r in ranks) / 2**30,
-        "step_ms": [r.get("step_ms", {}) for r in ranks], "gc": [r.get("gc", {}) for r in ranks]}
+        "step_ms": [r.get("step_ms", {}) for r in ranks], "gc": [r.get("gc", {}) for r in ranks],
+        "graph_skips": [r.get("graph_skips", 0) for r in ranks]}
     row["per_gpu"] = row["samples_per_s"] / n if rates else None
     if args.profile:
         with tempfile.TemporaryDirectory() as d:
@@ -249,8 +251,8 @@ def measure(args: argparse.Namespace, n: int, variant: str = "engine") -> dict[s
                                 str(args.sim_seconds)], Path(d))
         row["sim_alone_samples_per_s"] = sum(r["samples_per_s"] for r in sim)
     print(f"{n} GPU(s), {variant}, {workers} workers each: {_num(row['samples_per_s'])} samples/s "
-          f"({_num(row['per_gpu'])} per GPU), data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB",
-          flush=True)
+          f"({_num(row['per_gpu'])} per GPU), data wait {row['data_wait']}, peak {row['peak_memory_gib']:.1f} GiB, "
+          f"graphs run without CUDA graphs {row['graph_skips']}", flush=True)
     return row
 
 
@@ -313,6 +315,11 @@ def section(runs: list[dict[str, Any]]) -> str:
             lines.append(f"| {gpus} | {r['workers_per_rank']} | {r['global_batch']} | {_num(rate)} | "
                          f"{_num(per_gpu)} | {eff} | {waits} | {r['peak_memory_gib']:.1f} | {sim} |")
         lines += _step_spread(run["rows"], variants)
+        skipped = [r for r in run["rows"] if any(r.get("graph_skips", []))]
+        if skipped:
+            counts = "; ".join(f"{r['gpus']} GPU(s): {', '.join(map(str, r['graph_skips']))}" for r in skipped)
+            lines += ["", f"Compiled graphs run without CUDA graphs (per rank; TORCH_LOGS=cudagraphs says why): "
+                      f"{counts}."]
         phases = [(r["gpus"], r["phases_ms"][0]) for r in run["rows"] if r.get("phases_ms")]
         if phases:
             names = sorted({k for _, p in phases for k in p})

@@ -741,3 +741,22 @@ def test_cuda_graphs_are_a_cuda_option(tmp_path: Path) -> None:
     assert config.run.cuda_graphs
     state, step = Trainer(config, tmp_path / "run", device="cpu", progress=False).build()
     assert step.graphs is False and step.model._orig_mod is state.network
+
+
+def test_a_run_whose_graphs_run_without_cuda_graphs_says_so_once(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The check after a run's first step counts the compiled graphs that run without CUDA graphs and warns once.
+    On the CPU, ``torch.compile``'s reduce-overhead mode runs every graph so, which stands in here for a GPU run
+    whose graph cannot be captured (CI has no GPU); the trainer is told it replays graphs, as on CUDA."""
+    trainer = Trainer(tiny({"run": {"compile": True}}), tmp_path / "run", device="cpu", progress=False)
+    assert trainer.graphs is False  # a CPU run: nothing to check
+    trainer.graphs = True
+    check = trainer.graph_check
+    check.on_start(trainer)
+    double = torch.compile(lambda x: (2.0 * x).sum(), mode="reduce-overhead")
+    double(torch.ones(3))
+    for _ in range(3):
+        check.on_step(trainer, {})
+    assert check.skips == 1
+    err = capsys.readouterr().err
+    assert err.count("run.cuda_graphs: torch.compile runs 1 of the network's graphs without CUDA graphs") == 1

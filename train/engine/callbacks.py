@@ -1,5 +1,5 @@
 """What happens around the training steps, as callbacks of :class:`~.trainer.Trainer`: the metric log and progress
-bar, the periodic evaluation, checkpoints, and the time limit.
+bar, the periodic evaluation, checkpoints, the time limit, and the check that CUDA graphs replay the network.
 
 A callback sees the trainer at four points (:class:`Callback`): before the first step, after each step, when the
 run stops (its last step, the time limit or Ctrl-C) and after everything (``on_close``, also after an error). Only
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -270,3 +271,33 @@ class TimeLimit(Callback):
             over = distributed.any_rank(trainer.dist, over)
         if over:
             trainer.stop = True
+
+
+def graph_skips() -> int:
+    """Graphs that ``torch.compile`` compiled in this process for CUDA graphs but runs without them (each forward
+    and backward graph counts once; on the CPU every one is skipped)."""
+    from torch._dynamo.utils import counters
+
+    return int(counters["inductor"]["cudagraph_skips"])
+
+
+class GraphCheck(Callback):
+    """After the first step of a run that replays CUDA graphs (:attr:`Trainer.graphs`): how many of the network's
+    compiled graphs ``torch.compile`` runs without them (a CPU tensor among the inputs, an operation graphs cannot
+    hold), and, on rank 0, one warning line when there are any. Such steps are slower, not wrong."""
+
+    def __init__(self) -> None:
+        self.skips = 0
+        """Graphs run without CUDA graphs, counted after the first step (0 when the run replays none)."""
+        self._before: int | None = None
+
+    def on_start(self, trainer: Trainer) -> None:
+        self._before = graph_skips()  # the count is the process's: other runs in it may have added to it
+
+    def on_step(self, trainer: Trainer, terms: dict[str, torch.Tensor]) -> None:
+        if self._before is None or not trainer.graphs:
+            return
+        self.skips, self._before = graph_skips() - self._before, None
+        if self.skips and trainer.dist.main:
+            print(f"run.cuda_graphs: torch.compile runs {self.skips} of the network's graphs without CUDA graphs, so "
+                  "the steps are slower (TORCH_LOGS=cudagraphs says why)", file=sys.stderr)

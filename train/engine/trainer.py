@@ -27,7 +27,7 @@ from fruxel.kernels.fpmode import flush_denormals
 
 from ..config import TrainConfig, override
 from . import distributed
-from .callbacks import Callback, Checkpoints, Evaluation, MetricLog, TimeLimit
+from .callbacks import Callback, Checkpoints, Evaluation, GraphCheck, MetricLog, TimeLimit
 from .checkpoint import LATEST, Checkpoint, read_checkpoint
 from .data import camera_with_dropout, to_device
 from .run_folder import CONFIG, RunFolder
@@ -60,6 +60,9 @@ class TrainResult:
     data_seconds: float = 0.0
     """Seconds this process waited for its batches in this call (host batches, the replay buffer and the copy to
     the device; what the steps' compute did not hide)."""
+    graph_skips: int = 0
+    """With CUDA graphs (:attr:`Trainer.graphs`): the network's compiled graphs run without them
+    (:class:`~.callbacks.GraphCheck`); 0 otherwise."""
 
 
 RESUME_SETTINGS = {"steps": "run", "time_limit": "run", "log_every": "run", "eval_every": "run",
@@ -134,7 +137,8 @@ class Trainer:
         self.log = MetricLog(self.progress)
         evaluator = Evaluation(self.log, evaluation)
         self.checkpoints = Checkpoints(self.log, evaluator)
-        self.callbacks: list[Callback] = [self.log, evaluator, self.checkpoints, TimeLimit()]
+        self.graph_check = GraphCheck()
+        self.callbacks: list[Callback] = [self.log, evaluator, self.checkpoints, TimeLimit(), self.graph_check]
         """Called in this order at each point (:class:`~.callbacks.Callback`)."""
         self.state: TrainingState | None = None
         """The run's state, built by :meth:`fit`."""
@@ -142,6 +146,9 @@ class Trainer:
         """Set by a callback to end the run after the current step."""
         self.autocast = self.dist.device.type == "cuda" and self.config.run.precision == "bf16"
         """Whether steps and evaluations run under bfloat16 autocast."""
+        run = self.config.run
+        self.graphs = run.compile and run.cuda_graphs and self.dist.device.type == "cuda"
+        """Whether the steps replay the compiled network as CUDA graphs (``run.cuda_graphs``)."""
 
     @property
     def saved_step(self) -> int | None:
@@ -176,13 +183,13 @@ class Trainer:
             from ..models.blocks import channels_last
 
             model = channels_last(network)
-        graphs = c.run.compile and c.run.cuda_graphs and dev.type == "cuda"
         ids = [dev.index] if dev.type == "cuda" else None
-        model = training_module(model, compile=c.run.compile, graphs=graphs, ddp=self.dist.distributed, device_ids=ids)
+        model = training_module(model, compile=c.run.compile, graphs=self.graphs, ddp=self.dist.distributed,
+                                device_ids=ids)
         d_model = state.discriminator
         if self.dist.distributed and d_model is not None:
             d_model = _ddp(d_model, ids)
-        return state, Step(model, d_model, None, self.autocast, self.timer, graphs=graphs)
+        return state, Step(model, d_model, None, self.autocast, self.timer, graphs=self.graphs)
 
     def _start_from(self, network: torch.nn.Module, path: str) -> None:
         """Load ``run.init``'s network weights into the fresh network (see :class:`~fruxel.train.config.RunConfig`)."""
@@ -316,7 +323,7 @@ class Trainer:
         s = self.state
         return TrainResult(step=s.step, samples=s.samples, seconds=s.elapsed, interrupted=interrupted,
                            metrics=s.summary, timings=dict(self.timer.seconds), peak_memory=int(peak),
-                           losses=s.losses, data_seconds=self._data_total)
+                           losses=s.losses, data_seconds=self._data_total, graph_skips=self.graph_check.skips)
 
     def _loop(self, step: Step) -> bool:
         """The steps, then the callbacks' ``on_stop``; returns whether the time limit cut the run short."""
