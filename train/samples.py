@@ -61,6 +61,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from fruxel.errors import FruxelError
+from fruxel.kernels.wp.runtime import cuda_wait, set_cuda_wait
 
 from .config import DATA_SOURCES, DataConfig
 from .folder import grid_words
@@ -237,16 +238,19 @@ def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | No
 
 
 def _check_stream(source: SampleSource, model: ModelConfig, split: str) -> None:
-    """Refuse a streamed ``split`` whose rooms need an asset pack that is not there, in this process: the workers
-    that would make the samples find it missing only after they start, each in its own traceback.
+    """Refuse a streamed ``split`` whose rooms need an asset pack that is not there (or whose workers are told an
+    unknown way to wait for CUDA), in this process: the workers that would make the samples find it only after they
+    start, each in its own traceback.
 
     Raises:
         ConfigError: see :func:`sim_config`; no asset pack where ``data.assets`` (or ``$FRUXEL_ASSETS``, or the
             repository's ``assets/pack``) points.
+        BackendError: an unknown ``$FRUXEL_CUDA_WAIT`` (the workers' :func:`set_cuda_wait`).
     """
     from fruxel.train.sim.rooms import check_pack
 
     check_pack(sim_config(model, source, ((split, 1),)), option="data.assets")
+    cuda_wait()
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
@@ -570,6 +574,7 @@ def _init_worker(_: int) -> None:
         # Each worker renders with one llvmpipe thread (the workers already use the cores); read when the
         # renderer's context is made. NVIDIA's EGL ignores it.
         os.environ.setdefault("LP_NUM_THREADS", "1")
+    set_cuda_wait()  # before the worker's renderer makes a CUDA context: it sleeps, not spins, while its GPU works
     # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
     # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
     # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream
