@@ -574,7 +574,7 @@ def _init_worker(_: int) -> None:
         # Each worker renders with one llvmpipe thread (the workers already use the cores); read when the
         # renderer's context is made. NVIDIA's EGL ignores it.
         os.environ.setdefault("LP_NUM_THREADS", "1")
-    set_cuda_wait()  # before the worker's renderer makes a CUDA context: it sleeps, not spins, while its GPU works
+    set_cuda_wait()  # before the worker's renderer makes a CUDA context ($FRUXEL_CUDA_WAIT)
     # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
     # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
     # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream

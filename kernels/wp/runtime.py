@@ -159,12 +159,12 @@ CUDA_WAITS = {"block": 0x4, "spin": 0x1, "yield": 0x2, "auto": 0x0}
 
 
 def cuda_wait() -> str:
-    """The CUDA wait mode :data:`CUDA_WAIT_ENV` asks for (default ``"block"``).
+    """The CUDA wait mode :data:`CUDA_WAIT_ENV` asks for (default ``"auto"``, CUDA's own).
 
     Raises:
         BackendError: a name not in :data:`CUDA_WAITS`.
     """
-    name = os.environ.get(CUDA_WAIT_ENV, "block")
+    name = os.environ.get(CUDA_WAIT_ENV, "auto")
     if name not in CUDA_WAITS:
         raise BackendError(f"{CUDA_WAIT_ENV}={name!r}: expected one of {', '.join(CUDA_WAITS)}")
     return name
@@ -174,10 +174,11 @@ def set_cuda_wait(mode: str | None = None) -> bool:
     """Set how this process's threads wait for CUDA work, on every visible device's primary context (the one Warp
     and torch use), before either makes it current.
 
-    A simulator worker on a GPU spends most of its time waiting for its images and labels. Under CUDA's default a
-    process with one context spins while it waits, so fifteen workers on a sixteen-core host keep the cores busy
-    waiting, and the host work of the next samples waits for a core. ``"block"`` sleeps until the GPU is done
-    instead (a few microseconds more per wait). The simulator's workers call this once as they start.
+    A simulator worker on a GPU spends much of its time waiting for its images and labels. Under CUDA's default a
+    process with one context spins while it waits, so fifteen workers on a sixteen-core host may keep the cores
+    busy waiting while the host work of the next samples waits for a core. ``"block"`` sleeps until the GPU is done
+    instead (a few microseconds more per wait). The simulator's workers call this once as they start; which mode
+    streams faster is for the simulator benchmark to say (``"auto"`` stays the default until it has).
 
     Args:
         mode: a name of :data:`CUDA_WAITS`; None: :func:`cuda_wait`.

@@ -47,7 +47,7 @@ def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str 
                  renderer: Any) -> None:
     # The workers already fill the cores: one llvmpipe thread each avoids oversubscription (NVIDIA ignores it).
     os.environ.setdefault("LP_NUM_THREADS", "1")
-    set_cuda_wait()  # sleep, not spin, while the GPU works: the workers share the host's cores
+    set_cuda_wait()  # how the worker waits for its GPU ($FRUXEL_CUDA_WAIT): the workers share the host's cores
     # A renderer registered at run time in the parent is not registered in a fresh spawned process.
     if config.renderer not in RENDERERS:
         register_renderer(config.renderer, renderer)
