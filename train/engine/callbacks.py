@@ -292,10 +292,11 @@ class GraphCheck(Callback):
         self._before: int | None = None
 
     def on_start(self, trainer: Trainer) -> None:
-        self._before = graph_skips()  # the count is the process's: other runs in it may have added to it
+        if trainer.graphs:
+            self._before = graph_skips()  # the count is the process's: other runs in it may have added to it
 
     def on_step(self, trainer: Trainer, terms: dict[str, torch.Tensor]) -> None:
-        if self._before is None or not trainer.graphs:
+        if self._before is None:
             return
         self.skips, self._before = graph_skips() - self._before, None
         if self.skips and trainer.dist.main:
