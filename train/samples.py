@@ -524,6 +524,10 @@ class BlockStream(IterableDataset):
         if self.source == "folder":
             return (lambda i: self.folder.sample(self.split, i, self.image_size)), (lambda: None)
         if self.source == "stream":
+            if get_worker_info() is not None:
+                # How a worker waits for its GPU ($FRUXEL_CUDA_WAIT), set before its renderer makes the CUDA context;
+                # not in a process that also trains (no workers), whose context is torch's.
+                set_cuda_wait()
             if self.device is not None and self.device.startswith("cuda:"):
                 # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers
                 # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).
@@ -574,7 +578,6 @@ def _init_worker(_: int) -> None:
         # Each worker renders with one llvmpipe thread (the workers already use the cores); read when the
         # renderer's context is made. NVIDIA's EGL ignores it.
         os.environ.setdefault("LP_NUM_THREADS", "1")
-    set_cuda_wait()  # before the worker's renderer makes a CUDA context ($FRUXEL_CUDA_WAIT)
     # A spawned worker ends through sys.exit, so C++ destructors run as its interpreter tears down, and one of torch's
     # aborts there now and then ("terminate called without an active exception", SIGABRT; a bare IterableDataset of
     # zeros in 3 of 8 runs on torch 2.13). Exit handlers run last-registered first: the handlers of what the stream
