@@ -285,14 +285,14 @@ def chart(runs: list[dict[str, Any]], path: Path = CHART) -> None:
             for run in runs for r in run["results"] if r["mode"] != "profile"]
     if not bars:
         return
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.3 * len(bars)), 3.8))
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.0 * len(bars)), 5.0))
     xs = range(len(bars))
     ax.bar(xs, [b[1] for b in bars], color="#4e79a7")
     for x, (_, v, target) in zip(xs, bars, strict=True):
         ax.text(x, v, f"{v:.1f}", ha="center", va="bottom", fontsize=8)
         if target is not None:
             ax.plot([x - 0.4, x + 0.4], [target, target], color="#e15759", lw=2)
-    ax.set_xticks(list(xs), [b[0] for b in bars], fontsize=7)
+    ax.set_xticks(list(xs), [b[0] for b in bars], fontsize=7, rotation=30, ha="right")  # long machine tags
     ax.set_yscale("log")
     ax.set_ylabel("samples / s (steady)")
     ax.set_title("fruxel-sim throughput (red: target)")
