@@ -236,3 +236,22 @@ def test_surface_fusion_forward_is_the_mix_of_its_features() -> None:
     got16 = fusion.to(torch.bfloat16)(depth, surface)
     assert got16.dtype == torch.bfloat16
     torch.testing.assert_close(got16.float(), want, atol=0.5, rtol=0.02)
+
+
+def test_blocks_added_to_a_trained_network_start_as_the_identity() -> None:
+    """A network grown by more blocks (2D encoder and 3D decoder) and started from a smaller one's weights (as
+    ``run.init`` starts it) answers as the smaller one did: each fresh block is the identity, so a trained model can
+    grow without losing what it learnt."""
+    torch.manual_seed(0)
+    small = small_config().build()
+    with torch.no_grad():
+        for p in small.parameters():  # "trained": no block is the identity any more
+            p.add_(0.1 * torch.randn_like(p))
+    small.eval()
+    grown = small_config(encoder_blocks=(2, 2, 3), decoder_blocks=(1, 2, 2)).build().eval()
+    missing, unexpected = grown.load_state_dict(small.state_dict(), strict=False)
+    assert not unexpected
+    assert any(".body." in k for k in missing)  # the new blocks are fresh
+    image = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(grown(image).logits, small(image).logits)

@@ -29,6 +29,9 @@ def act3d() -> nn.Module:
 class InvertedResidual2d(nn.Module):
     """MobileNetV2 inverted residual block: expand 1x1, depthwise 3x3, project 1x1 (linear), residual.
 
+    The last batch norm's scale starts at zero, so a fresh block is the identity (as the volumetric blocks are): a
+    block added to a trained encoder leaves the network's answer as it was until training moves it.
+
     Args:
         channels: input and output channels.
         expand: expansion factor of the hidden width.
@@ -42,6 +45,7 @@ class InvertedResidual2d(nn.Module):
             nn.Conv2d(hidden, hidden, 3, padding=1, groups=hidden, bias=False), nn.BatchNorm2d(hidden), act2d(),
             nn.Conv2d(hidden, channels, 1, bias=False), nn.BatchNorm2d(channels),
         )
+        nn.init.zeros_(self.body[-1].weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, channels, h, w)`` -> same shape."""
