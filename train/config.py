@@ -445,8 +445,11 @@ def _presets() -> dict[str, TrainConfig]:
         # ssz64's architecture reading the camera (issue 39), for the furnished rooms from any camera: the default
         # model's training. Cameras withheld at random (data.camera_dropout) so that "unknown" works. It starts from
         # the shipped ssz64 (its seven classes by name; ceiling, object and the camera inputs fresh) at half ssz64's
-        # learning rate: a lent GPU's half hour a session does not train one from nothing.
+        # learning rate: a lent GPU's half hour a session does not train one from nothing. Its class weights are
+        # flatter than the default's (power 0.25, not 0.5): the default's low weight of empty cells bought recall
+        # with false surfaces in free space (docs/experiments.md, the class-weighting A/B).
         "ssz64-any": TrainConfig(name="ssz64-any", model=SSZConfig(detail_branch=24, camera_inputs=True),
+                                 loss=LossConfig(class_weight_power=0.25),
                                  data=dataclasses.replace(shipped, world="home", camera="any"),
                                  optim=OptimConfig(lr=1e-3, warmup=300),
                                  run=RunConfig(compile=True, init="ssz64")),
