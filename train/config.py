@@ -226,7 +226,8 @@ class DataConfig:
     reuse: int = 1
     """With a replay buffer: batches drawn per batch of new samples (each sample is used about this many times)."""
     eval_samples: int = 256
-    """Test samples used by the periodic evaluation during training."""
+    """Test samples used by the periodic evaluation during training (0: no evaluation; the run then logs its losses
+    alone)."""
     frequency_samples: int = 256
     """Training samples counted for the cross-entropy's class frequencies."""
     camera_dropout: tuple[float, float] = (0.3, 0.3)

@@ -517,6 +517,16 @@ def test_run_folder_after_a_run_with_evaluation(tmp_path: Path, shards: Path) ->
     assert shipped.config == config.model and shipped.training["step"] == 2 and shipped.rules == NO_RULES
 
 
+def test_a_run_asked_for_no_test_samples_trains_without_evaluation(tmp_path: Path) -> None:
+    """``data.eval_samples`` 0 turns the evaluation off: the run ends with its checkpoint and model written (it used
+    to train, then fail in its last evaluation before the checkpoint, with "no test split to evaluate on")."""
+    config = tiny({"data": {"eval_samples": 0}, "run": {"steps": 2}})
+    result = Trainer(config, tmp_path, device="cpu", progress=False).fit()
+    assert result.step == 2 and not result.metrics
+    assert {LATEST, SHIPPED} <= {p.name for p in tmp_path.iterdir()}
+    assert "eval/miou" not in (tmp_path / "metrics.csv").read_text()
+
+
 @pytest.mark.slow
 def test_fit_restores_the_callers_floating_point_mode_and_threads(tmp_path: Path, shards: Path) -> None:
     """Training on the CPU flushes denormals and sets its thread count for itself only: both are process-wide, and

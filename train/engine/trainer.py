@@ -124,6 +124,9 @@ class Trainer:
         """The run's config."""
         from ..samples import SampleSource, split_size, train_split_size
 
+        # data.eval_samples 0 turns the evaluation off: asked for no test samples, it would fail only once training
+        # had ended, before the last checkpoint was written.
+        evaluation = evaluation and self.config.data.eval_samples > 0
         # A data set that does not fit, or lacks the test split the evaluation reads, is refused before anything is
         # written (not after training, when the evaluation first reads it).
         source = SampleSource.of(self.config.data)
