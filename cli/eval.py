@@ -44,13 +44,16 @@ degree bins) by the samples' recorded cameras (:mod:`fruxel.train.eval.by_camera
 evaluated under each setting on the same samples (results ``model`` for the first, ``model@none``,
 ``model@gravity`` for the others) and the chart draws a curve per setting. Errors are one line
 ``fruxel-eval: error: ...`` with exit status 2 (:func:`fruxel.cli.common.run`).
+
+Streamed samples are kept in the same cache (``samples/`` beside the priors' ``prior/``,
+:mod:`fruxel.train.eval.sample_cache`), keyed likewise, so a second evaluation of the same samples (another
+checkpoint of a run, another arm of an experiment) simulates nothing.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
-import importlib.util
 import json
 import shlex
 import sys
@@ -87,8 +90,6 @@ OUTPUTS = ("report.md", "report.json", "examples.png")
 """Files written into ``--out`` (and :data:`CHART` with ``--by-camera``)."""
 CHART = "by_camera.png"
 """The chart of ``--by-camera``, beside the report."""
-"""Environment variable naming the folder of fruxel's caches (default ``$XDG_CACHE_HOME/fruxel``, else
-``~/.cache/fruxel``); ``fruxel-eval`` keeps its per-cell priors in ``prior/`` there."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_test_set_options(p)
     p.add_argument("--samples", type=positive_int, default=None, metavar="N",
                    help=f"evaluate on the first N samples (default: the whole split of --data, else {STREAM_SAMPLES} "
-                   "streamed test samples)")
+                   "streamed test samples, kept in the cache for the next evaluation of the same samples)")
     p.add_argument("--seed", type=non_negative_int, default=None, metavar="S",
                    help="base seed of the streamed samples (default 0; a data set has its own)")
     p.add_argument("--no-augment", dest="augment", action="store_false",
@@ -189,24 +190,6 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- prior
-def _code_digest() -> str:
-    """SHA-256 of the sources that make and count the samples (fruxel's core, kernels and training packages): a
-    cached prior made by other code is not read back."""
-    digest = hashlib.sha256()
-    for name in ("fruxel", "fruxel.kernels", "fruxel.train"):
-        spec = importlib.util.find_spec(name)
-        root = Path(next(iter(spec.submodule_search_locations))) if spec and spec.submodule_search_locations else None
-        if root is None:
-            continue
-        for f in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".cl", ".h") and p.is_file()):
-            rel = f.relative_to(root)
-            if name == "fruxel" and len(rel.parts) > 1 and rel.parts[0] != "data":
-                continue  # the other packages, which an installed wheel nests in fruxel/, are hashed as themselves
-            digest.update(f"{name}/{rel.as_posix()}\0".encode())
-            digest.update(f.read_bytes())
-    return digest.hexdigest()
-
-
 def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
     """Where the per-cell prior of ``samples`` training samples of ``data`` for ``model`` is cached: a fruxel model
     file (:func:`fruxel.save`; its labels are the prior) named by a hash of everything that makes it.
@@ -217,11 +200,12 @@ def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
         samples: training samples counted.
     """
     from fruxel.io import cache_folder
+    from fruxel.train.eval.sample_cache import code_digest
     from fruxel.train.samples import sim_config
     from fruxel.train.sim.manifest import MANIFEST
 
     key: dict[str, Any] = {"samples": samples, "grid": model.grid.to_dict(), "classes": model.classes.to_dict(),
-                           "code": _code_digest()}
+                           "code": code_digest()}
     if data.source == "shards":
         # A data set's manifest holds its settings and every shard's SHA-256.
         key["data set"] = hashlib.sha256(Path(data.root, MANIFEST).read_bytes()).hexdigest()
@@ -358,6 +342,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from fruxel.train.eval.by_camera import CameraBinned, CameraBins
     from fruxel.train.eval.evaluate import evaluate_predictions, spread
     from fruxel.train.eval.report import build_report
+    from fruxel.train.eval.sample_cache import cached_split_batches
     from fruxel.train.model_files import load_model
     from fruxel.train.samples import split_batches
 
@@ -375,6 +360,12 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         return _progress(split_batches(source, mc, split, n, args.batch, workers=args.workers, device=sim_device,
                                        camera=records), n, desc, args.quiet)
 
+    def load_evaluated() -> Iterator[Any]:
+        # Streamed samples are kept with their camera records whoever reads them, so every model shares one file.
+        batches = cached_split_batches(source, mc, args.split, count, args.batch, workers=args.workers,
+                                       device=sim_device, camera=source.source == "stream" or records)
+        return _progress((b if records else b[:2] for b in batches), count, "evaluate", args.quiet)
+
     prior_info = None
     if args.prior_samples:
         predictors["prior"], prior_info = _prior(args, source, mc, load, device)
@@ -389,7 +380,7 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
     with torch.no_grad():
         # Examples spread over the samples: consecutive samples are frames of one room.
         shown = spread(count, args.examples)
-        accs, kept = evaluate_predictions(predictors, as_input(load(args.split, count, "evaluate")), mc.grid,
+        accs, kept = evaluate_predictions(predictors, as_input(load_evaluated()), mc.grid,
                                           mc.classes, device=device, backend=args.backend, keep=shown,
                                           by_camera=binned)
     machine = machine_info(str(device))

@@ -143,7 +143,7 @@ def test_the_prior_is_cached_by_what_makes_it(shipped_model: Path, tmp_path: Pat
         return json.loads((tmp_path / name / "report.json").read_text())
 
     def entries() -> list[Path]:
-        return sorted(cache_folder.rglob("*.npz"))
+        return sorted((cache_folder / "prior").rglob("*.npz"))
 
     first = evaluate("first")
     (entry,) = entries()
@@ -169,6 +169,46 @@ def test_the_prior_is_cached_by_what_makes_it(shipped_model: Path, tmp_path: Pat
     assert [p.name for p in entry.parent.iterdir() if p.suffix != ".npz"] == [], "temporary files left behind"
 
 
+def test_streamed_test_samples_are_cached_by_what_makes_them(shipped_model: Path, tmp_path: Path, cache_folder: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The streamed samples an evaluation reads are kept in the cache and read back by the next evaluation of the
+    same samples, which then simulates nothing and reports the same numbers; other samples get entries of their
+    own, and a damaged entry is streamed again and replaced."""
+    import fruxel.train.samples as samples
+
+    def evaluate(name: str, *extra: str) -> dict[str, Any]:
+        argv = ["--checkpoint", str(shipped_model), "--samples", "3", "--prior-samples", "0", "--batch", "2",
+                "--examples", "0", "--device", "cpu", "--out", str(tmp_path / name), "-q", *extra]
+        assert eval_cli.main(argv) == 0
+        return json.loads((tmp_path / name / "report.json").read_text())
+
+    def entries() -> list[Path]:
+        return sorted((cache_folder / "samples").glob("*.npz"))
+
+    first = evaluate("first")
+    (entry,) = entries()
+    with np.load(entry, allow_pickle=False) as f:
+        np.testing.assert_array_equal(f["labels"], np.stack([s.labels for s in streamed("test", 3)]))
+    stream = samples.split_batches
+    with monkeypatch.context() as m:
+        m.setattr(samples, "split_batches", lambda *a, **k: pytest.fail("streamed again"))
+        again = evaluate("again")
+    assert again["results"] == first["results"]
+    # With the camera's bins the same entry serves: the camera records are kept whoever reads them.
+    with monkeypatch.context() as m:
+        m.setattr(samples, "split_batches", lambda *a, **k: pytest.fail("streamed again"))
+        assert evaluate("bins", "--by-camera")["results"]["model"] == first["results"]["model"]
+    assert samples.split_batches is stream
+    evaluate("seed", "--seed", "1")
+    evaluate("four", "--samples", "4")
+    assert len(entries()) == 3
+    entry.write_bytes(b"damaged")
+    assert evaluate("damaged")["results"] == first["results"]
+    with np.load(entry, allow_pickle=False) as f:
+        assert f["images"].shape[0] == 3
+    assert [p.name for p in entry.parent.iterdir() if p.suffix != ".npz"] == [], "temporary files left behind"
+
+
 def test_the_robot_test_set_is_the_stream_of_earlier_reports(shipped_model: Path, tmp_path: Path,
                                                               cache_folder: Path) -> None:
     """``--test-set robot`` evaluates the samples (and counts the prior of) the model's own stream of the flat world
@@ -180,7 +220,7 @@ def test_the_robot_test_set_is_the_stream_of_earlier_reports(shipped_model: Path
         return json.loads((tmp_path / name / "report.json").read_text())
 
     plain, robot = evaluate("plain"), evaluate("robot", "--test-set", "robot")
-    assert robot["results"] == plain["results"] and len(list(cache_folder.rglob("*.npz"))) == 1
+    assert robot["results"] == plain["results"] and len(list((cache_folder / "prior").rglob("*.npz"))) == 1
     assert plain["data"]["test_set"] is None and "test set" not in (tmp_path / "plain" / "report.md").read_text()
     description = TEST_SETS["robot"].description
     assert robot["data"]["test_set"] == {"name": "robot", "description": description}
@@ -211,7 +251,7 @@ def test_a_room_world_test_set_is_evaluated_and_its_prior_keyed_by_it(home_model
     config = load_model(home_model).config
     keys = {prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=t), config, 2)
             for t in ("", "any-camera", name)}
-    assert len(keys) == 3 and [p.name for p in cache_folder.rglob("*.npz")] == [
+    assert len(keys) == 3 and [p.name for p in (cache_folder / "prior").rglob("*.npz")] == [
         prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=name), config, 2).name]
 
 
