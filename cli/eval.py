@@ -25,8 +25,8 @@ samples are predicted by
   of the same source (``0`` leaves it out). Counting them takes minutes on a CPU (the streamed samples are
   simulated), so the prior is kept in a cache (:func:`prior_cache_path`, a fruxel model file under
   ``$FRUXEL_CACHE_DIR``, default ``~/.cache/fruxel``) keyed by everything that makes it: the source (the
-  simulator's settings and seed, or the data set's manifest), the number of samples, the model's grid and classes,
-  and fruxel's own code; a later evaluation of the same source reads it back,
+  simulator's settings and seed with the asset pack's manifest, or the data set's manifest), the number of
+  samples, the model's grid and classes, and fruxel's own code; a later evaluation of the same source reads it back,
 * the **visible-surface oracle**: the ground truth's own-view shell alone (a perfect depth and segmentation
   network that completes nothing),
 
@@ -200,8 +200,7 @@ def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
         samples: training samples counted.
     """
     from fruxel.io import cache_folder
-    from fruxel.train.eval.sample_cache import code_digest
-    from fruxel.train.samples import sim_config
+    from fruxel.train.eval.sample_cache import code_digest, stream_key
     from fruxel.train.sim.manifest import MANIFEST
 
     key: dict[str, Any] = {"samples": samples, "grid": model.grid.to_dict(), "classes": model.classes.to_dict(),
@@ -214,8 +213,7 @@ def prior_cache_path(data: Any, model: Any, samples: int) -> Path:
 
         key["data folder"] = folder_digest(data.root)
     else:
-        key["stream"] = sim_config(model, data, (("train", samples),)).to_dict()
-        key["seed"] = data.seed
+        key.update(stream_key(data, model, (("train", samples),)))
     name = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:32]
     return cache_folder() / "prior" / f"{name}.npz"
 

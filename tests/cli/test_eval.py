@@ -255,6 +255,32 @@ def test_a_room_world_test_set_is_evaluated_and_its_prior_keyed_by_it(home_model
         prior_cache_path(SampleSource(seed=0, assets=str(tiny_pack), test_set=name), config, 2).name]
 
 
+def test_a_rebuilt_asset_pack_keys_other_caches(home_model: Path, tiny_pack: Path, tmp_path: Path) -> None:
+    """The furnished rooms are drawn from the asset pack, so a pack built again with other contents (same folder,
+    other manifest) gives the streamed samples and the per-cell prior cache entries of their own."""
+    import shutil
+
+    from fruxel.cli.eval import prior_cache_path
+    from fruxel.train.eval.sample_cache import samples_cache_path
+    from fruxel.train.samples import SampleSource
+
+    pack = tmp_path / "pack"
+    shutil.copytree(tiny_pack, pack)
+    config = load_model(home_model).config
+    source = SampleSource(seed=0, assets=str(pack), test_set="any-camera")
+
+    def keys() -> tuple[Path, Path]:
+        return (prior_cache_path(source, config, 2),
+                samples_cache_path(source, config, "test", 2, camera=True, device="cpu"))
+
+    before = keys()
+    assert keys() == before
+    manifest = pack / "manifest.json"
+    manifest.write_text(manifest.read_text() + "\n")
+    after = keys()
+    assert after[0] != before[0] and after[1] != before[1]
+
+
 def test_a_model_of_the_furnished_rooms_is_evaluated_on_them_by_default(home_model: Path, shipped_model: Path,
                                                                        tiny_pack: Path, tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:

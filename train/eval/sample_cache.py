@@ -4,9 +4,9 @@ Simulating a test set takes minutes on a CPU (the furnished rooms are ray-traced
 every arm of an experiment, is evaluated on the same samples. :func:`cached_split_batches` yields exactly what
 :func:`fruxel.train.samples.split_batches` yields for a stream, and the first time writes the samples to
 ``$FRUXEL_CACHE_DIR/samples/<key>.npz`` (:func:`fruxel.io.cache_folder`), named by a hash of everything that makes
-them: the simulator's settings and seed, the split, the count, whether camera records travel, the Warp device of
-the simulator (a CUDA ray tracer may round otherwise than the CPU's), the asset pack's manifest and fruxel's own
-code (:func:`code_digest`). A file that cannot be read, or holds other shapes, is ignored and made again.
+them (:func:`stream_key`: the simulator's settings and seed, the asset pack's manifest and fruxel's own code), the
+split, the count, whether camera records travel and the Warp device of the simulator (a CUDA ray tracer may round
+otherwise than the CPU's). A file that cannot be read, or holds other shapes, is ignored and made again.
 """
 
 from __future__ import annotations
@@ -44,6 +44,27 @@ def code_digest() -> str:
     return digest.hexdigest()
 
 
+def stream_key(source: Any, model: Any, splits: tuple[tuple[str, int], ...]) -> dict[str, Any]:
+    """What makes a stream's samples, for a cache key: the simulator's settings and seed, fruxel's code
+    (:func:`code_digest`) and, for the furnished rooms, the asset pack's manifest (a pack built again from other
+    sources draws other rooms).
+
+    Args:
+        source: a streamed :class:`fruxel.train.samples.SampleSource`.
+        model: the model's config (grid, image size and classes of the samples).
+        splits: ``(name, count)`` of the splits the samples are drawn from.
+    """
+    from fruxel.train.samples import sim_config
+
+    config = sim_config(model, source, splits)
+    key: dict[str, Any] = {"stream": config.to_dict(), "seed": source.seed, "code": code_digest()}
+    if config.world == "home":
+        from fruxel.train.sim.rooms.library import resolve_pack
+
+        key["pack"] = hashlib.sha256((resolve_pack(config.assets) / "manifest.json").read_bytes()).hexdigest()
+    return key
+
+
 def samples_cache_path(source: Any, model: Any, split: str, count: int, *, camera: bool, device: str | None) -> Path:
     """Where :func:`cached_split_batches` keeps the ``count`` streamed samples of ``split``.
 
@@ -56,15 +77,9 @@ def samples_cache_path(source: Any, model: Any, split: str, count: int, *, camer
         device: the simulator's Warp device (None: CUDA when present).
     """
     from fruxel.io import cache_folder
-    from fruxel.train.samples import sim_config
 
-    config = sim_config(model, source, ((split, count),))
-    key: dict[str, Any] = {"stream": config.to_dict(), "seed": source.seed, "split": split, "count": count,
-                           "camera": camera, "device": _warp_device(device), "code": code_digest()}
-    if config.world != "flat":
-        from fruxel.train.sim.rooms.library import resolve_pack
-
-        key["pack"] = hashlib.sha256((resolve_pack(config.assets) / "manifest.json").read_bytes()).hexdigest()
+    key = {**stream_key(source, model, ((split, count),)), "split": split, "count": count, "camera": camera,
+           "device": _warp_device(device)}
     name = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:32]
     return cache_folder() / "samples" / f"{name}.npz"
 
