@@ -61,6 +61,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from fruxel.errors import FruxelError
+from fruxel.kernels.wp.runtime import cuda_wait, set_cuda_wait
 
 from .config import DATA_SOURCES, DataConfig
 from .folder import grid_words
@@ -237,16 +238,19 @@ def split_size(source: SampleSource, model: ModelConfig, split: str) -> int | No
 
 
 def _check_stream(source: SampleSource, model: ModelConfig, split: str) -> None:
-    """Refuse a streamed ``split`` whose rooms need an asset pack that is not there, in this process: the workers
-    that would make the samples find it missing only after they start, each in its own traceback.
+    """Refuse a streamed ``split`` whose rooms need an asset pack that is not there (or whose workers are told an
+    unknown way to wait for CUDA), in this process: the workers that would make the samples find it only after they
+    start, each in its own traceback.
 
     Raises:
         ConfigError: see :func:`sim_config`; no asset pack where ``data.assets`` (or ``$FRUXEL_ASSETS``, or the
             repository's ``assets/pack``) points.
+        BackendError: an unknown ``$FRUXEL_CUDA_WAIT`` (the workers' :func:`set_cuda_wait`).
     """
     from fruxel.train.sim.rooms import check_pack
 
     check_pack(sim_config(model, source, ((split, 1),)), option="data.assets")
+    cuda_wait()
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
@@ -520,6 +524,10 @@ class BlockStream(IterableDataset):
         if self.source == "folder":
             return (lambda i: self.folder.sample(self.split, i, self.image_size)), (lambda: None)
         if self.source == "stream":
+            if get_worker_info() is not None:
+                # How a worker waits for its GPU ($FRUXEL_CUDA_WAIT), set before its renderer makes the CUDA context;
+                # not in a process that also trains (no workers), whose context is torch's.
+                set_cuda_wait()
             if self.device is not None and self.device.startswith("cuda:"):
                 # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers
                 # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).

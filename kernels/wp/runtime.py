@@ -149,3 +149,63 @@ def resolve_device(device: Any = None) -> str:
     if ordinal >= count:
         raise BackendError(f"Warp device {name!r} does not exist: {count} CUDA device(s), cuda:0..cuda:{count - 1}")
     return f"cuda:{ordinal}"
+
+
+CUDA_WAIT_ENV = "FRUXEL_CUDA_WAIT"
+"""The environment variable that says how a simulator worker waits for its GPU work (:func:`set_cuda_wait`)."""
+CUDA_WAITS = {"block": 0x4, "spin": 0x1, "yield": 0x2, "auto": 0x0}
+"""Scheduling flags of a CUDA primary context by name: ``CU_CTX_SCHED_BLOCKING_SYNC``, ``_SPIN``, ``_YIELD``,
+``_AUTO`` (CUDA's default: spin while the process has fewer contexts than the machine has cores)."""
+
+
+def cuda_wait() -> str:
+    """The CUDA wait mode :data:`CUDA_WAIT_ENV` asks for (default ``"block"``).
+
+    Raises:
+        BackendError: a name not in :data:`CUDA_WAITS`.
+    """
+    name = os.environ.get(CUDA_WAIT_ENV, "block")
+    if name not in CUDA_WAITS:
+        raise BackendError(f"{CUDA_WAIT_ENV}={name!r}: expected one of {', '.join(CUDA_WAITS)}")
+    return name
+
+
+def set_cuda_wait(mode: str | None = None) -> bool:
+    """Set how this process's threads wait for CUDA work, on every visible device's primary context (the one Warp
+    and torch use), before either makes it current.
+
+    A simulator worker on a GPU spends much of its time waiting for its images and labels. Under CUDA's default a
+    process with one context spins while it waits, so workers keep cores busy waiting while the host work of other
+    workers' samples waits for a core. ``"block"`` sleeps until the GPU is done instead (a few microseconds more per
+    wait). With one worker a core it makes no difference; with more workers than cores, which is how the simulator
+    streams fastest on a GPU, it streams faster (BENCHMARKS.md, "## Simulator"). The simulator's workers call this
+    once as they start.
+
+    Args:
+        mode: a name of :data:`CUDA_WAITS`; None: :func:`cuda_wait`.
+
+    Returns:
+        Whether the flags were set: False without an NVIDIA driver or device (nothing to set).
+
+    Raises:
+        BackendError: an unknown mode.
+    """
+    import ctypes
+
+    name = cuda_wait() if mode is None else mode
+    if name not in CUDA_WAITS:
+        raise BackendError(f"CUDA wait mode {name!r}: expected one of {', '.join(CUDA_WAITS)}")
+    try:
+        cuda = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    count = ctypes.c_int(0)
+    if cuda.cuInit(0) != 0 or cuda.cuDeviceGetCount(ctypes.byref(count)) != 0:
+        return False
+    set_flags = getattr(cuda, "cuDevicePrimaryCtxSetFlags_v2", None) or cuda.cuDevicePrimaryCtxSetFlags
+    done = False
+    for ordinal in range(count.value):
+        device = ctypes.c_int(0)
+        if cuda.cuDeviceGet(ctypes.byref(device), ordinal) == 0:
+            done = set_flags(device, ctypes.c_uint(CUDA_WAITS[name])) == 0 or done
+    return done

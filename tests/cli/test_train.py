@@ -154,6 +154,19 @@ def test_a_missing_asset_pack_is_refused_before_the_run_starts(tmp_path: Path, m
     assert not run.exists()
 
 
+def test_an_unknown_cuda_wait_mode_is_refused_before_the_run_starts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str],
+                                                                     tiny_pack: Path) -> None:
+    """``$FRUXEL_CUDA_WAIT`` tells the simulator's workers how to wait for their GPU; a name they would refuse, each
+    in its own process, is refused in one line before the run folder or any worker is made."""
+    monkeypatch.setenv("FRUXEL_ASSETS", str(tiny_pack))
+    monkeypatch.setenv("FRUXEL_CUDA_WAIT", "busy")
+    run = tmp_path / "run"
+    assert main(["--preset", "tiny", "--steps", "1", "--out", str(run)]) == 2
+    assert "FRUXEL_CUDA_WAIT='busy': expected one of block, spin, yield, auto" in _error_line(capsys)
+    assert not run.exists()
+
+
 @pytest.mark.parametrize("option", ["--out", "--data"])
 def test_an_empty_folder_name_is_refused(option: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                          capsys: pytest.CaptureFixture[str]) -> None:

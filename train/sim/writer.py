@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from fruxel.io import atomic_write, file_sha256
+from fruxel.kernels.wp.runtime import cuda_wait, set_cuda_wait
 
 from .config import ConfigError, SimConfig
 from .manifest import MANIFEST, Manifest
@@ -46,6 +47,7 @@ def _worker_init(config: SimConfig, seed: int, backend: str | None, device: str 
                  renderer: Any) -> None:
     # The workers already fill the cores: one llvmpipe thread each avoids oversubscription (NVIDIA ignores it).
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    set_cuda_wait()  # how the worker waits for its GPU ($FRUXEL_CUDA_WAIT): the workers share the host's cores
     # A renderer registered at run time in the parent is not registered in a fresh spawned process.
     if config.renderer not in RENDERERS:
         register_renderer(config.renderer, renderer)
@@ -124,9 +126,11 @@ def generate(
     Raises:
         DatasetError: a folder made with other settings, a bad manifest, or a corrupt or foreign shard.
         ConfigError: bad settings.
+        BackendError: an unknown ``$FRUXEL_CUDA_WAIT``.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"workers must be a positive integer, got {workers!r}")
+    cuda_wait()  # an unknown $FRUXEL_CUDA_WAIT is refused here, not in each worker
     out = os.fsdecode(out)
     manifest, mpath = _open_folder(out, config, seed)
     _remove_temporaries(out)
