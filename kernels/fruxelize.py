@@ -45,7 +45,9 @@ carves its inside out of earlier ones.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -204,6 +206,63 @@ def _open_components(faces: np.ndarray, face_comp: np.ndarray, n_vertices: int) 
     return is_open
 
 
+@dataclass(frozen=True)
+class _SplitPlan:
+    """How one mesh's faces split into closed parts and open faces: a function of the faces alone (and the vertex
+    count), so a mesh met again (a furniture model in every room, moved) reuses it. Arrays are read-only.
+
+    Attributes:
+        closed_faces: ``(Fc, 3)`` int64, the closed components' faces, grouped by part (indices into the mesh's
+            vertices).
+        used: ``(Vc,)`` int64, the mesh's vertices those faces use, ascending.
+        local: ``(Fc, 3)`` int64, ``closed_faces`` as indices into ``used``.
+        rank: ``(Fc,)`` int64, each closed face's part, 0..P-1, ascending.
+        starts: ``(P,)`` int64, each part's first row in ``closed_faces``.
+        open_faces: ``(Fo, 3)`` int64, the faces of the open components.
+    """
+
+    closed_faces: np.ndarray
+    used: np.ndarray
+    local: np.ndarray
+    rank: np.ndarray
+    starts: np.ndarray
+    open_faces: np.ndarray
+
+
+SPLIT_PLANS = 512
+"""Split plans a process keeps (least recently used go first): more than the distinct meshes of a few rooms."""
+_plans: OrderedDict[bytes, _SplitPlan] = OrderedDict()
+
+
+def _split_plan(faces: np.ndarray, n_vertices: int) -> _SplitPlan:
+    """The :class:`_SplitPlan` of ``faces`` ``(F, 3)`` int over ``n_vertices`` vertices, from the process's cache
+    when the same faces were split before (keyed by their bytes' digest)."""
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    key = hashlib.blake2b(faces.tobytes(), digest_size=16, person=n_vertices.to_bytes(8, "little")).digest()
+    plan = _plans.get(key)
+    if plan is not None:
+        _plans.move_to_end(key)
+        return plan
+    comp = _components(faces, n_vertices)
+    is_open = _open_components(faces, comp, n_vertices)
+    closed = ~is_open[comp]
+    fc = faces[closed]
+    _, rank = np.unique(comp[closed], return_inverse=True)
+    rank = rank.reshape(-1)
+    order = np.argsort(rank, kind="stable")
+    fc, rank = fc[order], rank[order]
+    used, local = np.unique(fc, return_inverse=True)
+    starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]]) if len(rank) else np.zeros(0, dtype=np.int64)
+    arrays = (fc, used, local.reshape(-1, 3), rank, starts, faces[is_open[comp]])
+    for a in arrays:
+        a.setflags(write=False)  # shared by every later mesh with these faces
+    plan = _SplitPlan(*arrays)
+    _plans[key] = plan
+    if len(_plans) > SPLIT_PLANS:
+        _plans.popitem(last=False)
+    return plan
+
+
 def _pad(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # The walk must start strictly outside the part even after float32 rounding of world coordinates.
     pad = 1e-3 + 1e-6 * np.maximum(np.abs(lo), np.abs(hi)).max(axis=-1, keepdims=True)
@@ -233,35 +292,24 @@ def prepare_meshes(meshes: Sequence[Any]) -> MeshParts:
     first = [0]
     n_cv = 0
 
-    def add_closed(v: np.ndarray, f: np.ndarray, comp: np.ndarray, label: int) -> None:
-        nonlocal n_cv
-        if not len(f):
-            return
-        _, rank = np.unique(comp, return_inverse=True)
-        rank = rank.reshape(-1)
-        order = np.argsort(rank, kind="stable")
-        f, rank = f[order], rank[order]
-        used, local = np.unique(f, return_inverse=True)
-        p0 = len(kinds)
-        cv.append(v[used])
-        cf.append(local.reshape(-1, 3) + n_cv)
-        cg.append(rank + p0)
-        n_cv += len(used)
-        starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]])
-        tri = v[f]
-        los.extend(np.minimum.reduceat(tri.min(axis=1), starts))
-        his.extend(np.maximum.reduceat(tri.max(axis=1), starts))
-        n_new = len(starts)
-        kinds.extend([0] * n_new)
-        refs.extend(range(p0, p0 + n_new))
-        labels.extend([label] * n_new)
-
     def keep_closed(v: np.ndarray, f: np.ndarray, label: int) -> np.ndarray:
         """Add the closed components of ``(v, f)`` as parts; return the faces of the open ones."""
-        comp = _components(f, len(v))
-        is_open = _open_components(f, comp, len(v))
-        add_closed(v, f[~is_open[comp]], comp[~is_open[comp]], label)
-        return f[is_open[comp]]
+        nonlocal n_cv
+        plan = _split_plan(f, len(v))
+        if len(plan.closed_faces):
+            p0 = len(kinds)
+            cv.append(v[plan.used])
+            cf.append(plan.local + n_cv)
+            cg.append(plan.rank + p0)
+            n_cv += len(plan.used)
+            tri = v[plan.closed_faces]
+            los.extend(np.minimum.reduceat(tri.min(axis=1), plan.starts))
+            his.extend(np.maximum.reduceat(tri.max(axis=1), plan.starts))
+            n_new = len(plan.starts)
+            kinds.extend([0] * n_new)
+            refs.extend(range(p0, p0 + n_new))
+            labels.extend([label] * n_new)
+        return plan.open_faces
 
     for v, f, label in triplets:
         # Components by index first: pieces that only touch (boxes sharing a corner position) stay separate

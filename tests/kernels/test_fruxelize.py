@@ -254,3 +254,54 @@ def test_bad_input_is_refused(grid: FruxelGrid) -> None:
     with pytest.raises(BackendError):
         fruxelize([(box, 1)], grid, pose, backend="opencl")
     assert not fruxelize([], grid, pose).any()
+
+
+def _parts_arrays(parts) -> list[np.ndarray]:
+    out = [np.asarray(getattr(parts, name)) for name in (
+        "closed_vertices", "closed_faces", "closed_group", "part_kind", "part_ref", "part_label", "part_lo", "part_hi",
+        "mesh_first_part", "mesh_lo", "mesh_hi")]
+    return out + [a for pair in parts.open_meshes for a in pair]
+
+
+def test_a_mesh_met_again_is_split_as_the_first_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Meshes with the faces of one met before (a furniture model in another room, moved) reuse its split plan: the
+    parts are those of a process that never saw it, closed and open pieces alike, and the shared plan is
+    read-only."""
+    import importlib
+
+    fz = importlib.import_module("fruxel.kernels.fruxelize")
+    touching = trimesh.util.concatenate([trimesh.creation.box(extents=(1, 1, 1)),
+                                         trimesh.creation.box(extents=(1, 1, 1)).apply_translation((1, 0, 0))])
+    box = trimesh.creation.box(extents=(2, 1, 0.1))
+    faces = np.asarray(box.faces).copy()
+    faces[-2:] = faces[-2:, ::-1]  # two faces wound the other way: open, with as many faces as the closed box
+    flipped = trimesh.Trimesh(box.vertices, faces, process=False)
+    scene = [(touching, 2), (box, 4), (flipped, 5), (trimesh.creation.icosphere(subdivisions=1), 3)]
+
+    def moved(offset: float) -> list:
+        return [(m.copy().apply_translation((offset, 2 * offset, 0)), label) for m, label in scene]
+
+    monkeypatch.setattr(fz, "_plans", type(fz._plans)())
+    prepare_meshes(moved(0.0))
+    assert len(fz._plans) >= 3
+    cached = prepare_meshes(moved(1.5))
+    monkeypatch.setattr(fz, "_plans", type(fz._plans)())
+    fresh = prepare_meshes(moved(1.5))
+    assert cached.part_kind.tolist() == [0, 0, 0, 1, 0]
+    for a, b in zip(_parts_arrays(cached), _parts_arrays(fresh), strict=True):
+        np.testing.assert_array_equal(a, b)
+    plan = next(iter(fz._plans.values()))
+    with pytest.raises(ValueError, match="read-only"):
+        plan.open_faces[...] = 0
+
+
+def test_the_split_plans_kept_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib
+
+    fz = importlib.import_module("fruxel.kernels.fruxelize")
+    monkeypatch.setattr(fz, "_plans", type(fz._plans)())
+    monkeypatch.setattr(fz, "SPLIT_PLANS", 3)
+    box = trimesh.creation.box()
+    for n in range(5):
+        prepare_meshes([(np.asarray(box.vertices), np.roll(np.asarray(box.faces), n, axis=0), 1)])
+    assert len(fz._plans) == 3
