@@ -1,0 +1,74 @@
+"""scripts/depth_tolerance.py: IoU that forgives a class found a few depth slices away."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fruxel.train.eval.metrics import confusion, iou_per_class
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def tol():
+    spec = importlib.util.spec_from_file_location("depth_tolerance", ROOT / "scripts" / "depth_tolerance.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _volumes(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    truth = np.zeros((2, 12, 5, 6), dtype=np.uint8)
+    for b in range(2):
+        for j in range(5):
+            for i in range(6):
+                k = rng.integers(2, 9)
+                truth[b, k:k + 2, j, i] = rng.integers(1, 4)  # a surface two slices thick in each column
+    return truth, rng
+
+
+def test_no_tolerance_is_the_usual_iou(tol) -> None:
+    truth, rng = _volumes(0)
+    pred = np.where(rng.random(truth.shape) < 0.3, rng.integers(0, 4, truth.shape), truth).astype(np.uint8)
+    expected = 100 * iou_per_class(confusion(torch.from_numpy(pred), torch.from_numpy(truth), 4).numpy())
+    got = tol.tolerant_iou(tol.tolerant_counts(pred, truth, 4, 0))
+    np.testing.assert_allclose(got[1:], expected[1:])
+
+
+def test_a_prediction_one_slice_deeper_is_right_within_one_slice(tol) -> None:
+    truth, _ = _volumes(1)
+    pred = np.zeros_like(truth)
+    pred[:, 1:] = truth[:, :-1]
+    exact = tol.tolerant_iou(tol.tolerant_counts(pred, truth, 4, 0))
+    within = tol.tolerant_iou(tol.tolerant_counts(pred, truth, 4, 1))
+    assert (exact[1:] < 50).all()
+    np.testing.assert_allclose(within[1:], 100.0)
+
+
+def test_a_class_in_neither_volume_is_nan_and_a_missed_one_zero(tol) -> None:
+    truth, _ = _volumes(2)
+    pred = np.where(truth == 2, 0, truth).astype(np.uint8)
+    iou = tol.tolerant_iou(tol.tolerant_counts(pred, truth, 5, 1))
+    assert iou[2] == 0.0 and np.isnan(iou[4]) and iou[1] == 100.0
+
+
+@pytest.mark.slow
+def test_it_reads_a_model_on_fruxel_evals_samples(tol, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str], tiny_pack: Path) -> None:
+    """The tiny camera-aware model (the paper's six classes) on four streamed samples of the robot's test set: three
+    lines, IoU not falling with tolerance, and the samples kept in fruxel-eval's cache."""
+    monkeypatch.setenv("FRUXEL_ASSETS", str(tiny_pack))
+    monkeypatch.setenv("FRUXEL_CACHE_DIR", str(tmp_path))
+    model = ROOT / "tests" / "data" / "camera_tiny" / "model.safetensors"
+    assert tol.main([str(model), "--test-set", "robot", "--samples", "4", "--batch", "4"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [ln.split(":")[0] for ln in lines] == [f"within {r} slice(s)" for r in (0, 1, 2)]
+    mious = [float(ln.split("mIoU ")[1].split()[0]) for ln in lines]
+    assert mious == sorted(mious)
+    assert list((tmp_path / "samples").glob("*.npz"))  # fruxel-eval's cache, for the next look
