@@ -7,7 +7,10 @@ The samples are fruxel-eval's (the same stream, seed 0, augmented, and its sampl
 of the same test set and count, nothing is simulated again). With ``r`` slices of tolerance a predicted cell of
 class c is right when the truth has c within ``r`` slices of it in depth, and a true cell is found when the
 prediction has c within ``r`` slices; the IoU is then ``1 / (1/precision + 1/recall - 1)``, which for ``r = 0`` is
-``TP / (TP + FP + FN)``. An analysis for the experiments log, not a metric of the product's reports.
+``TP / (TP + FP + FN)``. Then, for the cells that one slice of tolerance leaves wrong, what they are: true cells
+not found that the prediction leaves empty, and that lie behind the first occupied cell of their column (hidden
+from the camera); predicted cells not right where the truth is empty. An analysis for the experiments log, not a
+metric of the product's reports.
 """
 
 from __future__ import annotations
@@ -41,6 +44,22 @@ def tolerant_counts(pred: np.ndarray, truth: np.ndarray, classes: int, r: int) -
     return out
 
 
+def error_counts(pred: np.ndarray, truth: np.ndarray, classes: int, r: int = 1) -> np.ndarray:
+    """``(classes, 5)`` int64 counts per class of what ``r`` slices of tolerance leave wrong: true cells not found,
+    of which predicted empty, of which hidden (behind their column's first occupied cell); predicted cells not
+    right, of which empty in the truth."""
+    occupied = truth != 0
+    first = occupied.argmax(axis=1)[:, None]
+    hidden = np.arange(truth.shape[1])[None, :, None, None] > first
+    out = np.zeros((classes, 5), dtype=np.int64)
+    for c in range(1, classes):
+        p, t = pred == c, truth == c
+        missed, wrong = t & ~widen(p, r), p & ~widen(t, r)
+        out[c] = missed.sum(), (missed & (pred == 0)).sum(), (missed & hidden).sum(), wrong.sum(), \
+            (wrong & ~occupied).sum()
+    return out
+
+
 def tolerant_iou(counts: np.ndarray) -> np.ndarray:
     """Per-class IoU (percent; NaN for a class in neither volume) from :func:`tolerant_counts`."""
     pred, true, right, found = (counts[:, k].astype(np.float64) for k in range(4))
@@ -70,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     predict = model_predict(m.network, m.rules, camera_known=known)
     names = m.config.classes.names
     counts = {r: np.zeros((len(names), 4), dtype=np.int64) for r in TOLERANCES}
+    errors = np.zeros((len(names), 5), dtype=np.int64)
     source = SampleSource(seed=0, assets="", test_set=args.test_set, augment=True)
     with torch.no_grad():
         for image, labels, record in cached_split_batches(source, m.config, "test", args.samples, args.batch,
@@ -78,11 +98,18 @@ def main(argv: list[str] | None = None) -> int:
             pred, truth = predict(x, labels, record).numpy(), labels.numpy()
             for r in TOLERANCES:
                 counts[r] += tolerant_counts(pred, truth, len(names), r)
+            errors += error_counts(pred, truth, len(names))
     for r in TOLERANCES:
         iou = tolerant_iou(counts[r])
         present = counts[r][:, 1] > 0
         print(f"within {r} slice(s): mIoU {np.nanmean(iou[present]):.1f} | "
               + " ".join(f"{names[c]} {iou[c]:.1f}" for c in range(1, len(names))))
+    print("wrong within 1 slice (% of the class's true cells not found: predicted empty, hidden | % of its "
+          "predicted cells not right: empty in the truth):")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = 100.0 * errors[:, [1, 2, 4]] / errors[:, [0, 0, 3]]
+    print(" | ".join(f"{names[c]} {share[c, 0]:.0f}, {share[c, 1]:.0f} | {share[c, 2]:.0f}"
+                     for c in range(1, len(names))))
     return 0
 
 

@@ -61,14 +61,30 @@ def test_a_class_in_neither_volume_is_nan_and_a_missed_one_zero(tol) -> None:
 @pytest.mark.slow
 def test_it_reads_a_model_on_fruxel_evals_samples(tol, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture[str], tiny_pack: Path) -> None:
-    """The tiny camera-aware model (the paper's six classes) on four streamed samples of the robot's test set: three
-    lines, IoU not falling with tolerance, and the samples kept in fruxel-eval's cache."""
+    """The tiny camera-aware model (the paper's six classes) on four streamed samples of the robot's test set: a line
+    per tolerance, IoU not falling with it, then what stays wrong; the samples kept in fruxel-eval's cache."""
     monkeypatch.setenv("FRUXEL_ASSETS", str(tiny_pack))
     monkeypatch.setenv("FRUXEL_CACHE_DIR", str(tmp_path))
     model = ROOT / "tests" / "data" / "camera_tiny" / "model.safetensors"
     assert tol.main([str(model), "--test-set", "robot", "--samples", "4", "--batch", "4"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 5 and lines[3].startswith("wrong within 1 slice") and lines[4].startswith("wall ")
+    lines = lines[:3]
     assert [ln.split(":")[0] for ln in lines] == [f"within {r} slice(s)" for r in (0, 1, 2)]
     mious = [float(ln.split("mIoU ")[1].split()[0]) for ln in lines]
     assert mious == sorted(mious)
     assert list((tmp_path / "samples").glob("*.npz"))  # fruxel-eval's cache, for the next look
+
+
+def test_what_stays_wrong_is_told_apart(tol) -> None:
+    """One column: a wall at slices 3 to 5 (4 and 5 hidden behind 3); the prediction has only its front slice and a
+    false wall in free space at slice 8."""
+    truth = np.zeros((1, 12, 1, 1), dtype=np.uint8)
+    truth[0, 3:6, 0, 0] = 1
+    pred = np.zeros_like(truth)
+    pred[0, 3, 0, 0] = 1
+    pred[0, 8, 0, 0] = 1
+    counts = tol.error_counts(pred, truth, 2, r=0)
+    # true 4 and 5 not found, both predicted empty, both behind the first occupied cell; predicted 8 not right, empty
+    assert counts[1].tolist() == [2, 2, 2, 1, 1]
+    assert tol.error_counts(pred, truth, 2, r=1)[1].tolist() == [1, 1, 1, 1, 1]
