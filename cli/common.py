@@ -724,7 +724,8 @@ def add_model_options(parser: Any) -> None:
     """
     parser.add_argument("--checkpoint", default=None, metavar="FILE",
                         help="the model: a shipped .safetensors file, a training checkpoint .pt, or a model shipped "
-                        "with fruxel by name: ssz64 (64^3 cells, the default) or ssz128 (128^3 cells from 512x512)")
+                        "with fruxel by name: ssz64 (64^3 cells, the default), ssz128 (128^3 cells from 512x512) or "
+                        "ssz64-any (64^3 cells, any camera; reads --pitch/--roll/--height where a command takes them)")
     parser.add_argument("--device", type=device_name, default=None, metavar="cpu|cuda[:N]",
                         help="where the model runs (default: cuda when present, else cpu)")
 

@@ -17,7 +17,8 @@ photo; a value outside 8-400 mm is ignored with a warning line), else none. ``--
 ``--height`` tell a model that reads the camera (``SSZConfig.camera_inputs``) which way is down and how high the
 camera is (:class:`fruxel.train.predict.CameraPrior`); other models ignore them. Grid columns whose centre ray
 falls on grey padding are left empty: the photo says nothing of them. The model (``--checkpoint``: a shipped
-``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name, ``ssz64`` or ``ssz128``; default the
+``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name, ``ssz64``, ``ssz128`` or ``ssz64-any``
+(the one that reads the camera); default the
 model shipped with fruxel, ``ssz64``) predicts the images in batches of ``--batch``.
 
 For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)

@@ -168,8 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
     ph = p.add_argument_group("a photo MODEL (predicted with SSZ)")
     ph.add_argument("--checkpoint", type=Path, default=None, metavar="FILE",
                     help="the SSZ model: a shipped .safetensors file, a training checkpoint, or a model shipped with "
-                    "fruxel by name: ssz64 (the default, 64^3 cells from 256x256 images) or ssz128 (128^3 cells from "
-                    "512x512)")
+                    "fruxel by name: ssz64 (the default, 64^3 cells from 256x256 images), ssz128 (128^3 cells from "
+                    "512x512) or ssz64-any (64^3 cells from any camera: give --pitch, --roll, --height when known)")
     ph.add_argument("--truth", type=Path, default=None, metavar="FILE.npz",
                     help="the photo's ground truth, a fruxel model on the prediction's grid: adds its column and the "
                     "own-view first-hit accuracy")

@@ -105,6 +105,27 @@ SHIPPED = {
                       prior="paper128-test1024.json"),
 }
 """The shipped models by name."""
+
+
+@dataclass(frozen=True)
+class CameraAware:
+    """A shipped model that reads the camera, and the reports that measure it: one per test set, each with the
+    model under every camera setting it was evaluated with (its rows are not counted together: the sets differ in
+    what they test)."""
+
+    file: str
+    """Its file in the models folder."""
+    reports: tuple[str, ...]
+    """File names in the reports folder."""
+
+
+CAMERA_AWARE = {
+    "ssz64-any": CameraAware("ssz64-any.safetensors", ("ssz64-any-any-camera-256.json",
+                                                       "ssz64-any-test-assets-256.json", "ssz64-any-robot-256.json")),
+}
+"""The shipped camera-aware models by name (issue 39's work in progress; not the default)."""
+MODEL_FILES = {**{n: s.file for n, s in SHIPPED.items()}, **{n: c.file for n, c in CAMERA_AWARE.items()}}
+"""Every shipped model's file by name."""
 CANDIDATES = (
     Pool("ft15", ("ssz64-ft15-test8192.json", *_seeds("ssz64-ft15-test-seed{}-2048.json")),
          "shipped before ssz64: the same network without the detail branch, reading a {image} image"),
@@ -150,10 +171,10 @@ class Sources:
         return self._reports[name]
 
     def model(self, name: str) -> dict[str, Any]:
-        """The shipped model ``name`` (a key of :data:`SHIPPED`): ``meta`` (the metadata, JSON decoded),
+        """The shipped model ``name`` (a key of :data:`MODEL_FILES`): ``meta`` (the metadata, JSON decoded),
         ``rules``, ``parameters``, ``level_parameters``, ``dtypes`` and ``bytes``."""
         if name not in self._models:
-            self._models[name] = _read_model(self.models_dir / SHIPPED[name].file)
+            self._models[name] = _read_model(self.models_dir / MODEL_FILES[name])
         return self._models[name]
 
     def pool(self, pool: Pool, rule: str = "model") -> tuple[Any, list[tuple[dict[str, Any], Any]]]:
@@ -460,6 +481,49 @@ def table_level(src: Sources) -> list[str]:
     return _pools_table(src, LEVEL, LEVEL[0])
 
 
+def table_camera_models(src: Sources) -> list[str]:
+    """What each camera-aware model is, from its metadata: file, output, classes, inputs, size, training (all its
+    runs, from the model it started from) and inference rules."""
+    rows = []
+    for name, shipped in CAMERA_AWARE.items():
+        m = src.model(name)
+        model, training = m["meta"]["model"], m["meta"]["training"]
+        g, (h, w) = model["grid"], src.report(shipped.reports[0])["model"]["image_size"]
+        on = [k for k, v in m["rules"].items() if v is True]
+        offset = m["rules"].get("empty_offset")
+        rules = ", ".join(on + ([f"empty offset {offset:g}"] if offset else [])) or "none"
+        rows.append([f"`{name}`", f"`train/data/{shipped.file}`",
+                     f"{g['width']} x {g['height']} x {g['depth']} cells, z {g['z_near']:g} to {g['z_far']:g} m",
+                     ", ".join(model["classes"]["names"]),
+                     f"one {w} x {h} RGB image; gravity and height, each optional",
+                     f"{m['parameters']:,}", f"{m['bytes'] / 1e6:.1f} MB",
+                     f"{training['steps']:,} steps of batch {training['batch_size']}, from "
+                     f"`{training.get('init', '')}`",
+                     rules])
+    return _table(["model", "file", "output", "classes", "input", "parameters", "weights", "training",
+                   "inference rules"], rows, "l" * 9)
+
+
+def table_camera_sets(src: Sources, name: str) -> list[str]:
+    """A camera-aware model on each of its test sets, under each camera setting, beside the visible-surface
+    oracle."""
+    from fruxel.train.eval.report import rule_names, setting_text
+
+    rows = []
+    for file in CAMERA_AWARE[name].reports:
+        report = src.report(file)
+        names = report["classes"]["names"]
+        test_set = (report["data"].get("test_set") or {}).get("name", "?")
+        for key, label in rule_names(report).items():
+            if key == "prior":
+                continue
+            if key == "model" and label == "model" and report["data"].get("camera_known") is not None:
+                label = f"model, camera known: {setting_text(report['data']['camera_known'])}"  # its one setting
+            acc = _accumulator(report, key)
+            rows.append([f"`{test_set}`", label, f"{acc.samples:,}", *_metric_cells(_summary(acc, names))])
+    return _table(["test set", "prediction", "samples", *(t for _, t, _ in METRICS)], rows, "ll" + "r" * 6)
+
+
 TABLES: dict[str, Callable[[Sources], list[str]]] = {
     "models": table_models,
     "architecture": table_architecture,
@@ -469,6 +533,8 @@ TABLES: dict[str, Callable[[Sources], list[str]]] = {
     "classes": table_classes,
     "candidates": table_candidates,
     "level": table_level,
+    "camera-models": table_camera_models,
+    **{f"camera-sets-{n}": (lambda src, n=n: table_camera_sets(src, n)) for n in CAMERA_AWARE},
 }
 """Every generated table of the card by its marker name."""
 

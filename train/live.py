@@ -196,7 +196,7 @@ class RobotDemoConfig:
     """Where SSZ and Warp run, ``cpu``, ``cuda`` or ``cuda:N``; unset: CUDA when present."""
     checkpoint: str | None = None
     """SSZ model file (shipped ``.safetensors`` or training checkpoint) or a shipped model's name (``ssz64``,
-    ``ssz128``); unset: the shipped default."""
+    ``ssz128``, ``ssz64-any``); unset: the shipped default."""
     threads: int | None = None
     """torch's CPU threads for SSZ; unset: half the cores (at least 1), leaving the rest to the simulator, OpenGL
     and the kernels. torch's own default, a thread per core, stalls whenever another process takes a core (its

@@ -35,10 +35,11 @@ VERSION = 2
 """Version of the shipped model's metadata layout."""
 LEGACY_FORMAT = "fruxel-ssz"
 """``format`` of version 1 files."""
-SHIPPED_MODELS = {"ssz64": "ssz64.safetensors", "ssz128": "ssz128.safetensors"}
+SHIPPED_MODELS = {"ssz64": "ssz64.safetensors", "ssz128": "ssz128.safetensors", "ssz64-any": "ssz64-any.safetensors"}
 """The models shipped with fruxel (in ``fruxel/train/data/``), by the name that ``--checkpoint`` and ``run.init``
-accept in place of a path: ``ssz64`` (64^3 cells from a 256 x 256 image, the default) and ``ssz128`` (128^3 cells
-from 512 x 512, the paper's scale; docs/model.md)."""
+accept in place of a path: ``ssz64`` (64^3 cells from a 256 x 256 image, the default), ``ssz128`` (128^3 cells
+from 512 x 512, the paper's scale) and ``ssz64-any`` (64^3 cells, trained on furnished rooms from any camera; it
+reads the camera's gravity direction and height when told them); docs/model.md."""
 DEFAULT_MODEL = "ssz64"
 """The shipped model used when none is named."""
 MAX_TENSORS = 10_000

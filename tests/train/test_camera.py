@@ -255,3 +255,23 @@ def test_calibration_tells_the_recorded_pose() -> None:
     blind = sweep_rules(net, [(image, labels)], [0.0], [0.5], config.num_classes, base=InferenceRules(),
                         device=torch.device("cpu"))
     assert next(iter(blind.values())).summary()["miou"] < 99.0
+
+
+@torch.no_grad()
+def test_the_shipped_camera_aware_model_sees_the_floor_farther_from_a_higher_camera() -> None:
+    """ssz64-any on the bundled photo, told pitch 10 degrees and a height of 1.0 m, then 1.5 m: the floor it sees in
+    the image's bottom rows lies about 1.5 times as far (a ray meets the floor plane at a distance proportional to
+    the camera's height), so the model reads the height as geometry."""
+    from fruxel.data import PHOTO
+    from fruxel.train.predict import load_image, load_predictor, prepare_image
+
+    depths = []
+    for height in (1.0, 1.5):
+        p = load_predictor("ssz64-any", device="cpu", camera=CameraPrior(pitch=10.0, height=height))
+        labels = next(iter(p.predict([prepare_image(load_image(PHOTO), p.config)]))).argmax(0).numpy()
+        first = (labels != 0).argmax(axis=0)[-16:]  # (16, W): the first occupied slice of the bottom rows' columns
+        floor = np.take_along_axis(labels[:, -16:], first[None], 0)[0] == p.config.classes.names.index("floor")
+        assert floor.sum() > 100, f"height {height}: {floor.sum()} floor columns in the bottom rows"
+        g = p.config.grid
+        depths.append(float((g.z_near + (first[floor] + 0.5) * (g.z_far - g.z_near) / g.depth).mean()))
+    assert 1.3 < depths[1] / depths[0] < 1.7, depths

@@ -25,7 +25,7 @@ from fruxel.train.rules import NO_RULES, InferenceRules  # noqa: E402
 from .test_blocks import small_config  # noqa: E402
 
 
-@pytest.mark.parametrize("name", ["ssz64", "ssz128"])
+@pytest.mark.parametrize("name", ["ssz64", "ssz128", "ssz64-any"])
 def test_the_presets_rebuild_the_shipped_models(name: str) -> None:
     """``fruxel-train --preset NAME`` trains the shipped model's architecture and image size: the same config, and
     a network whose every tensor has the shipped file's name and shape."""

@@ -128,7 +128,7 @@ def predictor128():
     return load_predictor(shipped_model("ssz128"), device="cpu", batch=1)
 
 
-@pytest.mark.parametrize("name", ["ssz64", "ssz128"])
+@pytest.mark.parametrize("name", ["ssz64", "ssz128", "ssz64-any"])
 def test_shipped_models_by_name(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``--checkpoint ssz128`` and ``run.init: "ssz64"`` name the bundled files; a file of that name in the working
     folder wins; an unknown name is a missing file."""
@@ -141,7 +141,8 @@ def test_shipped_models_by_name(name: str, tmp_path: Path, monkeypatch: pytest.M
     monkeypatch.chdir(tmp_path)
     (tmp_path / name).write_bytes(b"not a model")
     assert model_path(name) == name
-    with pytest.raises(ModelFileError, match=r"^ssz32: no such file, nor a shipped model \(ssz64, ssz128\)$"):
+    shipped = r"\(ssz64, ssz128, ssz64-any\)"
+    with pytest.raises(ModelFileError, match=rf"^ssz32: no such file, nor a shipped model {shipped}$"):
         read_model_file("ssz32")
     with pytest.raises(ModelFileError, match=r"^missing.safetensors: no such file$"):  # a file name: no hint
         read_model_file("missing.safetensors")
@@ -155,6 +156,16 @@ def test_shipped_128_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch)
     # Its grid is the 64^3 model's frustum, twice as fine.
     coarse = load_predictor(device="cpu").config.grid
     assert (p.config.grid.z_near, p.config.grid.z_far, p.config.grid.hfov) == (coarse.z_near, coarse.z_far, coarse.hfov)
+
+
+def test_shipped_camera_aware_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ssz64-any: ssz64's grid and image, the furnished rooms' classes, and it reads the camera."""
+    _refuse_unpickling(monkeypatch)
+    p = load_predictor("ssz64-any", device="cpu")
+    base = load_predictor(device="cpu").config
+    assert p.config.reads_camera and not base.reads_camera
+    assert (p.config.grid, p.config.image_size) == (base.grid, base.image_size)
+    assert p.config.classes.names[-2:] == ("ceiling", "object")
 
 
 def test_bundled_photo_predicts_its_128_truth(predictor128, predictor) -> None:
