@@ -9,9 +9,9 @@ Rule: a cell gets the label of the solid that contains its centre (the centre of
 lies on the column's centre ray, see :mod:`fruxel.grid`). There is no occlusion: every cell of the full solid
 model is labelled, hidden ones included.
 
-Algorithm, per column ``(j, i)`` (one Warp thread): the centre ray ``o + t d`` with ``o`` the camera centre and
-``d = R (u_c, v_c, 1)``, so that ``t`` is the depth in the grid camera and the cell centres sit at
-``t = z_near + (k + 1/2) dz``. Each mesh is split on the host into *parts*:
+Algorithm, per column ``(j, i)`` and part (on a GPU one Warp thread a pair, on the CPU one a column): the centre
+ray ``o + t d`` with ``o`` the camera centre and ``d = R (u_c, v_c, 1)``, so that ``t`` is the depth in the grid
+camera and the cell centres sit at ``t = z_near + (k + 1/2) dz``. Each mesh is split on the host into *parts*:
 
 * every **closed** connected component (each directed edge has exactly one opposite partner) is its own part.
   Components are found by vertex index first, so that pieces which merely touch (boxes sharing a corner) stay
@@ -37,10 +37,10 @@ Algorithm, per column ``(j, i)`` (one Warp thread): the centre ray ``o + t d`` w
   and last centre, filling the piece when the three agree and evaluating every centre when they do not. It
   costs a few BVH queries per piece, so watertight assets stay much faster.
 
-Overlaps: the **later mesh in the list wins** (meshes are written in order, each overwriting the cells it
-contains). The simulator lists floor, walls, windows, doors, furniture, sculptures, so that windows and doors
-take precedence over the walls around their openings and furniture over what it stands on. A mesh with label 0
-carves its inside out of earlier ones.
+Overlaps: the **later mesh in the list wins** (each cell keeps the highest index of the meshes that contain its
+centre, an atomic maximum, then takes that mesh's label). The simulator lists floor, walls, windows, doors,
+furniture, sculptures, so that windows and doors take precedence over the walls around their openings and
+furniture over what it stands on. A mesh with label 0 carves its inside out of earlier ones.
 """
 
 from __future__ import annotations

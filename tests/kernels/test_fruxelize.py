@@ -236,6 +236,33 @@ def test_scene_ground_truth_matches_contains() -> None:
         _check(labels[idx], ref, [o.mesh for o in scene.objects], centres[idx])
 
 
+def test_the_gpus_kernel_of_part_column_pairs_labels_as_the_cpus_of_columns(grid: FruxelGrid) -> None:
+    """On a GPU fruxelize runs one thread a (part, column) pair, on the CPU one a column; both run here on Warp's CPU
+    device and label every cell alike: closed and open parts, overlaps won by the later mesh, a mesh of label 0
+    carving, and a simulator room; the parity vote's count too."""
+    import importlib
+
+    from fruxel.train.sim import make_scene, random_trajectory
+
+    wpf = importlib.import_module("fruxel.kernels.wp.fruxelize")
+    rng = np.random.default_rng(3)
+    solids = _solids(rng)
+    opened = trimesh.creation.box(extents=(1.2, 1.0, 0.8)).apply_translation((3.5, 0.0, 0.0))
+    opened = trimesh.Trimesh(opened.vertices, opened.faces[:-2], process=False)
+    carve = trimesh.creation.box(extents=(0.6, 0.6, 0.6)).apply_translation((3.4, 0.1, 0.0))
+    pose = _pose((0.0, 0.0, 0.2), (4.0, 0.0, 0.0))
+    scene = make_scene(2)
+    cases = [([(m, 1 + k % 5) for k, m in enumerate(solids)] + [(opened, 6), (carve, 0)], grid, pose),
+             (scene.objects, grid, random_trajectory(scene, 4, seed=2, steps_per_frame=3).poses[-1])]
+    for meshes, g, p in cases:
+        native = MeshSet(meshes, device="cpu").native
+        by_pairs, pair_falls = wpf.fruxelize(native, g, p, pairs=True)
+        by_columns, column_falls = wpf.fruxelize(native, g, p, pairs=False)
+        assert len(np.unique(by_columns)) >= 3
+        np.testing.assert_array_equal(by_pairs, by_columns)
+        assert pair_falls == column_falls
+
+
 def test_bad_input_is_refused(grid: FruxelGrid) -> None:
     box = trimesh.creation.box()
     pose = np.eye(4)
