@@ -86,3 +86,25 @@ def test_sweep_counts_what_the_calibrated_model_predicts() -> None:
     plain = sweep_rules(net, pairs, [0.0], [0.5, 0.9], 7, base=InferenceRules(fill_threshold=0.6), device=cpu)
     assert set(plain) == {(0.0, 0.6)}  # without fill_columns the threshold is not swept
     assert plain[(0.0, 0.6)].novel_pixels == 0  # and without a grid no novel views are counted
+
+
+@pytest.mark.parametrize("fill", [False, True])
+@pytest.mark.parametrize("first_hit", [False, True])
+def test_swept_predictions_are_the_rules_argmax_ties_included(fill: bool, first_hit: bool) -> None:
+    """Each pair's labels equal the argmax of the rules applied to the whole logits, on integer logits where the
+    empty logit often ties the best occupied one and occupied classes tie each other (the argmax takes the first)."""
+    from fruxel.train.eval.calibrate import swept_predictions
+    from fruxel.train.rules import first_hit_classes, first_hit_label, shift_and_fill
+
+    torch.manual_seed(5)
+    logits = torch.randint(-2, 3, (2, 5, 12, 6, 7)).float()
+    depth = torch.randn(2, 13, 6, 7)
+    best = first_hit_classes(logits) if first_hit else None
+    pairs = [(0.0, 0.5), (1.0, 0.5), (0.0, 0.9), (-1.0, 0.9)]
+    got = dict(swept_predictions(logits, depth, pairs, fill, best))
+    assert list(got) == pairs
+    for o, t in pairs:
+        x = shift_and_fill(logits, depth, empty_offset=o, fill=fill, fill_threshold=t)
+        if first_hit:
+            x = first_hit_label(x, None, best=best)
+        assert torch.equal(got[(o, t)], x.argmax(1).to(torch.uint8)), (o, t)

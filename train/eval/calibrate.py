@@ -14,7 +14,7 @@ them.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 import torch
@@ -23,7 +23,7 @@ from fruxel.errors import ConfigError
 
 from ..models.conditioning import CameraInput
 from ..models.registry import run_network
-from ..rules import InferenceRules, first_hit_classes, first_hit_label, mirror_average, shift_and_fill
+from ..rules import InferenceRules, first_hit_classes, mirror_average
 from .metrics import Accumulator
 
 Rules = tuple[float, float]
@@ -75,18 +75,58 @@ def sweep_rules(network: torch.nn.Module, batches: Iterable[tuple[torch.Tensor, 
             target = labels.to(device).to(torch.uint8)
             best = first_hit_classes(logits) if base.first_hit_label else None
             truth_hits = [kernels.first_hit(target, grid, cam, backend=backend) for cam in cams]
-            for (o, t), acc in accs.items():
-                shifted = shift_and_fill(logits, out.depth_logits, empty_offset=o, fill=base.fill_columns,
-                                         fill_threshold=t)
-                if best is not None:
-                    shifted = first_hit_label(shifted, None, best=best)
-                pred = shifted.argmax(1).to(torch.uint8)
+            for (o, t), pred in swept_predictions(logits, out.depth_logits, list(accs), base.fill_columns, best):
+                acc = accs[(o, t)]
                 acc.add_volumes(pred, target)
                 if cams:
                     count_views(acc, pred, target, grid, cams, backend, truth_hits)
     finally:
         network.train(training)
     return accs
+
+
+def swept_predictions(logits: torch.Tensor, depth_logits: torch.Tensor | None, pairs: Sequence[Rules], fill: bool,
+                      best: torch.Tensor | None) -> Iterator[tuple[Rules, torch.Tensor]]:
+    """Each pair's prediction, ``argmax`` of :func:`~fruxel.train.rules.first_hit_label` (with ``best``) of
+    :func:`~fruxel.train.rules.shift_and_fill` of ``logits``, the same labels computed on per-cell maxima.
+
+    The rules change only a cell's empty logit (the offset, the filled cell) and the class of a column's first
+    occupied cell (``best``), so a cell's class follows from its empty logit against its best occupied logit: the
+    occupied classes' maximum, argmax and log-sum-exp are taken once a batch instead of once a pair.
+
+    Args:
+        logits: ``(B, C, D, H, W)`` float logits (channel 0 = empty), grid frame.
+        depth_logits: ``(B, D + 1, H, W)`` column depth logits (with ``fill``).
+        pairs: the ``(empty_offset, fill_threshold)`` pairs.
+        fill: apply ``fill_columns`` with each pair's threshold.
+        best: ``(B, H, W)`` int64 :func:`~fruxel.train.rules.first_hit_classes` for ``first_hit_label``; None: off.
+
+    Yields:
+        ``((empty_offset, fill_threshold), labels (B, D, H, W) uint8)`` per pair, in order.
+    """
+    empty0, occupied = logits[:, 0], logits[:, 1:]
+    top = occupied.amax(dim=1)
+    label = occupied.argmax(dim=1) + 1  # the first best on ties, as argmax across every channel takes it
+    if fill:
+        # fill_columns' own quantities, computed as it computes them
+        no_surface = torch.softmax(depth_logits.float(), dim=1)[:, -1]
+        lse = torch.logsumexp(occupied.float(), dim=1)
+        below = top - (1.0 + 0.02 * top.abs())
+    for o, t in pairs:
+        empty = empty0 + o if o else empty0
+        if fill:
+            column = ~(top > empty).any(dim=1) & (no_surface < t)
+            odds = lse - empty.float()
+            cell = torch.zeros_like(empty, dtype=torch.bool).scatter_(1, odds.argmax(dim=1, keepdim=True),
+                                                                       column.unsqueeze(1))
+            empty = torch.where(cell, below, empty)
+        occ = top > empty  # a tie goes to empty, as argmax takes the first channel
+        pred = torch.where(occ, label, 0)
+        if best is not None:
+            first = occ.to(torch.uint8).argmax(dim=1, keepdim=True)
+            hit = occ.any(dim=1, keepdim=True)
+            pred.scatter_(1, first, torch.where(hit, best.unsqueeze(1), pred.gather(1, first)))
+        yield (o, t), pred.to(torch.uint8)
 
 
 def rules_of(base: InferenceRules, chosen: Rules) -> InferenceRules:
