@@ -199,6 +199,11 @@ def mark_part_column(
             wp.atomic_max(ranks, k, j, i, rank)
 
 
+@wp.func
+def column_ray(rot: wp.mat33, u0: float, du: float, v0: float, dv: float, j: int, i: int) -> wp.vec3:
+    """World-frame direction ``R (u_c, v_c, 1)`` of grid column ``(j, i)``'s centre ray (``t`` is its depth)."""
+    return rot * wp.vec3(u0 + (float(i) + 0.5) * du, v0 + (float(j) + 0.5) * dv, 1.0)
+
 
 @wp.kernel
 def mark_part_columns_kernel(
@@ -232,7 +237,7 @@ def mark_part_columns_kernel(
     used the parity vote.
     """
     p, j, i = wp.tid()
-    d = rot * wp.vec3(u0 + (float(i) + 0.5) * du, v0 + (float(j) + 0.5) * dv, 1.0)
+    d = column_ray(rot, u0, du, v0, dv, j, i)
     mark_part_column(closed_mesh, open_meshes, part_kind, part_ref, part_lo, part_hi, p, part_rank[p], origin, d,
                      z_near + 0.5 * dz, dz, depth, ranks, fallbacks, j, i)
 
@@ -268,7 +273,7 @@ def mark_columns_kernel(
     which skip a mesh whose box the column's ray misses. Outputs as :func:`mark_part_columns_kernel`'s.
     """
     j, i = wp.tid()
-    d = rot * wp.vec3(u0 + (float(i) + 0.5) * du, v0 + (float(j) + 0.5) * dv, 1.0)
+    d = column_ray(rot, u0, du, v0, dv, j, i)
     zc0 = z_near + 0.5 * dz
     for m in range(mesh_lo.shape[0]):
         box = slab_interval(origin, d, mesh_lo[m], mesh_hi[m])
