@@ -507,7 +507,7 @@ def table_camera_models(src: Sources) -> list[str]:
 def table_camera_sets(src: Sources, name: str) -> list[str]:
     """A camera-aware model on each of its test sets, under each camera setting, beside the visible-surface
     oracle."""
-    from fruxel.train.eval.report import rule_names, setting_text
+    from fruxel.train.eval.report import rule_names
 
     rows = []
     for file in CAMERA_AWARE[name].reports:
@@ -517,8 +517,6 @@ def table_camera_sets(src: Sources, name: str) -> list[str]:
         for key, label in rule_names(report).items():
             if key == "prior":
                 continue
-            if key == "model" and label == "model" and report["data"].get("camera_known") is not None:
-                label = f"model, camera known: {setting_text(report['data']['camera_known'])}"  # its one setting
             acc = _accumulator(report, key)
             rows.append([f"`{test_set}`", label, f"{acc.samples:,}", *_metric_cells(_summary(acc, names))])
     return _table(["test set", "prediction", "samples", *(t for _, t, _ in METRICS)], rows, "ll" + "r" * 6)

@@ -282,3 +282,16 @@ def test_examples_are_spread_over_the_samples() -> None:
     assert len({i // 16 for i in shown}) == 4
     assert spread(3, 4) == [0, 1, 2] and spread(1, 4) == [0]
     assert spread(0, 4) == [] and spread(10, 0) == []
+
+
+def test_a_camera_model_is_named_with_what_it_was_told_even_under_one_setting() -> None:
+    """A report of a model that reads the camera names the setting of every model row, one setting or several; a
+    report of a model that reads none (``camera_known`` None, or absent in older reports) names it ``model``."""
+    from fruxel.train.eval.report import rule_names
+
+    one = {"results": {"model": {}, "oracle": {}}, "data": {"camera_known": ["gravity", "height"]}}
+    several = {"results": {"model": {}, "model@none": {}}, "data": {"camera_known": ["gravity"]}}
+    assert rule_names(one)["model"] == "model, camera known: gravity,height"
+    assert list(rule_names(several).values()) == ["model, camera known: gravity", "model, camera known: none"]
+    for data in ({"camera_known": None}, {}):
+        assert rule_names({"results": {"model": {}, "oracle": {}}, "data": data})["model"] == "model"

@@ -41,15 +41,16 @@ def setting_key(pieces: Any) -> str:
 
 def rule_names(report: Mapping[str, Any]) -> dict[str, str]:
     """The name in the tables of each rule of a report's results, in their order: :data:`RULES`, and for a model
-    evaluated under several camera-known settings, ``model, camera known: <setting>``."""
+    that reads the camera (the report's ``data.camera_known`` is set), ``model, camera known: <setting>``."""
     keys = list(report["results"])
-    several = any(k.startswith(SETTING) for k in keys)
+    # Reports written before camera settings existed have no camera_known: their model reads no camera.
+    known = report["data"].get("camera_known")
 
     def name(key: str) -> str:
         if key.startswith(SETTING):
             return f"model, camera known: {key[len(SETTING):]}"
-        if key == "model" and several:
-            return f"model, camera known: {setting_text(report['data']['camera_known'])}"
+        if key == "model" and known is not None:
+            return f"model, camera known: {setting_text(known)}"
         return RULES[key]
 
     return {k: name(k) for k in keys}
