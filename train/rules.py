@@ -292,10 +292,28 @@ def fill_columns(logits: torch.Tensor, depth_logits: torch.Tensor, empty_offset:
     occupied = logits[:, 1:]
     top = occupied.amax(dim=1)  # (B, D, H, W): the best occupied class's logit
     no_surface = torch.softmax(depth_logits.float(), dim=1)[:, -1]  # (B, H, W)
+    filled = filled_empty_logits(empty, top, torch.logsumexp(occupied.float(), dim=1), no_surface, threshold)
+    return torch.cat([filled.unsqueeze(1), occupied], dim=1)
+
+
+def filled_empty_logits(empty: torch.Tensor, top: torch.Tensor, occupied_lse: torch.Tensor, no_surface: torch.Tensor,
+                        threshold: float) -> torch.Tensor:
+    """The empty logits after :func:`fill_columns`, from the per-cell quantities it reads (a sweep over offsets and
+    thresholds computes them once a batch: :func:`fruxel.train.eval.calibrate.swept_predictions`).
+
+    Args:
+        empty: ``(B, D, H, W)`` empty logits, the offset added.
+        top: ``(B, D, H, W)`` the best occupied class's logit.
+        occupied_lse: ``(B, D, H, W)`` float32 log-sum-exp of the occupied classes' logits.
+        no_surface: ``(B, H, W)`` the depth head's "no surface" probability.
+        threshold: :attr:`InferenceRules.fill_threshold`.
+
+    Returns:
+        ``(B, D, H, W)`` the empty logits, lowered just below ``top`` in each filled column's chosen cell.
+    """
     fill = ~(top > empty).any(dim=1) & (no_surface < threshold)
     # log P(occupied) - log P(empty) rises with P(occupied): one log-sum-exp, over the occupied classes only.
-    odds = torch.logsumexp(occupied.float(), dim=1) - empty.float()
+    odds = occupied_lse - empty.float()
     cell = torch.zeros_like(empty, dtype=torch.bool).scatter_(1, odds.argmax(dim=1, keepdim=True), fill.unsqueeze(1))
     # Just below the best class, by a margin wider than the dtype's spacing at that size (bfloat16 keeps 8 bits).
-    below = top - (1.0 + 0.02 * top.abs())
-    return torch.cat([torch.where(cell, below, empty).unsqueeze(1), occupied], dim=1)
+    return torch.where(cell, top - (1.0 + 0.02 * top.abs()), empty)

@@ -23,7 +23,7 @@ from fruxel.errors import ConfigError
 
 from ..models.conditioning import CameraInput
 from ..models.registry import run_network
-from ..rules import InferenceRules, first_hit_classes, mirror_average
+from ..rules import InferenceRules, filled_empty_logits, first_hit_classes, mirror_average
 from .metrics import Accumulator
 
 Rules = tuple[float, float]
@@ -107,19 +107,13 @@ def swept_predictions(logits: torch.Tensor, depth_logits: torch.Tensor | None, p
     empty0, occupied = logits[:, 0], logits[:, 1:]
     top = occupied.amax(dim=1)
     label = occupied.argmax(dim=1) + 1  # the first best on ties, as argmax across every channel takes it
-    if fill:
-        # fill_columns' own quantities, computed as it computes them
+    if fill:  # fill_columns' per-cell quantities, computed as it computes them
         no_surface = torch.softmax(depth_logits.float(), dim=1)[:, -1]
         lse = torch.logsumexp(occupied.float(), dim=1)
-        below = top - (1.0 + 0.02 * top.abs())
     for o, t in pairs:
         empty = empty0 + o if o else empty0
         if fill:
-            column = ~(top > empty).any(dim=1) & (no_surface < t)
-            odds = lse - empty.float()
-            cell = torch.zeros_like(empty, dtype=torch.bool).scatter_(1, odds.argmax(dim=1, keepdim=True),
-                                                                       column.unsqueeze(1))
-            empty = torch.where(cell, below, empty)
+            empty = filled_empty_logits(empty, top, lse, no_surface, t)
         occ = top > empty  # a tie goes to empty, as argmax takes the first channel
         pred = torch.where(occ, label, 0)
         if best is not None:
