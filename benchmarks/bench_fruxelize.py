@@ -48,19 +48,21 @@ def measure(device: str, rooms: int, poses: int, grid: int) -> list[dict[str, An
     cfg = make_config(64, grid, 16 * rooms, 64, camera="any", renderer="raytrace", world="home")
     times: dict[str, list[float]] = {k: [] for k in KERNELS}
     parts, equal, count = [], 0, 0
+    sps = cfg.samples_per_scene
     with SampleMaker(cfg, 0, device=device) as maker:
         for r in range(rooms):
-            room, _ = maker._locate("train", r * cfg.samples_per_scene)
-            native = room.mesh_set.native
+            scene = maker.scene_of("train", r * sps)[0]
+            frames = [maker.scene_of("train", r * sps + k)[1] for k in range(min(poses, sps))]
+            native = scene.mesh_set(device=device).native
             parts.append(int(native.arrays["part_kind"].shape[0]))
             for pairs in KERNELS.values():  # compiles and warms both
-                kernels.fruxelize(native, cfg.grid, room.poses[0], pairs=pairs)
-            for k in range(min(poses, len(room.poses))):
+                kernels.fruxelize(native, cfg.grid, frames[0], pairs=pairs)
+            for k, pose in enumerate(frames):
                 labels = {}
                 for name in (KERNELS if k % 2 == 0 else list(KERNELS)[::-1]):
                     wp.synchronize()
                     t0 = time.perf_counter()
-                    labels[name] = kernels.fruxelize(native, cfg.grid, room.poses[k], pairs=KERNELS[name])[0]
+                    labels[name] = kernels.fruxelize(native, cfg.grid, pose, pairs=KERNELS[name])[0]
                     times[name].append((time.perf_counter() - t0) * 1000)
                 equal += int(np.array_equal(labels["pairs"], labels["columns"]))
                 count += 1
