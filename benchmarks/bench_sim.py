@@ -51,9 +51,9 @@ import common  # noqa: E402
 CHART = common.RESULTS / "sim.png"
 SECTION = "## Simulator"
 
-VARIANT_DEFAULTS = {"camera": "robot", "renderer": "pyrender", "world": "flat", "rays": ""}
-"""What a case is made with unless ``--camera``, ``--renderer``, ``--world`` or ``--rays`` say otherwise (results
-record only the choices that differ)."""
+VARIANT_DEFAULTS = {"camera": "robot", "renderer": "pyrender", "world": "flat", "rays": "", "per_room": 0}
+"""What a case is made with unless ``--camera``, ``--renderer``, ``--world``, ``--rays`` or ``--samples-per-room``
+say otherwise (results record only the choices that differ; ``per_room`` 0 is the simulator's default)."""
 TARGETS = {("cpu", "256x64"): 10.0, ("cpu", "512x128"): 2.0, ("h100", "128x64"): 150.0}
 """Samples per second asked for, by (machine tag, case)."""
 TARGET_MODES = {"cpu": ("generate",), "h100": ("streaming",)}
@@ -69,11 +69,11 @@ def parse_case(text: str) -> tuple[int, int, int | None]:
 
 
 def make_config(image: int, grid: int, samples: int, shard_size: int, augment: bool = True, camera: str = "robot",
-                renderer: str = "pyrender", world: str = "flat", rays: str = "") -> Any:
+                renderer: str = "pyrender", world: str = "flat", rays: str = "", per_room: int = 0) -> Any:
     """The generator settings of a case: the default grid geometry at ``grid^3``, ``image^2`` pixels, the cameras
     named ``camera`` (``fruxel.train.sim.cameras.CAMERAS``), drawn by ``renderer`` in ``world`` (the home world's
     classes, :data:`fruxel.classes.HOME_CLASSES`); ``rays`` ``"spp/edge/ao"`` sets the ray tracer's camera, edge
-    and occlusion rays (``""``: its defaults)."""
+    and occlusion rays (``""``: its defaults); ``per_room`` samples are made in each room (0: the default)."""
     import dataclasses
 
     from fruxel.classes import DEFAULT_CLASSES, HOME_CLASSES
@@ -88,12 +88,13 @@ def make_config(image: int, grid: int, samples: int, shard_size: int, augment: b
                      image=ImageConfig(size=image, augment=AugmentConfig(enabled=augment)),
                      shard_size=shard_size, splits=(("train", samples),), camera=camera_named(camera),
                      renderer=renderer, world=world, classes=HOME_CLASSES if world == "home" else DEFAULT_CLASSES,
-                     raytrace=dataclasses.replace(RaytraceConfig(), **counts))
+                     raytrace=dataclasses.replace(RaytraceConfig(), **counts),
+                     **({"samples_per_scene": per_room} if per_room else {}))
 
 
 # ---------------------------------------------------------------------------------------------------- measuring
 def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size: int, backend: str | None,
-                   device: str | None, **variant: str) -> dict[str, Any]:
+                   device: str | None, **variant: Any) -> dict[str, Any]:
     """Time ``generate`` of ``samples`` samples with ``workers`` processes."""
     from fruxel.train.sim.writer import generate
 
@@ -110,7 +111,7 @@ def bench_generate(image: int, grid: int, samples: int, workers: int, shard_size
 
 
 def bench_streaming(image: int, grid: int, samples: int, workers: int, batch: int, device: str | None,
-                    **variant: str) -> dict[str, Any]:
+                    **variant: Any) -> dict[str, Any]:
     """Time the engine's stream of ``samples`` simulated samples (``batch`` a batch; ``samples`` a multiple of
     it) with ``workers`` DataLoader workers."""
     from fruxel.train.samples import Batches, BlockPlan, BlockStream
@@ -152,7 +153,7 @@ def _rates(marks: list[tuple[float, int]], t0: float, wall: float, samples: int,
 
 
 def bench_profile(image: int, grid: int, samples: int, backend: str | None, device: str | None,
-                  **variant: str) -> dict[str, Any]:
+                  **variant: Any) -> dict[str, Any]:
     """Seconds per stage in one process, after one warm-up room; plus encoding one shard of the samples."""
     from fruxel.train.sim.sample import STAGES, SampleMaker
     from fruxel.train.sim.shards import ShardSpec, encode_shard
@@ -250,7 +251,8 @@ def section(runs: list[dict[str, Any]]) -> str:
             plain = all(r.get(k, v) == v for k, v in VARIANT_DEFAULTS.items())
             target = _target(run["tag"], case, r["mode"]) if plain else None
             met = "" if target is None else ("yes" if r["steady_sps"] >= target else "**no**")
-            extra = ", ".join(("rays " if k == "rays" else "") + str(r[k]) for k in ("world", "renderer", "rays")
+            extra = ", ".join(("rays " if k == "rays" else "") + str(r[k]) + (" a room" if k == "per_room" else "")
+                              for k in ("world", "renderer", "rays", "per_room")
                               if r.get(k, VARIANT_DEFAULTS[k]) != VARIANT_DEFAULTS[k])
             mode = r["mode"] + (f" ({extra})" if extra else "")
             lines.append(f"| {run['tag']} | {mode} | {_image(r)} | {r['grid']}^3 | {r['workers']} | "
@@ -326,7 +328,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rays", default="", metavar="SPP/EDGE/AO",
                    help="the ray tracer's camera rays per pixel, extra rays on edges and occlusion rays, e.g. 1/3/2 "
                         "(default: RaytraceConfig's; benchmarks/bench_raytrace_samples.py says what they cost)")
+    p.add_argument("--samples-per-room", type=int, default=0, metavar="N",
+                   help="samples made in each room, 1-256 (default: the simulator's, SimConfig.samples_per_scene)")
     args = p.parse_args(argv)
+    if not 0 <= args.samples_per_room <= 256:
+        p.error(f"--samples-per-room wants 1 to 256, got {args.samples_per_room}")
     if args.rays and (len(args.rays.split("/")) != 3 or not all(v.isdigit() for v in args.rays.split("/"))):
         p.error(f"--rays wants SPP/EDGE/AO, e.g. 1/3/2; got {args.rays!r}")
     if args.report:
@@ -336,7 +342,8 @@ def main(argv: list[str] | None = None) -> None:
         print(section(runs))
         return
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
-    variant = {"camera": args.camera, "renderer": args.renderer, "world": args.world, "rays": args.rays}
+    variant = {"camera": args.camera, "renderer": args.renderer, "world": args.world, "rays": args.rays,
+               "per_room": args.samples_per_room}
     info = machine()
     results: list[dict[str, Any]] = []
     guess = {64: 12.0, 128: 3.0}

@@ -23,3 +23,19 @@ def test_script_answers_help(script: Path) -> None:
                          cwd=BENCHMARKS.parent)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("usage:"), out.stdout[:200]
+
+
+def test_sim_bench_case_settings() -> None:
+    """bench_sim's variant options reach the simulator's settings (a row's label says what it was made with)."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_sim
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    plain = bench_sim.make_config(64, 16, 32, 16)
+    varied = bench_sim.make_config(64, 16, 32, 16, rays="1/2/0", per_room=32)
+    from fruxel.train.sim.config import SimConfig
+
+    assert plain.samples_per_scene == SimConfig().samples_per_scene != 32 and varied.samples_per_scene == 32
+    assert (varied.raytrace.samples_per_pixel, varied.raytrace.edge_samples, varied.raytrace.ao_samples) == (1, 2, 0)
+    assert plain.raytrace.samples_per_pixel != 1
