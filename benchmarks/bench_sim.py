@@ -158,7 +158,8 @@ def bench_profile(image: int, grid: int, samples: int, backend: str | None, devi
     from fruxel.train.sim.sample import STAGES, SampleMaker
     from fruxel.train.sim.shards import ShardSpec, encode_shard
 
-    cfg = make_config(image, grid, samples + cfg_sps(), samples + cfg_sps(), **variant)
+    first = variant.get("per_room") or cfg_sps()  # the warm-up room's samples
+    cfg = make_config(image, grid, samples + first, samples + first, **variant)
     sps = cfg.samples_per_scene
     with SampleMaker(cfg, 0, backend=backend, device=device) as maker:
         for i in range(sps):
