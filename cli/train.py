@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="JSON config: a preset (\"preset\": NAME) with any fields overridden")
     what.add_argument("--preset", type=_preset_name, metavar="{" + ",".join(PRESETS) + "}",
                       help="a named config: tiny (32^3 from 64^2, a CPU), ssz64 and ssz128 (the shipped models' "
-                      "architectures: 64^3 from 256^2, 128^3 from 512^2, the latter fine-tuned from ssz64)")
+                      "architectures: 64^3 from 256^2, 128^3 from 512^2, the latter fine-tuned from ssz64), ssz64-any "
+                      "(ssz64 reading the camera, on the furnished rooms from any camera)")
     p.add_argument("--out", type=path_name, metavar="RUN_DIR",
                    help="the run folder: checkpoints, shipped model, metrics, curves, examples (created)")
     p.add_argument("--overwrite", action="store_true",
