@@ -206,6 +206,14 @@ class DataConfig:
     assets: str = ""
     """The asset pack folder of the home world; "" takes the ``FRUXEL_ASSETS`` environment variable, else the
     repository's ``assets/pack`` (``make assets``)."""
+    mix_set: str = ""
+    """Another kind of room mixed into the stream: a test set's name (:data:`fruxel.train.sim.testsets.TEST_SETS`)
+    whose camera, world and renderer a share of the streamed training rooms take (``mix_share``; the training
+    split's rooms, never the set's own held-out ones), so that a model for one kind of room keeps another:
+    ``"robot"``, the robot's mount in the flat world. "" for none; streaming only."""
+    mix_share: float = 0.0
+    """The share of streamed training rooms made as ``mix_set``'s, in [0, 1); which rooms is fixed by the seed and
+    each room's index, so a resumed or distributed run makes the same ones."""
     seed: int = 0
     """Base seed of the simulator's samples (streaming); the test split's rooms come from seeds the training split
     never uses."""
@@ -256,10 +264,25 @@ class DataConfig:
             count(f"data.{name}", getattr(self, name), allow_zero=True)
         for name in ("train_samples", "test_samples", "samples_per_scene", "reuse", "frequency_samples"):
             count(f"data.{name}", getattr(self, name))
+        self._check_mix()
         p = self.camera_dropout
         if not (isinstance(p, tuple) and len(p) == 2 and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in p)):
             raise ConfigError(f"data.camera_dropout must be two probabilities in [0, 1] (gravity, height), got {p!r}")
+
+    def _check_mix(self) -> None:
+        from .sim.testsets import TEST_SETS
+
+        if self.mix_set and self.mix_set not in TEST_SETS:
+            raise ConfigError(f"data.mix_set must be one of {', '.join(TEST_SETS)} (or empty: none), got "
+                              f"{self.mix_set!r}")
+        share = self.mix_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share < 1.0:
+            raise ConfigError(f"data.mix_share must be a number in [0, 1), got {share!r}")
+        if share > 0 and not self.mix_set:
+            raise ConfigError("data.mix_share needs data.mix_set: the test set whose rooms are mixed in")
+        if share > 0 and self.source != "stream":
+            raise ConfigError(f"data.mix_set mixes streamed rooms only; data.source is {self.source!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- optimiser
@@ -450,10 +473,12 @@ def _presets() -> dict[str, TrainConfig]:
         # flatter than the default's (power 0.25, not 0.5): the default's low weight of empty cells bought recall
         # with false surfaces in free space (docs/experiments.md, the class-weighting A/B). 32 frames a room, not
         # 16: the stream's room set-up is shared by twice the samples (about 1.2x the samples a second on one GPU),
-        # and the network read new rooms no worse for it (round 3 of the A/B).
+        # and the network read new rooms no worse for it (round 3 of the A/B). A fifth of the rooms are the robot's
+        # mount in the flat world (data.mix_set): what ssz64 reads, which the rooms from any camera alone unlearnt.
         "ssz64-any": TrainConfig(name="ssz64-any", model=SSZConfig(detail_branch=24, camera_inputs=True),
                                  loss=LossConfig(class_weight_power=0.25),
-                                 data=dataclasses.replace(shipped, world="home", camera="any", samples_per_scene=32),
+                                 data=dataclasses.replace(shipped, world="home", camera="any", samples_per_scene=32,
+                                                          mix_set="robot", mix_share=0.2),
                                  optim=OptimConfig(lr=1e-3, warmup=300),
                                  run=RunConfig(compile=True, init="ssz64")),
         # The shipped ssz128's: ssz64 below a refinement level, 512 x 512 images, fine-tuned from the shipped ssz64

@@ -47,6 +47,7 @@ Arrays
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import math
 import os
 import signal
@@ -100,6 +101,11 @@ class SampleSource:
     test_set: str = ""
     """A held-out test set (:data:`fruxel.train.sim.testsets.TEST_SETS`) whose config streamed samples take: its
     camera, world, renderer and asset split replace the source's own; "" for none."""
+    mix_set: str = ""
+    """A test set whose camera, world and renderer ``mix_share`` of the streamed training rooms take
+    (:attr:`~fruxel.train.config.DataConfig.mix_set`); "" for none."""
+    mix_share: float = 0.0
+    """The share of streamed training rooms made as ``mix_set``'s, in [0, 1)."""
 
     def __post_init__(self) -> None:
         from fruxel.train.sim.cameras import CAMERAS
@@ -117,7 +123,7 @@ class SampleSource:
     def of(cls, data: DataConfig) -> SampleSource:
         """The source a training run's :class:`~fruxel.train.config.DataConfig` describes."""
         return cls(data.source, data.root, data.seed, data.augment, data.samples_per_scene, data.camera, data.world,
-                   data.renderer, data.assets)
+                   data.renderer, data.assets, mix_set=data.mix_set, mix_share=data.mix_share)
 
     def describe(self) -> str:
         """The source in words, e.g. ``"simulator stream, seed 0, augmented"``."""
@@ -130,6 +136,8 @@ class SampleSource:
         else:
             what = ("" if self.camera == "robot" else f", {self.camera} camera") + \
                 ("" if self.world == "flat" else f", {self.world} world")
+        if self.mix_share > 0:
+            what += f", {self.mix_share:.0%} of its training rooms as test set {self.mix_set}'s"
         return (f"simulator stream, seed {self.seed}, {self.samples_per_scene} samples per room, "
                 f"{'augmented' if self.augment else 'no augmentation'}{what}")
 
@@ -250,7 +258,25 @@ def _check_stream(source: SampleSource, model: ModelConfig, split: str) -> None:
     from fruxel.train.sim.rooms import check_pack
 
     check_pack(sim_config(model, source, ((split, 1),)), option="data.assets")
+    if source.mix_share > 0 and split == "train":
+        check_pack(sim_config(model, _mixed_in(source), ((split, 1),)), option="data.assets")
     cuda_wait()
+
+
+def _mixed_in(source: SampleSource) -> SampleSource:
+    """The source of the rooms a stream mixes in: ``source`` as its ``mix_set``'s (camera, world, renderer)."""
+    return dataclasses.replace(source, test_set=source.mix_set, mix_set="", mix_share=0.0)
+
+
+MIX_DRAW = 0x6D6978
+"""A constant of the mix's random draws (:func:`mixed_room`), apart from every other draw of the simulator's."""
+
+
+def mixed_room(seed: int, room: int, share: float) -> bool:
+    """Whether streamed training room ``room`` (of base seed ``seed``) is made as the mix's
+    (:attr:`~fruxel.train.config.DataConfig.mix_share`): a draw of its own per room, so the same rooms whatever the
+    workers, ranks or resumes."""
+    return share > 0 and bool(np.random.default_rng([MIX_DRAW, seed, room]).random() < share)
 
 
 def split_batches(source: SampleSource, model: ModelConfig, split: str, count: int, batch: int, *, workers: int = 0,
@@ -339,6 +365,8 @@ def training_batches(source: SampleSource, model: ModelConfig, samples: int, *, 
         DataError: fewer rooms than ranks.
     """
     spp, reading = _reading(source, model, (("train", samples),))
+    if source.source == "stream" and source.mix_share > 0:
+        reading["mix"] = (sim_config(model, _mixed_in(source), (("train", samples),)), source.mix_share)
     try:
         lo, hi = rank_range(samples, spp, rank, world)
     except ValueError as e:
@@ -499,11 +527,14 @@ class BlockStream(IterableDataset):
         device: Warp device of the simulator's ``fruxelize`` (None: CUDA when present).
         stop_block: the block to stop before (None: endless, the range repeating in epochs). A loader that needs a
             known number of samples (the evaluation set) stops there, so its workers make nothing more.
+        mix: ``(simulator config, share)``: the rooms that :func:`mixed_room` picks are made with that config instead
+            (streaming; :attr:`~fruxel.train.config.DataConfig.mix_set`); None: none.
     """
 
     def __init__(self, plan: BlockPlan, source: str, split: str, *, sim_config: Any = None, seed: int = 0,
                  root: str = "", folder: Any = None, image_size: tuple[int, int] = (0, 0), first_block: int = 0,
-                 skip: int = 0, device: str | None = None, stop_block: int | None = None) -> None:
+                 skip: int = 0, device: str | None = None, stop_block: int | None = None,
+                 mix: tuple[Any, float] | None = None) -> None:
         super().__init__()
         self.plan = plan
         self.source = source
@@ -517,34 +548,55 @@ class BlockStream(IterableDataset):
         self.skip = skip
         self.device = device
         self.stop_block = stop_block
+        self.mix = mix
 
-    def _reader(self) -> tuple[Callable[[int], Any], Callable[[], None]]:
-        """``(read, close)``: sample ``i`` of the split (simulated, read from shards or from a data folder), and the
-        closing of what reading holds."""
+    def _reader(self, sim_config: Any = None) -> tuple[Callable[[int], Any], Callable[[], None]]:
+        """``(read, close)``: sample ``i`` of the split (simulated, with ``sim_config`` if given, else the stream's
+        own; read from shards or from a data folder), and the closing of what reading holds."""
         if self.source == "folder":
             return (lambda i: self.folder.sample(self.split, i, self.image_size)), (lambda: None)
         if self.source == "stream":
-            if get_worker_info() is not None:
-                # How a worker waits for its GPU ($FRUXEL_CUDA_WAIT), set before its renderer makes the CUDA context;
-                # not in a process that also trains (no workers), whose context is torch's.
-                set_cuda_wait()
-            if self.device is not None and self.device.startswith("cuda:"):
-                # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers
-                # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).
-                os.environ["EGL_DEVICE_ID"] = self.device.split(":", 1)[1]
             from fruxel.train.sim.sample import SampleMaker
 
-            maker = SampleMaker(self.sim_config, self.seed, backend="warp", device=self.device)
+            maker = SampleMaker(sim_config or self.sim_config, self.seed, backend="warp", device=self.device)
             return (lambda i: maker.make(self.split, i)), maker.close
         from fruxel.train.sim.dataset import ShardDataset
 
         ds = ShardDataset(self.root, self.split)
         return ds.sample, ds.close
 
+    def _start_stream(self) -> None:
+        """Set up this process for the simulator, before a renderer makes its contexts."""
+        if get_worker_info() is not None:
+            # How a worker waits for its GPU ($FRUXEL_CUDA_WAIT), set before its renderer makes the CUDA context;
+            # not in a process that also trains (no workers), whose context is torch's.
+            set_cuda_wait()
+        if self.device is not None and self.device.startswith("cuda:"):
+            # An EGL renderer draws on the GPU this stream's kernels use, not on GPU 0 for every rank's workers
+            # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).
+            os.environ["EGL_DEVICE_ID"] = self.device.split(":", 1)[1]
+
+    def _block_reader(self, q: int, readers: dict[bool, tuple[Callable[[int], Any], Callable[[], None]]]
+                      ) -> Callable[[int], Any]:
+        """The reader of block ``q``: the mix's when :func:`mixed_room` picks its room (made at its first room and
+        kept in ``readers``), else the stream's own (``readers[False]``)."""
+        n = self.plan.samples_per_scene
+        mixed = self.mix is not None and mixed_room(self.seed, self.plan.block(q).start // n, self.mix[1])
+        if mixed and True not in readers:
+            readers[True] = self._reader(self.mix[0])
+        return readers[mixed][0]
+
     def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        read, close = self._reader()
+        if self.source == "stream":
+            self._start_stream()
+        readers = {False: self._reader()}
+
+        def close() -> None:
+            for _, shut in readers.values():
+                shut()
+
         q = self.first_block + worker
         # What reading holds (the renderer's OpenGL context and Warp meshes, or open shard files) is freed when the
         # iteration ends or the generator is dropped; in a DataLoader worker, when its loop returns, before the
@@ -555,6 +607,7 @@ class BlockStream(IterableDataset):
                 idx = self.plan.block(q)
                 if q == self.first_block:
                     idx = idx[self.skip:]
+                read = self._block_reader(q, readers)
                 samples = [read(i) for i in idx]
                 cams = [s.camera_arrays() for s in samples]
                 block = {

@@ -437,3 +437,54 @@ def test_a_missing_asset_pack_is_one_line_from_the_check_and_from_a_spawned_work
     message = str(e.value)
     assert message.startswith(f"{tmp_path / 'nowhere'}: no asset pack there") and "make assets" in message
     assert "\n" not in message and "Traceback" not in message and "DataLoader" not in message
+
+
+def test_a_stream_mixes_in_another_kind_of_room_by_each_rooms_own_draw(tiny_pack: Path) -> None:
+    """``data.mix_set``: the rooms that ``mixed_room`` picks are made as the mix's (the robot's mount in the flat
+    world), sample for sample what that test set's config makes of the training split; the others as the stream's
+    own; the pick is the room's, the same with workers or without."""
+    import dataclasses
+
+    from fruxel.train.config import preset
+    from fruxel.train.samples import SampleSource, mixed_room, sim_config, training_batches
+    from fruxel.train.sim.sample import SampleMaker
+
+    model = preset("tiny").model
+    spp, rooms, share = 2, 4, 0.5
+    seed = next(s for s in range(100) if len({mixed_room(s, r, share) for r in range(rooms)}) == 2)
+    source = SampleSource(world="home", camera="any", assets=str(tiny_pack), samples_per_scene=spp, seed=seed,
+                          mix_set="robot", mix_share=share)
+    splits = (("train", 64),)
+    own, mix = (sim_config(model, s, splits) for s in (source, dataclasses.replace(source, test_set="robot")))
+    assert mix.world == "flat" and own.world == "home"
+    for workers in (0, 2):
+        batches = training_batches(source, model, 64, batch=spp * rooms, workers=workers)
+        try:
+            got = next(batches)
+        finally:
+            batches.close()
+        assert got["index"].tolist() == list(range(spp * rooms))
+        for i in range(spp * rooms):
+            with SampleMaker(mix if mixed_room(seed, i // spp, share) else own, seed) as maker:
+                want = maker.make("train", i)
+            assert np.array_equal(got["image"][i].numpy(), want.image), (workers, i)
+            assert np.array_equal(got["labels"][i].numpy(), want.labels), (workers, i)
+    assert abs(np.mean([mixed_room(0, r, 0.2) for r in range(4000)]) - 0.2) < 0.02
+    assert not any(mixed_room(0, r, 0.0) for r in range(100))
+    assert "50% of its training rooms as test set robot's" in source.describe()
+
+
+@pytest.mark.parametrize(("fields", "words"), [
+    ({"mix_set": "kitchen"}, "data.mix_set must be one of any-camera, any-camera-test-assets, robot"),
+    ({"mix_set": "robot", "mix_share": 1.0}, "data.mix_share must be a number in [0, 1), got 1.0"),
+    ({"mix_set": "robot", "mix_share": True}, "data.mix_share must be a number in [0, 1)"),
+    ({"mix_share": 0.2}, "data.mix_share needs data.mix_set"),
+    ({"mix_set": "robot", "mix_share": 0.2, "source": "shards", "root": "x"}, "data.mix_set mixes streamed rooms"),
+])
+def test_a_bad_mix_is_refused_naming_its_field(fields: dict, words: str) -> None:
+    from fruxel.errors import ConfigError
+    from fruxel.train.config import DataConfig
+
+    with pytest.raises(ConfigError) as e:
+        DataConfig(**fields)
+    assert str(e.value).startswith(words), str(e.value)

@@ -47,8 +47,10 @@ def test_the_camera_aware_preset_is_ssz64_reading_the_camera_on_the_furnished_ro
     assert any_cam.model == dataclasses.replace(ssz64.model, camera_inputs=True, classes=HOME_CLASSES)
     assert any_cam.model.reads_camera and preset("tiny").model.reads_camera and not ssz64.model.reads_camera
     assert (any_cam.data.world, any_cam.data.camera) == ("home", "any")
-    # 32 frames a room: the room's set-up shared by twice the samples (docs/experiments.md, round 3)
-    assert any_cam.data == dataclasses.replace(ssz64.data, world="home", camera="any", samples_per_scene=32)
+    # 32 frames a room: the room's set-up shared by twice the samples (docs/experiments.md, round 3); a fifth of
+    # the rooms the robot's flat world from its mount
+    assert any_cam.data == dataclasses.replace(ssz64.data, world="home", camera="any", samples_per_scene=32,
+                                               mix_set="robot", mix_share=0.2)
 
 
 def _legacy_file(path: Path, model: dict, rules: dict) -> None:
