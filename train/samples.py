@@ -12,6 +12,11 @@ Order and resuming
     position ``(next block, samples of it already used)`` is all a checkpoint needs to continue with exactly the
     samples an uninterrupted run would have seen.
 
+Mixed rooms
+    A stream may make a share of its training rooms as another kind (``data.mix_set``: a test set's camera, world
+    and renderer on the training split); :func:`mixed_room` picks them by each room's own draw, so the order and
+    resuming above hold unchanged.
+
 Ranks
     Rank ``r`` of ``n`` owns the room-aligned index range :func:`rank_range` of the split: disjoint ranges, so no
     two ranks ever train on the same sample.
