@@ -54,7 +54,9 @@ apt_get() {
   # DPkg::Lock::Timeout makes apt-get wait for dpkg's lock itself; the lock of `apt-get update` (on the package
   # lists) has no timeout in apt 2.x, so a refusal for a lock is retried here until the same deadline. apt's own
   # messages are shown as they are unless they are about a lock.
-  local log rc holder deadline=$((SECONDS + APT_WAIT)) waiting=
+  # The deadline in milliseconds: bash's SECONDS counts whole seconds from an arbitrary fraction of one, so a wait
+  # measured with it could end up to a second early.
+  local log rc holder deadline=$(( $(date +%s%3N) + APT_WAIT * 1000 )) waiting=
   log=$(mktemp)
   while :; do
     rc=0
@@ -68,7 +70,7 @@ apt_get() {
     # "It is held by process N (name)" when apt could see the holder, else the lock's file.
     holder=$(grep -oE 'held by process [0-9]+( \([^)]*\))?' "$log" | head -n 1 || true)
     [ -n "$holder" ] || holder=$(grep -oE '/[^ ,()]*lock[^ ,()]*' "$log" | head -n 1 || true)
-    if [ "$SECONDS" -ge "$deadline" ]; then
+    if [ "$(date +%s%3N)" -ge "$deadline" ]; then
       rm -f "$log"
       echo "setup_env.sh: another apt or dpkg still holds its lock${holder:+ ($holder)} after ${APT_WAIT} s; run" \
         "make env again once it has finished (FRUXEL_APT_WAIT=SECONDS waits longer)" >&2
