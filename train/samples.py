@@ -581,12 +581,12 @@ class BlockStream(IterableDataset):
             # (pyrender reads EGL_DEVICE_ID when it makes its context, after this).
             os.environ["EGL_DEVICE_ID"] = self.device.split(":", 1)[1]
 
-    def _block_reader(self, q: int, readers: dict[bool, tuple[Callable[[int], Any], Callable[[], None]]]
+    def _block_reader(self, block: range, readers: dict[bool, tuple[Callable[[int], Any], Callable[[], None]]]
                       ) -> Callable[[int], Any]:
-        """The reader of block ``q``: the mix's when :func:`mixed_room` picks its room (made at its first room and
-        kept in ``readers``), else the stream's own (``readers[False]``)."""
-        n = self.plan.samples_per_scene
-        mixed = self.mix is not None and mixed_room(self.seed, self.plan.block(q).start // n, self.mix[1])
+        """The reader of a block (its whole index range): the mix's when :func:`mixed_room` picks its room (made at
+        its first room and kept in ``readers``), else the stream's own (``readers[False]``)."""
+        room = block.start // self.plan.samples_per_scene
+        mixed = self.mix is not None and mixed_room(self.seed, room, self.mix[1])
         if mixed and True not in readers:
             readers[True] = self._reader(self.mix[0])
         return readers[mixed][0]
@@ -610,9 +610,9 @@ class BlockStream(IterableDataset):
         try:
             while self.stop_block is None or q < self.stop_block:
                 idx = self.plan.block(q)
+                read = self._block_reader(idx, readers)
                 if q == self.first_block:
                     idx = idx[self.skip:]
-                read = self._block_reader(q, readers)
                 samples = [read(i) for i in idx]
                 cams = [s.camera_arrays() for s in samples]
                 block = {
