@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import torch
 
+    from fruxel.train.engine.data import to_device
     from fruxel.train.eval.evaluate import model_predict
     from fruxel.train.eval.sample_cache import cached_split_batches
     from fruxel.train.model_files import load_model
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     with torch.no_grad():
         for image, labels, record in cached_split_batches(source, m.config, "test", args.samples, args.batch,
                                                           device="cpu", camera=True):
-            x = image.permute(0, 3, 1, 2).float().div(255.0).contiguous()
+            x, _ = to_device({"image": image, "labels": labels}, torch.device("cpu"))
             pred, truth = predict(x, labels, record).numpy(), labels.numpy()
             for r in TOLERANCES:
                 counts[r] += tolerant_counts(pred, truth, len(names), r)
