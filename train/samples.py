@@ -66,7 +66,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from fruxel.errors import FruxelError
+from fruxel.errors import ConfigError, FruxelError
 from fruxel.kernels.wp.runtime import cuda_wait, set_cuda_wait
 
 from .config import DATA_SOURCES, DataConfig
@@ -399,6 +399,11 @@ def mps_running() -> bool:
     return os.path.exists(os.path.join(mps_pipe(), "control"))
 
 
+MPS_CLIENTS = 48
+"""CUDA processes one GPU serves under MPS (Volta and later): on the one-GPU H200 machine 48 simulator workers
+streamed and 60 failed to get a CUDA context (BENCHMARKS.md, "## Simulator", h200-w48-room32)."""
+
+
 def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> str | None:
     """A one-line hint when several simulator workers will share one GPU without CUDA's Multi-Process Service, else
     None.
@@ -412,11 +417,19 @@ def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> 
         source: the training data.
         workers: DataLoader workers of the rank.
         device: the Warp device the workers draw on (``"cuda:N"`` or ``"cpu"``).
+
+    Raises:
+        ConfigError: MPS runs and the workers and the training process are more than it serves on one GPU
+            (:data:`MPS_CLIENTS`; the workers would fail to get a CUDA context after their start-up).
     """
     if source.source != "stream" or workers < 2 or not str(device or "").startswith("cuda"):
         return None
     pipe = mps_pipe()
     if mps_running():
+        if workers + 1 > MPS_CLIENTS:
+            raise ConfigError(f"data.workers {workers}: with CUDA MPS on, one GPU serves at most {MPS_CLIENTS} "
+                              f"processes, and the {workers} simulator workers on {device} and the training process "
+                              f"are {workers + 1}; use at most {MPS_CLIENTS - 1} workers a GPU")
         return None
     return (f"note: {workers} simulator workers share {device} without CUDA MPS (no control pipe in {pipe}); "
             "`nvidia-cuda-mps-control -d` before training lets them run side by side (BENCHMARKS.md, Simulator)")

@@ -411,6 +411,9 @@ def test_gpu_sharing_hint_names_mps_only_when_stream_workers_share_a_gpu_without
     assert gpu_sharing_hint(SampleSource("shards", str(tmp_path)), 15, "cuda:0") is None
     (pipe / "control").write_text("")  # the daemon's named pipe stands there while it runs
     assert gpu_sharing_hint(stream, 15, "cuda:0") is None
+    assert gpu_sharing_hint(stream, 47, "cuda:0") is None
+    with pytest.raises(ConfigError, match=r"^data.workers 48: with CUDA MPS on, one GPU serves at most 48 "):
+        gpu_sharing_hint(stream, 48, "cuda:0")
 
 
 def test_a_missing_asset_pack_is_one_line_from_the_check_and_from_a_spawned_worker(tmp_path: Path) -> None:
