@@ -126,6 +126,7 @@ def _table(summaries: dict[tuple[float, float], dict[str, Any]], best: tuple[flo
 def _main(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
+    from fruxel.train.engine.data import to_device
     from fruxel.train.eval.calibrate import choose_rules, rules_of, sweep_rules
     from fruxel.train.model_files import load_model, save_model
     from fruxel.train.rules import InferenceRules
@@ -145,7 +146,7 @@ def _main(args: argparse.Namespace) -> None:
     def images(pairs):  # noqa: ANN001, ANN202
         with tqdm(total=count, desc="calibrate", unit="sample", leave=False, disable=None) as bar:
             for image, labels, *camera in pairs:
-                yield image.permute(0, 3, 1, 2).float() / 255, labels, *camera
+                yield *to_device({"image": image, "labels": labels}, device), *camera
                 bar.update(len(labels))
 
     # A model that reads the camera is calibrated with the pose the samples record (as fruxel-eval's default).

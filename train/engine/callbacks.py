@@ -169,6 +169,7 @@ class Evaluation(Callback):
         from ..models.conditioning import KNOWN
         from ..rules import NO_RULES
         from ..samples import SampleSource, load_split
+        from .data import to_device
 
         c, dev = trainer.config, trainer.dist.device
         reads = c.model.reads_camera
@@ -179,7 +180,7 @@ class Evaluation(Callback):
         images, labels = self._set[:2]
         bs = max(1, c.run.batch_size // trainer.dist.world)
         # A network that reads the camera is evaluated with the pose the test set records (pose given).
-        batches = ((images[i:i + bs].permute(0, 3, 1, 2).float() / 255.0, labels[i:i + bs])
+        batches = (to_device({"image": images[i:i + bs], "labels": labels[i:i + bs]}, dev)
                    + (({k: v[i:i + bs] for k, v in self._set[2].items()},) if reads else ())
                    for i in range(0, len(images), bs))
         acc, kept = evaluate(trainer.state.network, NO_RULES, batches, c.model.grid, c.model.classes, device=dev,
