@@ -643,20 +643,23 @@ class _Footprint:
 
     def corners(self) -> np.ndarray:
         """``(4, 2)`` world xy corners, counter-clockwise."""
-        ax = self.axes()
-        sx = np.array([-1, 1, 1, -1])[:, None] * self.hx * ax[0]
-        sy = np.array([-1, -1, 1, 1])[:, None] * self.hy * ax[1]
-        return np.array([self.cx, self.cy]) + sx + sy
+        # Scalars, not 2x2 arrays: room furnishing asks for corners thousands of times a room.
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        xx, xy, yx, yy = self.hx * c, self.hx * s, -self.hy * s, self.hy * c
+        return np.array([[self.cx - xx - yx, self.cy - xy - yy], [self.cx + xx - yx, self.cy + xy - yy],
+                         [self.cx + xx + yx, self.cy + xy + yy], [self.cx - xx + yx, self.cy - xy + yy]])
 
 
 def _overlap(a: _Footprint, b: _Footprint, gap: float) -> bool:
     """Separating-axis test of two rotated rectangles, each grown by ``gap / 2``."""
-    d = np.array([b.cx - a.cx, b.cy - a.cy])
-    aa, ba = a.axes(), b.axes()
-    for axis in np.concatenate([aa, ba]):
-        ra = (a.hx + gap / 2) * abs(aa[0] @ axis) + (a.hy + gap / 2) * abs(aa[1] @ axis)
-        rb = (b.hx + gap / 2) * abs(ba[0] @ axis) + (b.hy + gap / 2) * abs(ba[1] @ axis)
-        if abs(d @ axis) > ra + rb:
+    # Scalars, not numpy: the furnishing's slot checks call this thousands of times a room.
+    dx, dy = b.cx - a.cx, b.cy - a.cy
+    ca, sa, cb, sb = math.cos(a.yaw), math.sin(a.yaw), math.cos(b.yaw), math.sin(b.yaw)
+    ahx, ahy, bhx, bhy = a.hx + gap / 2, a.hy + gap / 2, b.hx + gap / 2, b.hy + gap / 2
+    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):
+        ra = ahx * abs(ca * ux + sa * uy) + ahy * abs(-sa * ux + ca * uy)
+        rb = bhx * abs(cb * ux + sb * uy) + bhy * abs(-sb * ux + cb * uy)
+        if abs(dx * ux + dy * uy) > ra + rb:
             return False
     return True
 

@@ -57,9 +57,8 @@ class Slot:
     """``(xmin, ymin, xmax, ymax)`` of :attr:`fp`, world (filled on creation): a fast first test."""
 
     def __post_init__(self) -> None:
-        c = self.fp.corners()
-        lo, hi = c.min(axis=0), c.max(axis=0)
-        self.box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        xs, ys = zip(*self.fp.corners().tolist(), strict=True)
+        self.box = (min(xs), min(ys), max(xs), max(ys))
 
     def meets(self, other: Slot, gap: float) -> bool:
         """Whether the two slots collide (module docstring)."""
@@ -170,8 +169,9 @@ class Home:
 
     def inside(self, fp: _Footprint, margin: float = 0.005) -> bool:
         """Whether the rectangle lies in the interior (``margin`` from the walls' inner faces)."""
-        c = fp.corners()
-        return bool(c.min() >= margin and np.all(c.max(axis=0) <= np.array([self.lx, self.ly]) - margin))
+        c = fp.corners().tolist()
+        return (min(min(x, y) for x, y in c) >= margin and max(x for x, _ in c) <= self.lx - margin
+                and max(y for _, y in c) <= self.ly - margin)
 
     def fits(self, fp: _Footprint, z0: float, z1: float, gap: float | None = None, wall_margin: float = 0.005,
              ignore: tuple[str, ...] = ("rug",), skip: Slot | None = None) -> bool:
