@@ -219,6 +219,9 @@ class _SplitPlan:
         rank: ``(Fc,)`` int64, each closed face's part, 0..P-1, ascending.
         starts: ``(P,)`` int64, each part's first row in ``closed_faces``.
         open_faces: ``(Fo, 3)`` int64, the faces of the open components.
+        part_vertices: ``(Vc,)`` int64, ``used`` grouped by part (a vertex belongs to one component).
+        vertex_starts: ``(P,)`` int64, each part's first entry in ``part_vertices``: a part's bounds are its
+            vertices', a third to a sixth of its faces' corners.
     """
 
     closed_faces: np.ndarray
@@ -227,6 +230,8 @@ class _SplitPlan:
     rank: np.ndarray
     starts: np.ndarray
     open_faces: np.ndarray
+    part_vertices: np.ndarray
+    vertex_starts: np.ndarray
 
 
 SPLIT_PLANS = 512
@@ -253,7 +258,12 @@ def _split_plan(faces: np.ndarray, n_vertices: int) -> _SplitPlan:
     fc, rank = fc[order], rank[order]
     used, local = np.unique(fc, return_inverse=True)
     starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]]) if len(rank) else np.zeros(0, dtype=np.int64)
-    arrays = (fc, used, local.reshape(-1, 3), rank, starts, faces[is_open[comp]])
+    vertex_part = np.zeros(n_vertices, dtype=np.int64)
+    vertex_part[fc] = rank[:, None]
+    part_vertices = used[np.argsort(vertex_part[used], kind="stable")]
+    vp = vertex_part[part_vertices]
+    vertex_starts = np.flatnonzero(np.r_[True, vp[1:] != vp[:-1]]) if len(vp) else np.zeros(0, dtype=np.int64)
+    arrays = (fc, used, local.reshape(-1, 3), rank, starts, faces[is_open[comp]], part_vertices, vertex_starts)
     for a in arrays:
         a.setflags(write=False)  # shared by every later mesh with these faces
     plan = _SplitPlan(*arrays)
@@ -302,9 +312,9 @@ def prepare_meshes(meshes: Sequence[Any]) -> MeshParts:
             cf.append(plan.local + n_cv)
             cg.append(plan.rank + p0)
             n_cv += len(plan.used)
-            tri = v[plan.closed_faces]
-            los.extend(np.minimum.reduceat(tri.min(axis=1), plan.starts))
-            his.extend(np.maximum.reduceat(tri.max(axis=1), plan.starts))
+            pv = v[plan.part_vertices]
+            los.extend(np.minimum.reduceat(pv, plan.vertex_starts))
+            his.extend(np.maximum.reduceat(pv, plan.vertex_starts))
             n_new = len(plan.starts)
             kinds.extend([0] * n_new)
             refs.extend(range(p0, p0 + n_new))

@@ -332,3 +332,28 @@ def test_the_split_plans_kept_are_bounded(monkeypatch: pytest.MonkeyPatch) -> No
     for n in range(5):
         prepare_meshes([(np.asarray(box.vertices), np.roll(np.asarray(box.faces), n, axis=0), 1)])
     assert len(fz._plans) == 3
+
+
+def test_part_bounds_are_those_of_each_parts_faces() -> None:
+    """A part's bounds come from its own vertices (grouped by part in the split plan): equal to the bounds of its
+    faces' corners, with the parts' vertices interleaved in the mesh and a vertex no face uses lying far out."""
+    from fruxel.kernels.fruxelize import _pad, prepare_meshes
+
+    rng = np.random.default_rng(3)
+    boxes = [trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)).apply_translation(rng.uniform(-3, 3, 3))
+             for _ in range(4)]
+    v = np.concatenate([b.vertices for b in boxes] + [[[50.0, 50.0, 50.0]]])
+    f = np.concatenate([b.faces + 8 * k for k, b in enumerate(boxes)])
+    perm = rng.permutation(len(v) - 1)  # shuffle the boxes' vertices together; the stray one stays last
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    v = np.concatenate([v[:-1][perm], v[-1:]])
+    f = inv[f]
+    parts = prepare_meshes([(v, f, 1)])
+    assert len(parts.part_lo) == 4 and (parts.part_kind == 0).all()
+    tri = parts.closed_vertices[parts.closed_faces]
+    for p in range(4):
+        mine = tri[parts.closed_group == p].reshape(-1, 3)
+        lo, hi = _pad(mine.min(axis=0, keepdims=True), mine.max(axis=0, keepdims=True))  # the walk's margin
+        np.testing.assert_array_equal(parts.part_lo[p], lo[0])
+        np.testing.assert_array_equal(parts.part_hi[p], hi[0])
