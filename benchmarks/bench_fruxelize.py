@@ -54,7 +54,7 @@ def measure(device: str, rooms: int, poses: int, grid: int) -> list[dict[str, An
             scene = maker.scene_of("train", r * sps)[0]
             frames = [maker.scene_of("train", r * sps + k)[1] for k in range(min(poses, sps))]
             native = scene.mesh_set(device=device).native
-            parts.append(int(native.arrays["part_kind"].shape[0]))
+            parts.append(int(native.parts.kind.shape[0]))
             for pairs in KERNELS.values():  # compiles and warms both
                 kernels.fruxelize(native, cfg.grid, frames[0], pairs=pairs)
             for k, pose in enumerate(frames):
