@@ -404,6 +404,26 @@ MPS_CLIENTS = 48
 streamed and 60 failed to get a CUDA context (BENCHMARKS.md, "## Simulator", h200-w48-room32)."""
 
 
+def check_mps_clients(source: SampleSource, workers: int, device: str | None) -> None:
+    """Refuse more streamed-simulator workers on one CUDA device than CUDA MPS serves beside the training process.
+
+    Args:
+        source: the training data.
+        workers: DataLoader workers of the rank.
+        device: the Warp device the workers draw on (``"cuda:N"`` or ``"cpu"``).
+
+    Raises:
+        ConfigError: MPS runs and the workers and the training process are more than :data:`MPS_CLIENTS` (the
+            workers would fail to get a CUDA context after their start-up).
+    """
+    if source.source != "stream" or not str(device or "").startswith("cuda") or not mps_running():
+        return
+    if workers + 1 > MPS_CLIENTS:
+        raise ConfigError(f"data.workers {workers}: with CUDA MPS on, one GPU serves at most {MPS_CLIENTS} processes, "
+                          f"and the {workers} simulator workers on {device} and the training process are "
+                          f"{workers + 1}; use at most {MPS_CLIENTS - 1} workers a GPU")
+
+
 def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> str | None:
     """A one-line hint when several simulator workers will share one GPU without CUDA's Multi-Process Service, else
     None.
@@ -418,18 +438,11 @@ def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> 
         workers: DataLoader workers of the rank.
         device: the Warp device the workers draw on (``"cuda:N"`` or ``"cpu"``).
 
-    Raises:
-        ConfigError: MPS runs and the workers and the training process are more than it serves on one GPU
-            (:data:`MPS_CLIENTS`; the workers would fail to get a CUDA context after their start-up).
     """
     if source.source != "stream" or workers < 2 or not str(device or "").startswith("cuda"):
         return None
     pipe = mps_pipe()
     if mps_running():
-        if workers + 1 > MPS_CLIENTS:
-            raise ConfigError(f"data.workers {workers}: with CUDA MPS on, one GPU serves at most {MPS_CLIENTS} "
-                              f"processes, and the {workers} simulator workers on {device} and the training process "
-                              f"are {workers + 1}; use at most {MPS_CLIENTS - 1} workers a GPU")
         return None
     return (f"note: {workers} simulator workers share {device} without CUDA MPS (no control pipe in {pipe}); "
             "`nvidia-cuda-mps-control -d` before training lets them run side by side (BENCHMARKS.md, Simulator)")

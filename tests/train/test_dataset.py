@@ -411,9 +411,27 @@ def test_gpu_sharing_hint_names_mps_only_when_stream_workers_share_a_gpu_without
     assert gpu_sharing_hint(SampleSource("shards", str(tmp_path)), 15, "cuda:0") is None
     (pipe / "control").write_text("")  # the daemon's named pipe stands there while it runs
     assert gpu_sharing_hint(stream, 15, "cuda:0") is None
-    assert gpu_sharing_hint(stream, 47, "cuda:0") is None
-    with pytest.raises(ConfigError, match=r"^data.workers 48: with CUDA MPS on, one GPU serves at most 48 "):
-        gpu_sharing_hint(stream, 48, "cuda:0")
+    assert gpu_sharing_hint(stream, 48, "cuda:0") is None
+
+
+def test_more_stream_workers_than_mps_serves_are_refused_in_one_line(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With MPS's control pipe there, 47 workers and the training process fit on one GPU and 48 do not; without MPS,
+    on the CPU or with stored data, nothing is refused."""
+    from fruxel.train.samples import SampleSource, check_mps_clients
+
+    pipe = tmp_path / "mps"
+    pipe.mkdir()
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(pipe))
+    stream = SampleSource()
+    check_mps_clients(stream, 60, "cuda:0")  # no daemon: the workers time-slice, slowly, but they run
+    (pipe / "control").write_text("")
+    check_mps_clients(stream, 47, "cuda:0")
+    check_mps_clients(stream, 60, "cpu")
+    check_mps_clients(SampleSource("shards", str(tmp_path)), 60, "cuda:0")
+    with pytest.raises(ConfigError, match=r"^data.workers 48: with CUDA MPS on, one GPU serves at most 48 [^\n]*"
+                                          r"use at most 47 workers a GPU$"):
+        check_mps_clients(stream, 48, "cuda:1")
 
 
 def test_a_missing_asset_pack_is_one_line_from_the_check_and_from_a_spawned_worker(tmp_path: Path) -> None:

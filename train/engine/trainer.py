@@ -223,6 +223,11 @@ class Trainer:
                                                             if reshaped and new_classes else [])
             print(f"run.init {path}: kept the fresh initialisation of {'; '.join(kept)}", file=sys.stderr)
 
+    def _sim_device(self) -> str:
+        """The Warp device a streamed simulator's workers draw on: the rank's CUDA device, else the CPU."""
+        d = self.dist.device
+        return f"cuda:{d.index}" if d.type == "cuda" and d.index is not None else "cpu"
+
     def _batches(self) -> Any:
         """The rank's training batches from the state's data position."""
         from ..samples import SampleSource, gpu_sharing_hint, train_split_size, training_batches
@@ -232,8 +237,7 @@ class Trainer:
         per_rank = c.run.batch_size // d.world
         if c.data.replay:
             per_rank = max(1, math.ceil(per_rank / c.data.reuse))
-        cuda = d.device.index if d.device.type == "cuda" else None
-        sim_device = f"cuda:{cuda}" if cuda is not None else "cpu"
+        sim_device = self._sim_device()
         hint = gpu_sharing_hint(source, c.data.workers, sim_device)
         if hint and self.progress and d.rank == 0:
             print(hint, file=sys.stderr)
@@ -292,9 +296,12 @@ class Trainer:
             self.folder.release()
 
     def _fit(self) -> TrainResult:
+        from ..samples import SampleSource, check_mps_clients
+
         c, d = self.config, self.dist
         if c.run.batch_size % d.world:
             raise TrainingError(f"run.batch_size {c.run.batch_size} is not divisible by {d.world} ranks")
+        check_mps_clients(SampleSource.of(c.data), c.data.workers, self._sim_device())
         if d.main:
             self.folder.claim(resume=self.resumed, overwrite=self._overwrite)
         self.state, step = self.build()
