@@ -241,10 +241,13 @@ def section(runs: list[dict[str, Any]]) -> str:
     """The "## Simulator" Markdown section."""
     lines = [SECTION, ""]
     lines.append("`python benchmarks/bench_sim.py` (see its docstring for the H100 command). A sample is made end "
-                 "to end: room, robot trajectory, mesh upload (once per room of 16 samples), pyrender image with "
+                 "to end: room, robot trajectory, mesh upload (once per room, shared by its samples: 16 unless the "
+                 "mode says how many a room), the image (pyrender unless the mode names another renderer) with "
                  "augmentation, `fruxelize`; `generate` also compresses and writes the shards. "
                  "*Steady* excludes start-up (process spawn, imports, EGL and Warp initialisation); *end to end* "
-                 "includes it.")
+                 f"includes it. The furnished world's stream from any camera is held to {HOME_TARGET:g} samples/s on "
+                 "one GPU machine (issue 38); where its time goes: docs/experiments.md, the 'Simulator speed' "
+                 "entries.")
     lines.append("")
     for run in runs:
         m = run["machine"]
