@@ -88,3 +88,41 @@ def test_what_stays_wrong_is_told_apart(tol) -> None:
     # true 4 and 5 not found, both predicted empty, both behind the first occupied cell; predicted 8 not right, empty
     assert counts[1].tolist() == [2, 2, 2, 1, 1]
     assert tol.error_counts(pred, truth, 2, r=1)[1].tolist() == [1, 1, 1, 1, 1]
+
+
+@pytest.fixture(scope="module")
+def snap():
+    spec = importlib.util.spec_from_file_location("depth_snap", ROOT / "scripts" / "depth_snap.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_snapping_puts_each_first_cell_on_the_truths_and_carries_the_column(snap) -> None:
+    """scripts/depth_snap.py: a column whose first cell is one slice short moves one slice back with what lies
+    behind it; one of another class, or too far, stays; a shifted-out slice leaves empty behind it."""
+    truth = np.zeros((1, 8, 1, 3), dtype=np.uint8)
+    pred = np.zeros_like(truth)
+    truth[0, 4:6, 0, 0], pred[0, 3:5, 0, 0], pred[0, 6, 0, 0] = 1, 1, 2  # near miss, with a cell behind
+    truth[0, 4, 0, 1], pred[0, 3, 0, 1] = 1, 2  # classes differ
+    truth[0, 7, 0, 2], pred[0, 2, 0, 2] = 1, 1  # five slices apart
+    shift = snap.snap_shifts(pred, truth, [1], within=2)
+    assert shift.tolist() == [[[1, 0, 0]]]
+    out = snap.shift_columns(pred, shift)
+    assert out[0, :, 0, 0].tolist() == [0, 0, 0, 0, 1, 1, 0, 2]
+    assert (out[0, :, 0, 1:] == pred[0, :, 0, 1:]).all()
+    assert snap.snap_shifts(pred, truth, [1], within=0)[0, 0, 2] == 5
+    far = snap.shift_columns(pred, np.full((1, 1, 3), 4))[0, :, 0, 0]
+    assert far.tolist() == [0, 0, 0, 0, 0, 0, 0, 1]  # its first cell at the far end, the rest shifted out
+
+
+def test_moving_a_first_run_leaves_the_rest_of_its_column(snap) -> None:
+    """Only the surface moves: the first cell and its class's cells right behind it; a cell of another class
+    behind them stays, and one the run lands on is overwritten."""
+    col = np.zeros((1, 8, 1, 1), dtype=np.uint8)
+    col[0, 2:4, 0, 0], col[0, 4, 0, 0], col[0, 6, 0, 0] = 1, 2, 1
+    out = snap.move_first_runs(col, np.array([[[2]]]))[0, :, 0, 0]
+    assert out.tolist() == [0, 0, 0, 0, 1, 1, 1, 0]  # run 2-3 moved to 4-5 over the 2; the 1 at 6 stays
+    assert snap.move_first_runs(col, np.array([[[-1]]]))[0, :, 0, 0].tolist() == [0, 1, 1, 0, 2, 0, 1, 0]
+    empty = np.zeros((1, 8, 1, 1), dtype=np.uint8)
+    assert not snap.move_first_runs(empty, np.array([[[3]]])).any()
