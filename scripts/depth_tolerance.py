@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -69,14 +70,11 @@ def tolerant_iou(counts: np.ndarray) -> np.ndarray:
     return 100.0 * np.where((pred + true) > 0, iou, np.nan)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("model", help="a shipped model's name, a .safetensors file or a training checkpoint")
-    p.add_argument("--test-set", default="any-camera")
-    p.add_argument("--samples", type=int, default=256)
-    p.add_argument("--camera-known", default="gravity,height", help="pieces of the camera told (empty: none)")
-    p.add_argument("--batch", type=int, default=16)
-    args = p.parse_args(argv)
+def held_out_predictions(model: str, test_set: str, samples: int, batch: int, camera_known: str
+                         ) -> tuple[tuple[str, ...], Iterator[tuple[np.ndarray, np.ndarray]]]:
+    """The model's class names and its ``(prediction, truth)`` label volumes ``(B, D, H, W)`` uint8, batch by batch,
+    on fruxel-eval's held-out samples of ``test_set`` (its sample cache), with the pieces of the camera in
+    ``camera_known`` (comma-separated; empty: none) told to a model that reads the camera."""
     import torch
 
     from fruxel.train.engine.data import to_device
@@ -85,21 +83,41 @@ def main(argv: list[str] | None = None) -> int:
     from fruxel.train.model_files import load_model
     from fruxel.train.samples import SampleSource
 
-    m = load_model(args.model, device="cpu")
-    known = [k for k in args.camera_known.split(",") if k] if m.config.reads_camera else None
+    m = load_model(model, device="cpu")
+    known = [k for k in camera_known.split(",") if k] if m.config.reads_camera else None
     predict = model_predict(m.network, m.rules, camera_known=known)
-    names = m.config.classes.names
+    source = SampleSource(seed=0, assets="", test_set=test_set, augment=True)
+
+    def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        with torch.no_grad():
+            for image, labels, record in cached_split_batches(source, m.config, "test", samples, batch,
+                                                              device="cpu", camera=True):
+                x, _ = to_device({"image": image, "labels": labels}, torch.device("cpu"))
+                yield predict(x, labels, record).numpy(), labels.numpy()
+
+    return tuple(m.config.classes.names), pairs()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The model and sample arguments both analysis scripts take."""
+    p.add_argument("model", help="a shipped model's name, a .safetensors file or a training checkpoint")
+    p.add_argument("--test-set", default="any-camera")
+    p.add_argument("--samples", type=int, default=256)
+    p.add_argument("--camera-known", default="gravity,height", help="pieces of the camera told (empty: none)")
+    p.add_argument("--batch", type=int, default=16)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    args = p.parse_args(argv)
+    names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known)
     counts = {r: np.zeros((len(names), 4), dtype=np.int64) for r in TOLERANCES}
     errors = np.zeros((len(names), 5), dtype=np.int64)
-    source = SampleSource(seed=0, assets="", test_set=args.test_set, augment=True)
-    with torch.no_grad():
-        for image, labels, record in cached_split_batches(source, m.config, "test", args.samples, args.batch,
-                                                          device="cpu", camera=True):
-            x, _ = to_device({"image": image, "labels": labels}, torch.device("cpu"))
-            pred, truth = predict(x, labels, record).numpy(), labels.numpy()
-            for r in TOLERANCES:
-                counts[r] += tolerant_counts(pred, truth, len(names), r)
-            errors += error_counts(pred, truth, len(names))
+    for pred, truth in pairs:
+        for r in TOLERANCES:
+            counts[r] += tolerant_counts(pred, truth, len(names), r)
+        errors += error_counts(pred, truth, len(names))
     for r in TOLERANCES:
         iou = tolerant_iou(counts[r])
         present = counts[r][:, 1] > 0

@@ -14,12 +14,16 @@ from fruxel.train.eval.metrics import confusion, iou_per_class
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def tol():
-    spec = importlib.util.spec_from_file_location("depth_tolerance", ROOT / "scripts" / "depth_tolerance.py")
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def tol():
+    return _script("depth_tolerance")
 
 
 def _volumes(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,10 +96,7 @@ def test_what_stays_wrong_is_told_apart(tol) -> None:
 
 @pytest.fixture(scope="module")
 def snap():
-    spec = importlib.util.spec_from_file_location("depth_snap", ROOT / "scripts" / "depth_snap.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _script("depth_snap")
 
 
 def test_snapping_puts_each_first_cell_on_the_truths_and_carries_the_column(snap) -> None:
