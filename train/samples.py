@@ -437,7 +437,6 @@ def gpu_sharing_hint(source: SampleSource, workers: int, device: str | None) -> 
         source: the training data.
         workers: DataLoader workers of the rank.
         device: the Warp device the workers draw on (``"cuda:N"`` or ``"cpu"``).
-
     """
     if source.source != "stream" or workers < 2 or not str(device or "").startswith("cuda"):
         return None
