@@ -4,8 +4,9 @@
                         [--workers K] [--seed S] [--shard-size 64] [--backend warp] [--world home|flat]
                         [--camera any|robot] [--renderer NAME] [--assets DIR]
     fruxel-sim export --out DIR [--samples N | --split train=16,test=4] [--overwrite] [the options of generate]
-    fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--image 256]
-                       [--world home|flat] [--camera any|robot] [--renderer NAME] [--assets DIR]
+    fruxel-sim preview --out sheet.png|.jpg [--seed S] [--split train] [--index I] [--count N] [--step K]
+                       [--image 256] [--world home|flat] [--camera any|robot] [--renderer NAME] [--assets DIR]
+                       [--test-set NAME]
     fruxel-sim assets [--sources assets/cache] [--out assets/pack] [--offline] [--replace] [--workers K]
 
 ``generate`` writes shards and a manifest (:mod:`fruxel.train.sim.writer`); it resumes an interrupted run in the
@@ -18,7 +19,11 @@ packages into the cache folder (no root needed), processes them and writes the p
 manifest, refusing a pack over its size budget. ``preview`` writes a contact sheet: per sample the
 camera's image (framed onto the grid's view, grey where a narrower camera saw nothing), the own-view ground-truth
 labels in the class colours, and a ray-cast render of the ground-truth volume from a second camera beside the
-camera's, with a class legend; each row's title gives the camera (height, pitch, roll, field of view).
+camera's, with a class legend; each row's title gives the camera (height, pitch, roll, field of view). ``--step``
+spaces the samples (``--step 16``, the samples a room, shows one frame of each room). ``--test-set NAME`` previews a
+held-out test set (:mod:`fruxel.train.sim.testsets`, what ``fruxel-eval --test-set NAME`` evaluates on): its
+cameras, world, renderer and asset split replace ``--camera``, ``--world`` and ``--renderer``, and the split is
+``test`` unless ``--split`` names another.
 
 The samples of ``generate`` and ``preview`` are by default the furnished rooms (``--world home``: rooms from the
 asset pack, labelled with :data:`fruxel.classes.HOME_CLASSES`, drawn by the ray tracer) from any camera
@@ -47,6 +52,7 @@ from fruxel.train.sim.assetpack.build import PackConfig
 from fruxel.train.sim.cameras import CAMERAS
 from fruxel.train.sim.config import DEFAULT_GRID, WORLD_RENDERERS, WORLDS, AugmentConfig, ImageConfig, SimConfig
 from fruxel.train.sim.renderer import renderer_names
+from fruxel.train.sim.testsets import TEST_SETS
 
 from .common import (
     OneLineParser,
@@ -131,9 +137,15 @@ def build_parser() -> argparse.ArgumentParser:
                        "the ground truth from a second pose, with a class legend.")
     v.add_argument("--out", required=True, type=path_name, metavar="IMAGE",
                    help="the image to write; its suffix picks the format (.png, .jpg, ...)")
-    v.add_argument("--split", default="train", help="split name (seeds differ per split; default train)")
+    v.add_argument("--split", default=None,
+                   help="split name (seeds differ per split; default train, test with --test-set)")
     v.add_argument("--index", type=non_negative_int, default=0, help="first sample index (default 0)")
     v.add_argument("--count", type=positive_int, default=1, help="samples, one row each (default 1)")
+    v.add_argument("--step", type=positive_int, default=1, metavar="K",
+                   help="index step between the samples (default 1; the samples a room gives one frame a room)")
+    v.add_argument("--test-set", default=None, choices=tuple(TEST_SETS), metavar="NAME",
+                   help="preview a held-out test set instead: its cameras, world, renderer and asset split ("
+                   + ", ".join(TEST_SETS) + ")")
     v.add_argument("--raycast-backend", default=None,
                    help="first_hit backend for the second view (default: the best available)")
     _config_options(v, PREVIEW_IMAGE)
@@ -156,15 +168,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _config(args: argparse.Namespace, splits: Any) -> SimConfig:
-    """The simulator config of the options; the asset pack it needs is checked to be there (before any slow
-    work)."""
+def _config(args: argparse.Namespace, splits: Any, test_set: str | None = None) -> SimConfig:
+    """The simulator config of the options, made into held-out test set ``test_set``'s when one is named; the asset
+    pack it needs is checked to be there (before any slow work)."""
     image = ImageConfig(**config_values(args, ImageConfig, augment=AugmentConfig(**config_values(args, AugmentConfig))))
     config = SimConfig(**config_values(
         args, SimConfig, grid=grid_from_args(args, DEFAULT_GRID), image=image, splits=splits,
         camera=CAMERAS[args.camera], world=args.world, renderer=args.renderer or WORLD_RENDERERS[args.world],
         classes=HOME_CLASSES if args.world == "home" else DEFAULT_CLASSES,
         assets=None if args.assets is None else str(args.assets)))
+    if test_set:
+        config = TEST_SETS[test_set].config(config)
     check_asset_pack(config)
     return config
 
@@ -220,21 +234,18 @@ def _grid_text(config: Any) -> str:
 
 def _preview(args: argparse.Namespace) -> int:
     from fruxel.render.images import image_format, save_image
-    from fruxel.train.sim.images import camera_text, contact_sheet, preview_panels
+    from fruxel.train.sim.images import preview_sheet
     from fruxel.train.sim.sample import SampleMaker
 
     # The sheet's format follows --out's suffix; an unknown one is refused before any sample is made.
     fmt = image_format(args.out)
     check_output_file(args.out, "--out")
-    config = _config(args, ((args.split, args.index + args.count),))
-    rows, titles = [], []
+    split = args.split or ("test" if args.test_set else "train")
+    indices = range(args.index, args.index + args.count * args.step, args.step)
+    config = _config(args, ((split, indices[-1] + 1),), args.test_set)
+    what = f"test set {args.test_set}: " if args.test_set else ""
     with SampleMaker(config, args.seed, backend=args.backend) as maker:
-        for i in range(args.index, args.index + args.count):
-            s = maker.make(args.split, i)
-            rows.append(preview_panels(s, config, backend=args.raycast_backend))
-            titles.append(f"{args.split} sample {i} (room {s.scene}, frame {s.frame}), seed {args.seed}, "
-                          f"grid {_grid_text(config)}; {camera_text(s)}")
-    sheet = contact_sheet(rows, config.classes.names, config.classes.palette(), titles)
+        sheet, _ = preview_sheet(maker, config, split, indices, args.seed, backend=args.raycast_backend, what=what)
     write_outputs([(args.out, lambda tmp: save_image(tmp, sheet, fmt))])
     print(f"{PROG}: wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")
     return 0

@@ -1,6 +1,7 @@
 """One contact sheet per held-out test set (``train/sim/testsets.py``), to look at what a model is evaluated on: N
-samples of the test split, one room each, each its camera image beside the ground truth's first-hit labels from the
-sample's own camera (the grid's view, which the image is framed onto) in the class colours.
+samples of the test split, one room each, as ``fruxel-sim preview --test-set NAME`` draws them (its camera image, the
+ground truth's first-hit labels from the sample's own camera in the class colours, and a ray-cast render of the
+truth from a second pose).
 
     python scripts/testset_sheet.py --assets assets/pack --committable-only --out-dir docs/testsets
         [--credits docs/testsets/credits.md] [--count 6] [--image 256] [--grid 64] [--seed 0] [--sets a,b]
@@ -57,40 +58,21 @@ def set_config(name: str, args: argparse.Namespace, assets: Path) -> Any:
     return TEST_SETS[name].config(base.replace(splits=(("test", args.count * base.samples_per_scene),)))
 
 
-def set_samples(name: str, config: Any, count: int, seed: int, used: set[str]) -> list[Any]:
-    """The first frame of each of the test split's first ``count`` rooms; the pack assets their rooms show are added
-    to ``used``."""
-    from tqdm import tqdm
-
+def set_sheet(name: str, config: Any, count: int, seed: int, used: set[str]) -> tuple[np.ndarray, list[Any]]:
+    """The sheet of one test set, as ``fruxel-sim preview --test-set NAME --count N --step S`` draws it (S the samples
+    a room: the first frame of each of the test split's first ``count`` rooms), and its samples; the pack assets
+    their rooms show are added to ``used``."""
+    from fruxel.train.sim.images import preview_sheet
     from fruxel.train.sim.sample import SampleMaker
 
-    out = []
+    indices = range(0, count * config.samples_per_scene, config.samples_per_scene)
     with SampleMaker(config, seed) as maker:
-        for room in tqdm(range(count), desc=name, unit="sample", leave=False):
-            index = room * config.samples_per_scene
-            out.append(maker.make("test", index))
+        sheet, samples = preview_sheet(maker, config, "test", indices, seed, what=f"test set {name}: ")
+        for index in indices:
             scene, _ = maker.scene_of("test", index)
             used.update(o.asset for o in scene.objects if o.asset)
             used.update(a for o in scene.objects for m in o.materials for a in (m.texture, m.image) if a)
-    return out
-
-
-def set_sheet(name: str, config: Any, samples: list[Any], seed: int) -> np.ndarray:
-    """The sheet of one test set: two samples a row, each its camera image and its own-view labels."""
-    from fruxel.train.sim.images import camera_text, contact_sheet, preview_panels
-
-    rows, titles = [], []
-    g = config.grid
-    for pair in (samples[i:i + 2] for i in range(0, len(samples), 2)):
-        row = {}
-        for s in pair:
-            image, labels = preview_panels(s, config, second_view=False).values()
-            row[f"sample {s.index}: {camera_text(s)}"] = image
-            row[f"sample {s.index}: ground truth, own view"] = labels
-        rows.append(row)
-        titles.append(f"test set {name}, test split, seed {seed}, grid {g.width}x{g.height}x{g.depth}: rooms "
-                      + " and ".join(str(s.scene) for s in pair))
-    return contact_sheet(rows, config.classes.names, config.classes.palette(), titles)
+    return sheet, samples
 
 
 def comparison_sheet(images: dict[str, list[np.ndarray]], photos: Path) -> np.ndarray:
@@ -183,9 +165,9 @@ def write_sheets(args: argparse.Namespace, names: list[str], pack: Path) -> None
     args.out_dir.mkdir(parents=True, exist_ok=True)
     for name in names:
         config = set_config(name, args, pack)
-        samples = set_samples(name, config, args.count, args.seed, used)
+        sheet, samples = set_sheet(name, config, args.count, args.seed, used)
         images[name] = [s.image for s in samples]
-        out = write_image(args.out_dir / f"{name}.png", set_sheet(name, config, samples, args.seed))
+        out = write_image(args.out_dir / f"{name}.png", sheet)
         print(f"testset_sheet: wrote {out}")
     if args.credits:
         args.credits.write_text(credits_table(pack, used))

@@ -147,6 +147,34 @@ def test_preview_writes_the_format_its_name_asks_for(tmp_path: Path, capsys: pyt
     assert time.perf_counter() - t < 5 and not (tmp_path / "sheet.xyz").exists()
 
 
+def test_preview_shows_a_test_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--test-set robot: the robot's mount in the flat world, labelled with the furnished rooms' classes (the set's
+    samples as fruxel-eval makes them for a camera-aware model), --step rooms apart; an unknown set is one line."""
+    from fruxel.train.sim.config import ImageConfig, SimConfig
+    from fruxel.train.sim.images import preview_sheet
+    from fruxel.train.sim.sample import SampleMaker
+    from fruxel.train.sim.testsets import TEST_SETS
+
+    png = tmp_path / "robot.png"
+    assert main(["preview", "--out", str(png), "--test-set", "robot", "--count", "2", "--step", "2",
+                 "--samples-per-scene", "2", "--image", "48", "--grid", "24"]) == 0
+    flat = np.asarray(Image.open(png).convert("RGB")).reshape(-1, 3)
+    assert (flat == HOME_CLASSES.palette()[HOME_CLASSES.names.index("wall")]).all(axis=1).sum() > 50
+    config = TEST_SETS["robot"].config(SimConfig(image=ImageConfig(size=48), classes=HOME_CLASSES,
+                                                 samples_per_scene=2, splits=(("test", 4),)))
+    with SampleMaker(config, 0) as maker:
+        sheet, made = preview_sheet(maker, config, "test", range(0, 4, 2), 0)
+    assert [s.index for s in made] == [0, 2] and made[0].scene != made[1].scene
+    assert all(abs(s.camera.height - 1.0) < 1e-6 and abs(s.camera.pitch - 10.0) < 1e-6 for s in made)
+    assert sheet.ndim == 3 and sheet.shape[0] > 2 * 48
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        main(["preview", "--out", str(tmp_path / "x.png"), "--test-set", "nope"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--test-set" in err[0] and "any-camera" in err[0]
+
+
 def test_contact_sheet_titles_fit_their_panels() -> None:
     """Panel titles wrap within their panel: at small sizes they used to run into the next panel's title."""
     from fruxel.train.sim.images import contact_sheet
@@ -184,6 +212,24 @@ def test_camera_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         main(["preview", "--out", str(png), "--camera", "phone"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--camera" in err[0]
+
+
+@pytest.mark.slow
+def test_the_furnished_rooms_are_the_same_bytes_and_resume(tiny_pack: Path, tmp_path: Path) -> None:
+    """The default world (furnished rooms from any camera, ray-traced): the same seed gives the same shard bytes in
+    one process and in two, and a shard lost from a finished folder is made again, byte for byte."""
+    args = ["--split", "train=4,test=2", "--shard-size", "2", "--seed", "5", "-q", "--assets", str(tiny_pack), *TINY]
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(["generate", "--out", str(one), *args]) == 0
+    assert main(["generate", "--out", str(two), "--workers", "2", *args]) == 0
+    shards = sorted(p.name for p in one.glob("*.npz"))
+    assert len(shards) == 3 and sorted(p.name for p in two.glob("*.npz")) == shards
+    assert all((one / n).read_bytes() == (two / n).read_bytes() for n in shards)
+    lost = two / shards[-1]
+    lost.unlink()
+    assert main(["generate", "--out", str(two), *args]) == 0
+    assert lost.read_bytes() == (one / shards[-1]).read_bytes()
+    assert json.loads((two / "manifest.json").read_text())["complete"]
 
 
 def test_the_old_style_records_what_data_sets_made_before_recorded(tmp_path: Path) -> None:

@@ -342,6 +342,34 @@ def preview_panels(sample: Any, config: SimConfig, *, second_view: bool = True, 
     return panels
 
 
+def preview_sheet(maker: Any, config: SimConfig, split: str, indices: Sequence[int], seed: int, *,
+                  backend: str | None = None, what: str = "") -> tuple[np.ndarray, list[Any]]:
+    """The contact sheet of ``fruxel-sim preview``: one row a sample, its :func:`preview_panels` and a title with the
+    split, index, room, frame, seed, grid and camera, and the class legend.
+
+    Args:
+        maker: the :class:`.sample.SampleMaker` of ``config`` and ``seed`` that makes the samples.
+        config: its simulator config.
+        split: the split the samples are drawn from.
+        indices: the samples' indices in ``split``, one row each.
+        seed: the base seed (for the titles).
+        backend: the ``first_hit`` backend of the panels (None: the best available).
+        what: words put before each title (e.g. the test set's name); "" for none.
+
+    Returns:
+        The ``(h, w, 3)`` uint8 RGB sheet and the samples made, in row order.
+    """
+    g = config.grid
+    rows, titles, made = [], [], []
+    for i in indices:
+        s = maker.make(split, i)
+        made.append(s)
+        rows.append(preview_panels(s, config, backend=backend))
+        titles.append(f"{what}{split} sample {i} (room {s.scene}, frame {s.frame}), seed {seed}, "
+                      f"grid {g.width}x{g.height}x{g.depth}; {camera_text(s)}")
+    return contact_sheet(rows, config.classes.names, config.classes.palette(), titles), made
+
+
 def camera_text(sample: Any) -> str:
     """A sample's camera in words: its height, pitch, roll and field of view."""
     c = sample.camera
