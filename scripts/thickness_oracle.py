@@ -1,0 +1,119 @@
+"""What the walls' unseen thickness costs a perfect reader: per-class IoU of a test set's truth against the truth of
+the same samples with every wall as thick as one value.
+
+    python scripts/thickness_oracle.py [--test-set any-camera] [--samples 256] [--thickness 0.21]
+
+From inside a room a wall's thickness cannot be seen (a door's jamb shows it, from some poses), yet the labels count
+the wall's cells through it: a 64^3 grid over 0.5-8 m has slices 0.117 m deep and the home world's walls are 0.12 to
+0.3 m thick. This script labels the rooms and camera poses of fruxel-eval's held-out samples of ``--test-set`` (the same
+stream, seed 0) twice: as they are, and with ``home.wall_thickness_range`` collapsed to ``--thickness`` (the room
+generator still draws the thickness, so every later draw is the same: the same furniture and objects in the same
+places), both from the first room's camera pose. The second truth is what a reader that knew everything except the
+walls' thickness, and guessed ``--thickness``, would answer; its IoU against the first is that reader's score, the
+ceiling that the unseen thickness alone leaves any model. The halls behind doors, the window frames set in the
+walls and the floor and ceiling slabs' rims under the walls move with the walls' faces, so they count too. An
+analysis for the experiments log, not a metric of the product's reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+GRID = 64
+"""The grid of the samples (the camera-aware model's, 64^3)."""
+
+
+def with_wall_thickness(make_config: Callable[..., Any], thickness: float) -> Callable[..., Any]:
+    """``make_config`` (:func:`fruxel.train.samples.sim_config`) whose configs have every wall ``thickness`` metres
+    thick (``home.wall_thickness_range`` collapsed to one value)."""
+
+    def made(*args: Any, **kwargs: Any) -> Any:
+        config = make_config(*args, **kwargs)
+        home = dataclasses.replace(config.home, wall_thickness_range=(thickness, thickness))
+        return config.replace(home=home)
+
+    return made
+
+
+def class_counts(pred: np.ndarray, truth: np.ndarray, classes: int) -> np.ndarray:
+    """``(classes, 3)`` int64 per class of two ``(B, D, H, W)`` label volumes: cells in both, in ``pred`` only, in
+    ``truth`` only (row 0, empty, stays zero)."""
+    out = np.zeros((classes, 3), dtype=np.int64)
+    for c in range(1, classes):
+        p, t = pred == c, truth == c
+        out[c] = (p & t).sum(), (p & ~t).sum(), (~p & t).sum()
+    return out
+
+
+def iou(counts: np.ndarray) -> np.ndarray:
+    """Per-class IoU in percent from :func:`class_counts` (NaN for a class in neither volume)."""
+    both, only_p, only_t = (counts[:, k].astype(np.float64) for k in range(3))
+    union = both + only_p + only_t
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(union > 0, 100.0 * both / union, np.nan)
+
+
+def label_pairs(test_set: str, samples: int, thickness: float) -> tuple[tuple[str, ...],
+                                                                        Iterator[tuple[np.ndarray, np.ndarray]]]:
+    """The class names and, per sample, the ``(D, H, W)`` uint8 truth of fruxel-eval's first ``samples`` test
+    samples of ``test_set`` and the truth of the same room with every wall ``thickness`` metres thick, both seen
+    from the sample's own camera pose (the robot's drive may take another path in the other room: the pose is the
+    first one's)."""
+    from fruxel.kernels.fruxelize import fruxelize
+    from fruxel.train import samples as sample_module
+    from fruxel.train.model_files import load_model
+    from fruxel.train.sim.sample import SampleMaker
+
+    model = load_model("ssz64-any", device="cpu").config
+    if model.grid.depth != GRID:
+        raise SystemExit(f"thickness_oracle: ssz64-any's grid is {model.grid.depth}^3, not {GRID}^3")
+    source = sample_module.SampleSource(seed=0, assets="", test_set=test_set, augment=True)
+    drawn = sample_module.sim_config(model, source, (("test", samples),))
+    guessed = with_wall_thickness(sample_module.sim_config, thickness)(model, source, (("test", samples),))
+
+    def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        rooms: dict[int, tuple[Any, Any]] = {}
+        with SampleMaker(drawn, 0, backend="warp-cpu") as a, SampleMaker(guessed, 0, backend="warp-cpu") as b:
+            for i in range(samples):
+                (room_a, pose), (room_b, _) = a.scene_of("test", i), b.scene_of("test", i)
+                key = i // drawn.samples_per_scene
+                if key not in rooms:  # one room's meshes at a time
+                    rooms = {key: (room_a.mesh_set(backend="warp-cpu"), room_b.mesh_set(backend="warp-cpu"))}
+                sets = rooms[key]
+                yield tuple(np.asarray(fruxelize(m, drawn.grid, pose, backend="warp-cpu"), dtype=np.uint8)
+                            for m in sets)
+
+    return tuple(model.classes.names), pairs()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--test-set", default="any-camera")
+    p.add_argument("--samples", type=int, default=256)
+    p.add_argument("--thickness", type=float, default=0.21,
+                   help="the walls' thickness of the guess, metres (default: the middle of the home world's range)")
+    args = p.parse_args(argv)
+    from tqdm import tqdm
+
+    if not 0.08 <= args.thickness <= 0.6:
+        raise SystemExit(f"thickness_oracle: --thickness must lie in [0.08, 0.6] m, got {args.thickness}")
+    names, pairs = label_pairs(args.test_set, args.samples, args.thickness)
+    counts = np.zeros((len(names), 3), dtype=np.int64)
+    for truth, guess in tqdm(pairs, total=args.samples, desc="thickness_oracle", unit="sample"):
+        counts += class_counts(guess, truth, len(names))
+    scores = iou(counts)
+    present = counts[:, [0, 2]].sum(axis=1) > 0
+    print(f"walls {args.thickness:g} m thick against the drawn thickness, {args.samples} samples of {args.test_set}: "
+          f"mIoU {np.nanmean(scores[present]):.1f} | "
+          + " ".join(f"{names[c]} {scores[c]:.1f}" for c in range(1, len(names))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
