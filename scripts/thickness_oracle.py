@@ -101,8 +101,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     from tqdm import tqdm
 
+    from fruxel.train.sim.testsets import TEST_SETS
+
     if not 0.08 <= args.thickness <= 0.6:
         raise SystemExit(f"thickness_oracle: --thickness must lie in [0.08, 0.6] m, got {args.thickness}")
+    if args.samples < 1 or args.test_set not in TEST_SETS or TEST_SETS[args.test_set].world != "home":
+        raise SystemExit(f"thickness_oracle: --samples must be >= 1 and --test-set one of the furnished rooms' "
+                         f"{[n for n, t in TEST_SETS.items() if t.world == 'home']}")
     names, pairs = label_pairs(args.test_set, args.samples, args.thickness)
     counts = np.zeros((len(names), 3), dtype=np.int64)
     for truth, guess in tqdm(pairs, total=args.samples, desc="thickness_oracle", unit="sample"):
