@@ -532,6 +532,21 @@ def test_record_round_trip_and_checks() -> None:
         CameraRecord.from_dict({**r.to_dict(), "image_size": [40.5, 40]})
 
 
+def test_training_streams_the_furnished_rooms_from_any_camera_by_default() -> None:
+    """fruxel-train's streamed samples are, unless a config says otherwise, the furnished rooms from any camera drawn
+    by the world's own renderer (the ray tracer); the old style stays one setting away."""
+    from fruxel.train.config import DataConfig, preset
+    from fruxel.train.samples import SampleSource, sim_config
+
+    data = DataConfig()
+    assert (data.world, data.camera, data.renderer) == ("home", "any", "")
+    config = sim_config(preset("ssz64-any").model, SampleSource.of(data), (("train", 4),))
+    assert config.world == "home" and config.camera == ANY_CAMERA and config.renderer == "raytrace"
+    old = sim_config(preset("ssz64").model, SampleSource.of(dataclasses.replace(data, world="flat", camera="robot")),
+                     (("train", 4),))
+    assert old.world == "flat" and old.camera == ROBOT_CAMERA and old.renderer == "pyrender"
+
+
 # ---------------------------------------------------------------------------------------------------- test sets
 def test_test_sets_camera_side() -> None:
     assert list(testsets.TEST_SETS) == ["any-camera", "any-camera-test-assets", "robot"]
