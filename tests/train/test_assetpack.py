@@ -82,6 +82,9 @@ def test_same_sources_give_the_same_bytes(pack_dir: Path, tmp_path: Path) -> Non
 
 
 def test_size_budget_is_checked_before_writing(tmp_path: Path) -> None:
+    """A pack over its budget is refused before a file is written; the default budget is the 48 MiB that lets a
+    pack travel to the GPU machine beside the repository."""
+    assert PackConfig().max_bytes == 48 * 2**20
     out = tmp_path / "small"
     with pytest.raises(AssetPackError, match="over the .* MiB budget"):
         build_pack(SOURCES, out, PackConfig(max_bytes=20_000))
