@@ -21,9 +21,13 @@ import argparse
 import dataclasses
 import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from depth_tolerance import tolerant_counts, tolerant_iou  # noqa: E402
 
 GRID = 64
 """The grid of the samples (the camera-aware model's, 64^3)."""
@@ -39,24 +43,6 @@ def with_wall_thickness(make_config: Callable[..., Any], thickness: float) -> Ca
         return config.replace(home=home)
 
     return made
-
-
-def class_counts(pred: np.ndarray, truth: np.ndarray, classes: int) -> np.ndarray:
-    """``(classes, 3)`` int64 per class of two ``(B, D, H, W)`` label volumes: cells in both, in ``pred`` only, in
-    ``truth`` only (row 0, empty, stays zero)."""
-    out = np.zeros((classes, 3), dtype=np.int64)
-    for c in range(1, classes):
-        p, t = pred == c, truth == c
-        out[c] = (p & t).sum(), (p & ~t).sum(), (~p & t).sum()
-    return out
-
-
-def iou(counts: np.ndarray) -> np.ndarray:
-    """Per-class IoU in percent from :func:`class_counts` (NaN for a class in neither volume)."""
-    both, only_p, only_t = (counts[:, k].astype(np.float64) for k in range(3))
-    union = both + only_p + only_t
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(union > 0, 100.0 * both / union, np.nan)
 
 
 def label_pairs(test_set: str, samples: int, thickness: float) -> tuple[tuple[str, ...],
@@ -109,11 +95,11 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"thickness_oracle: --samples must be >= 1 and --test-set one of the furnished rooms' "
                          f"{[n for n, t in TEST_SETS.items() if t.world == 'home']}")
     names, pairs = label_pairs(args.test_set, args.samples, args.thickness)
-    counts = np.zeros((len(names), 3), dtype=np.int64)
+    counts = np.zeros((len(names), 4), dtype=np.int64)
     for truth, guess in tqdm(pairs, total=args.samples, desc="thickness_oracle", unit="sample"):
-        counts += class_counts(guess, truth, len(names))
-    scores = iou(counts)
-    present = counts[:, [0, 2]].sum(axis=1) > 0
+        counts += tolerant_counts(guess, truth, len(names), 0)  # no tolerance: the usual IoU's counts
+    scores = tolerant_iou(counts)
+    present = counts[:, 1] > 0
     print(f"walls {args.thickness:g} m thick against the drawn thickness, {args.samples} samples of {args.test_set}: "
           f"mIoU {np.nanmean(scores[present]):.1f} | "
           + " ".join(f"{names[c]} {scores[c]:.1f}" for c in range(1, len(names))))

@@ -23,12 +23,12 @@ def oracle():
 
 
 def test_counts_give_the_usual_iou(oracle) -> None:
-    """Per-class IoU from the script's counts equals the product's confusion-matrix IoU on random volumes; a class
-    in neither volume is NaN."""
+    """Per-class IoU from the counts the script takes from depth_tolerance (no tolerance) equals the product's
+    confusion-matrix IoU on random volumes; a class in neither volume is NaN."""
     rng = np.random.default_rng(3)
     truth = rng.integers(0, 4, size=(2, 6, 5, 4)).astype(np.uint8)
     pred = np.where(rng.random(truth.shape) < 0.3, rng.integers(0, 4, size=truth.shape), truth).astype(np.uint8)
-    ours = oracle.iou(oracle.class_counts(pred, truth, 5))
+    ours = oracle.tolerant_iou(oracle.tolerant_counts(pred, truth, 5, 0))
     ref = iou_per_class(confusion(torch.from_numpy(pred).long(), torch.from_numpy(truth).long(), 5).numpy())
     assert np.allclose(ours[1:4], 100.0 * ref[1:4])
     assert np.isnan(ours[4]) and np.isnan(ours[0])
@@ -40,8 +40,8 @@ def test_a_thicker_wall_costs_its_extra_cells(oracle) -> None:
     truth[:, 4:6] = 1
     guess = np.zeros_like(truth)
     guess[:, 4:7] = 1
-    assert oracle.iou(oracle.class_counts(guess, truth, 2))[1] == pytest.approx(200.0 / 3.0)
-    assert oracle.iou(oracle.class_counts(truth, truth, 2))[1] == 100.0
+    assert oracle.tolerant_iou(oracle.tolerant_counts(guess, truth, 2, 0))[1] == pytest.approx(200.0 / 3.0)
+    assert oracle.tolerant_iou(oracle.tolerant_counts(truth, truth, 2, 0))[1] == 100.0
 
 
 def test_the_config_changes_only_the_walls_thickness(oracle) -> None:
