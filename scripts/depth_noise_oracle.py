@@ -116,8 +116,10 @@ def model_rel(model: str, test_set: str, samples: int, batch: int, z_near: float
     return float(np.abs(errors).mean()), float(np.median(np.abs(errors)))
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def _parser() -> argparse.ArgumentParser:
+    from fruxel.cli.common import OneLineParser
+
+    p = OneLineParser(prog="depth_noise_oracle.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--test-set", default="any-camera")
     p.add_argument("--samples", type=int, default=256)
     p.add_argument("--batch", type=int, default=16)
@@ -126,13 +128,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default="ssz64-any",
                    help="the model whose grid and samples to use: a shipped name or a .safetensors file")
     p.add_argument("--rel", action="store_true", help="also measure the model's own first-surface REL")
-    args = p.parse_args(argv)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    from fruxel.cli.common import UsageError
+
     try:
         sigmas = [float(s) for s in args.sigma.split(",")]
     except ValueError:
-        p.error(f"--sigma: not a list of numbers: {args.sigma!r}")
+        raise UsageError(f"--sigma: not a list of numbers: {args.sigma!r}") from None
     if any(not 0 <= s < 1 for s in sigmas):
-        p.error(f"--sigma: each must be in [0, 1): {args.sigma!r}")
+        raise UsageError(f"--sigma: each must be in [0, 1): {args.sigma!r}")
     names, (z_near, dz), batches = truths(args.model, args.test_set, args.samples, args.batch)
     for s, (miou, iou) in zip(sigmas, oracle_miou(batches, len(names), z_near, dz, sigmas), strict=True):
         print(f"sigma {100 * s:g} %: mIoU {miou:.1f} | "
@@ -142,6 +149,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.model}, camera told: first-surface REL {100 * rel:.1f} % (a Gaussian's sigma "
               f"{100 * rel / np.sqrt(2 / np.pi):.1f} %), median {100 * median:.1f} %")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse ``argv``, print the table; bad input is one error line and status 2 (fruxel's commands' runner)."""
+    from fruxel.cli.common import run
+
+    return run(_main, _parser(), argv)
 
 
 if __name__ == "__main__":

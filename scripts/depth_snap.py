@@ -62,17 +62,13 @@ def snap_shifts(pred: np.ndarray, truth: np.ndarray, classes: list[int], within:
     return np.where(move, kt - kp, 0).astype(np.int64)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_arguments(p)
-    p.add_argument("--classes", default="", help="comma-separated class names whose first cells move (default all)")
-    p.add_argument("--within", type=int, default=2, help="slices a first cell may move (0: any)")
-    p.add_argument("--carry", action="store_true", help="move the whole column, not its first run only")
-    args = p.parse_args(argv)
+def _main(args: argparse.Namespace) -> int:
+    from fruxel.cli.common import UsageError
+
     names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known)
     unknown = [c for c in args.classes.split(",") if c and c not in names]
     if unknown:
-        sys.exit(f"depth_snap: --classes {args.classes}: not classes of the model ({', '.join(names[1:])})")
+        raise UsageError(f"--classes {args.classes}: not classes of the model ({', '.join(names[1:])})")
     classes = [names.index(c) for c in args.classes.split(",") if c] or list(range(1, len(names)))
     counts = {k: np.zeros((len(names), 4), dtype=np.int64) for k in ("model", "snapped")}
     moved = columns = 0
@@ -88,6 +84,18 @@ def main(argv: list[str] | None = None) -> int:
               + " ".join(f"{names[k]} {iou[k]:.1f}" for k in range(1, len(names))))
     print(f"columns moved: {moved} of {columns} occupied ({100.0 * moved / max(columns, 1):.1f} %)")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse ``argv``, print the scores; bad input is one error line and status 2 (fruxel's commands' runner)."""
+    from fruxel.cli.common import OneLineParser, run
+
+    p = OneLineParser(prog="depth_snap.py", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    p.add_argument("--classes", default="", help="comma-separated class names whose first cells move (default all)")
+    p.add_argument("--within", type=int, default=2, help="slices a first cell may move (0: any)")
+    p.add_argument("--carry", action="store_true", help="move the whole column, not its first run only")
+    return run(_main, p, argv)
 
 
 if __name__ == "__main__":

@@ -107,10 +107,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=16)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_arguments(p)
-    args = p.parse_args(argv)
+def _main(args: argparse.Namespace) -> int:
     names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known)
     counts = {r: np.zeros((len(names), 4), dtype=np.int64) for r in TOLERANCES}
     errors = np.zeros((len(names), 5), dtype=np.int64)
@@ -130,6 +127,15 @@ def main(argv: list[str] | None = None) -> int:
     print(" | ".join(f"{names[c]} {share[c, 0]:.0f}, {share[c, 1]:.0f} | {share[c, 2]:.0f}"
                      for c in range(1, len(names))))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse ``argv``, print the tables; bad input is one error line and status 2 (fruxel's commands' runner)."""
+    from fruxel.cli.common import OneLineParser, run
+
+    p = OneLineParser(prog="depth_tolerance.py", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    return run(_main, p, argv)
 
 
 if __name__ == "__main__":

@@ -92,3 +92,20 @@ def test_it_reads_fruxel_evals_samples(oracle, tmp_path: Path, monkeypatch: pyte
     mious = [float(ln.split("mIoU ")[1].split()[0]) for ln in lines[:2]]
     assert mious[0] == 100.0 and mious[1] < 100.0
     assert len(lines) == 3 and "first-surface REL" in lines[2]
+
+
+@pytest.mark.parametrize("script, args, says", [
+    ("depth_noise_oracle", ["--sigma", "0.1,x"], "--sigma: not a list of numbers"),
+    ("depth_noise_oracle", ["--sigma", "1.5"], "--sigma: each must be in [0, 1)"),
+    ("depth_noise_oracle", ["--model", "no-such-model"], "no-such-model: no such file"),
+    ("depth_tolerance", ["no-such-model"], "no-such-model: no such file"),
+    ("depth_snap", ["no-such-model"], "no-such-model: no such file"),
+])
+def test_the_analysis_scripts_answer_bad_input_in_one_line(script: str, args: list[str], says: str,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    spec = importlib.util.spec_from_file_location(script, ROOT / "scripts" / f"{script}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{script}.py: error: ") and says in err[0]
