@@ -14,7 +14,6 @@ repository.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any
@@ -60,7 +59,9 @@ def read_photos(model: str, photos: list[Path], camera: dict[str, float | None],
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from fruxel.cli.common import OneLineParser
+
+    p = OneLineParser(prog="photo_sheet.py", description=__doc__.split("\n\n")[0])
     p.add_argument("photos", nargs="+", help="photo files or folders of them")
     p.add_argument("--model", action="append", default=None, help="a model file or shipped name (repeatable; "
                    "default ssz64)")
@@ -70,6 +71,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--size", type=int, default=192, help="side of each panel in pixels (default 192)")
     p.add_argument("--out", default="out/photo_sheet.png")
     args = p.parse_args(argv)
+    if args.size < 32:
+        p.error(f"--size must be at least 32 pixels, got {args.size}")
     from PIL import Image
 
     from fruxel.errors import FruxelError

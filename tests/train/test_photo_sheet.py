@@ -50,3 +50,11 @@ def test_sheet_shows_each_models_own_view_of_each_photo(tmp_path: Path) -> None:
 def test_missing_photo_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match="no such photo"):
         _script().main([str(tmp_path / "none.jpg"), "--out", str(tmp_path / "x.png")])
+
+
+def test_a_panel_too_small_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        _script().main([str(PHOTO), "--size", "-5", "--out", str(tmp_path / "x.png")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--size must be at least 32" in err[0]
+    assert not (tmp_path / "x.png").exists()
