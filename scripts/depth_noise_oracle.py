@@ -7,13 +7,12 @@ each column's depth made wrong by a relative error.
 The metric counts exact cells: a 64^3 grid over 0.5-8 m has slices 0.117 m deep, 3 % of the distance at 4 m. A
 reader that knew every cell's class, the hidden ones too, but saw each column of the grid's own view at a depth
 ``(1 + e)`` times the true one, answers the truth stretched along that column: the cell at depth ``z`` takes the
-true label at ``z / (1 + e)`` (nearest slice centre; empty where that lies outside the grid). With ``e`` drawn
+true label at ``z / (1 + e)`` (of the slice that depth lies in; empty where it lies outside the grid). With ``e`` drawn
 per column from ``N(0, sigma)``, its IoU against the truth is what depth of that relative precision leaves even a
 reader perfect in everything else. The expected counts depend only on each column's ``e``, so independent columns
 stand for any spatially smooth error of the same spread. The samples are fruxel-eval's (the same stream, seed 0,
 augmented, its sample cache: run after a `fruxel-eval` of the same test set and count), for ``--model``'s grid and
-image. An analysis for the
-experiments log, not a metric of the product's reports.
+image. An analysis for the experiments log, not a metric of the product's reports.
 
 With ``--rel``, the model's own first-surface depth on the same samples is measured for comparison: per column
 of the grid's own view where both the prediction and the truth have an occupied cell, the relative error
@@ -45,8 +44,8 @@ def stretched(truth: np.ndarray, error: np.ndarray, z_near: float, dz: float) ->
         dz: slice depth, metres.
 
     Returns:
-        ``(B, D, H, W)`` uint8: cell ``k`` holds the truth's label at depth ``z_k / (1 + error)`` (its nearest slice),
-        0 (empty) where that depth lies outside the grid.
+        ``(B, D, H, W)`` uint8: cell ``k`` holds the truth's label at depth ``z_k / (1 + error)`` (of the slice it
+        lies in), 0 (empty) where that depth lies outside the grid.
     """
     depth = truth.shape[1]
     z = z_near + (np.arange(depth) + 0.5) * dz
@@ -140,6 +139,8 @@ def _main(args: argparse.Namespace) -> int:
         raise UsageError(f"--sigma: not a list of numbers: {args.sigma!r}") from None
     if any(not 0 <= s < 1 for s in sigmas):
         raise UsageError(f"--sigma: each must be in [0, 1): {args.sigma!r}")
+    if args.samples < 1 or args.batch < 1:
+        raise UsageError(f"--samples and --batch must be at least 1, got {args.samples} and {args.batch}")
     names, (z_near, dz), batches = truths(args.model, args.test_set, args.samples, args.batch)
     for s, (miou, iou) in zip(sigmas, oracle_miou(batches, len(names), z_near, dz, sigmas), strict=True):
         print(f"sigma {100 * s:g} %: mIoU {miou:.1f} | "

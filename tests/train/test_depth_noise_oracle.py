@@ -98,6 +98,7 @@ def test_it_reads_fruxel_evals_samples(oracle, tmp_path: Path, monkeypatch: pyte
     ("depth_noise_oracle", ["--sigma", "0.1,x"], "--sigma: not a list of numbers"),
     ("depth_noise_oracle", ["--sigma", "1.5"], "--sigma: each must be in [0, 1)"),
     ("depth_noise_oracle", ["--model", "no-such-model"], "no-such-model: no such file"),
+    ("depth_noise_oracle", ["--samples", "0"], "--samples and --batch must be at least 1"),
     ("depth_tolerance", ["no-such-model"], "no-such-model: no such file"),
     ("depth_snap", ["no-such-model"], "no-such-model: no such file"),
 ])
