@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from .conftest import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 Z_NEAR, DZ = 0.5, 0.25
@@ -14,10 +15,7 @@ Z_NEAR, DZ = 0.5, 0.25
 
 @pytest.fixture(scope="module")
 def oracle():
-    spec = importlib.util.spec_from_file_location("depth_noise_oracle", ROOT / "scripts" / "depth_noise_oracle.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("depth_noise_oracle")
 
 
 def _truth(seed: int) -> np.ndarray:
@@ -104,9 +102,6 @@ def test_it_reads_fruxel_evals_samples(oracle, tmp_path: Path, monkeypatch: pyte
 ])
 def test_the_analysis_scripts_answer_bad_input_in_one_line(script: str, args: list[str], says: str,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
-    spec = importlib.util.spec_from_file_location(script, ROOT / "scripts" / f"{script}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    assert module.main(args) == 2
+    assert load_script(script).main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"{script}.py: error: ") and says in err[0]

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pickle
 import struct
@@ -19,7 +18,7 @@ from fruxel.train.eval.metrics import first_surface
 from fruxel.train.model_files import ModelFileError, model_path, read_model_file, shipped_model
 from fruxel.train.predict import load_image, load_predictor, prepare_image, to_tensor
 
-ROOT = Path(__file__).resolve().parents[2]
+from .conftest import load_script
 
 OWN_VIEW_FLOOR = 95.5
 """Own-view first-hit accuracy (percent) the shipped model must reach on the bundled photo. Measured: 98.4 % (CPU,
@@ -28,10 +27,7 @@ while a broken model, a wrong input mapping or a truth out of step with the phot
 
 
 def _make_photo_module():
-    spec = importlib.util.spec_from_file_location("make_photo", ROOT / "scripts" / "make_photo.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("make_photo")
 
 
 def _own_view(logits: torch.Tensor, labels: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, float]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -13,15 +12,14 @@ from fruxel.data import PHOTO
 from fruxel.train.eval.metrics import first_surface
 from fruxel.train.predict import CameraPrior, load_image, load_predictor, prepare_image
 
+from .conftest import load_script
+
 ROOT = Path(__file__).resolve().parents[2]
 CAMERA_TINY = ROOT / "tests" / "data" / "camera_tiny" / "model.safetensors"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("photo_sheet", ROOT / "scripts" / "photo_sheet.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("photo_sheet")
 
 
 def test_sheet_shows_each_models_own_view_of_each_photo(tmp_path: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -11,15 +10,12 @@ import torch
 
 from fruxel.train.eval.metrics import confusion, iou_per_class
 
-ROOT = Path(__file__).resolve().parents[2]
+from .conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def oracle():
-    spec = importlib.util.spec_from_file_location("thickness_oracle", ROOT / "scripts" / "thickness_oracle.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("thickness_oracle")
 
 
 def test_counts_give_the_usual_iou(oracle) -> None:
