@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .conftest import load_script
+from .conftest import load_script, slab_volumes
 
 ROOT = Path(__file__).resolve().parents[2]
 Z_NEAR, DZ = 0.5, 0.25
@@ -20,14 +20,7 @@ def oracle():
 
 def _truth(seed: int) -> np.ndarray:
     """``(2, 24, 5, 6)`` uint8: a slab three slices thick of class 1-3 in each column, somewhere in the middle."""
-    rng = np.random.default_rng(seed)
-    truth = np.zeros((2, 24, 5, 6), dtype=np.uint8)
-    for b in range(2):
-        for j in range(5):
-            for i in range(6):
-                k = rng.integers(4, 16)
-                truth[b, k:k + 3, j, i] = rng.integers(1, 4)
-    return truth
+    return slab_volumes(seed, 24, (4, 16), 3)[0]
 
 
 def _centre(k: np.ndarray) -> np.ndarray:

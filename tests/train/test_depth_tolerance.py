@@ -10,7 +10,7 @@ import torch
 
 from fruxel.train.eval.metrics import confusion, iou_per_class
 
-from .conftest import load_script
+from .conftest import load_script, slab_volumes
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -24,15 +24,9 @@ def tol():
     return _script("depth_tolerance")
 
 
-def _volumes(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    truth = np.zeros((2, 12, 5, 6), dtype=np.uint8)
-    for b in range(2):
-        for j in range(5):
-            for i in range(6):
-                k = rng.integers(2, 9)
-                truth[b, k:k + 2, j, i] = rng.integers(1, 4)  # a surface two slices thick in each column
-    return truth, rng
+def _volumes(seed: int) -> tuple[np.ndarray, np.random.Generator]:
+    """A surface two slices thick in each column of ``(2, 12, 5, 6)`` volumes, and the generator."""
+    return slab_volumes(seed, 12, (2, 9), 2)
 
 
 def test_no_tolerance_is_the_usual_iou(tol) -> None:
