@@ -15,13 +15,9 @@ from .conftest import load_script, slab_volumes
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _script(name: str):
-    return load_script(name)
-
-
 @pytest.fixture(scope="module")
 def tol():
-    return _script("depth_tolerance")
+    return load_script("depth_tolerance")
 
 
 def _volumes(seed: int) -> tuple[np.ndarray, np.random.Generator]:
@@ -88,7 +84,7 @@ def test_what_stays_wrong_is_told_apart(tol) -> None:
 
 @pytest.fixture(scope="module")
 def snap():
-    return _script("depth_snap")
+    return load_script("depth_snap")
 
 
 def test_snapping_puts_each_first_cell_on_the_truths_and_carries_the_column(snap) -> None:

@@ -26,10 +26,6 @@ torch 2.x, float32); the floor is three points below it, so that rounding on ano
 while a broken model, a wrong input mapping or a truth out of step with the photo does."""
 
 
-def _make_photo_module():
-    return load_script("make_photo")
-
-
 def _own_view(logits: torch.Tensor, labels: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, float]:
     """The own view of a prediction and of its truth, and the first-hit accuracy over the truth's hits
     (conventions section 9).
@@ -106,7 +102,7 @@ def test_prediction_depends_on_the_photo(predictor) -> None:
 def test_bundled_photo_is_the_test_split_sample() -> None:
     """The bundled files are sample 43 of the simulator's test split (scripts/make_photo.py): labels exactly; the
     image within a grey level (OpenGL drivers may round shading differently)."""
-    sample = _make_photo_module().photo_sample()
+    sample = load_script("make_photo").photo_sample()
     assert sample.split == "test"
     assert np.array_equal(fruxel.load(PHOTO_TRUTH).labels, sample.labels), "photo_truth.npz is stale"
     diff = np.abs(load_image(PHOTO).astype(np.int16) - sample.image.astype(np.int16))
@@ -184,7 +180,7 @@ def test_bundled_photo_predicts_its_128_truth(predictor128, predictor) -> None:
 
 def test_bundled_128_truth_is_the_test_split_sample() -> None:
     """photo_truth128.npz is sample 43 of the test split on the 128^3 model's grid (scripts/make_photo.py)."""
-    make_photo = _make_photo_module()
+    make_photo = load_script("make_photo")
     sample = make_photo.photo_sample(config=make_photo.photo_config(shipped_model("ssz128")))
     assert sample.labels.shape == (128, 128, 128)
     assert np.array_equal(fruxel.load(PHOTO_TRUTH_128).labels, sample.labels), "photo_truth128.npz is stale"

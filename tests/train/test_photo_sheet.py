@@ -18,10 +18,6 @@ ROOT = Path(__file__).resolve().parents[2]
 CAMERA_TINY = ROOT / "tests" / "data" / "camera_tiny" / "model.safetensors"
 
 
-def _script():
-    return load_script("photo_sheet")
-
-
 def test_sheet_shows_each_models_own_view_of_each_photo(tmp_path: Path) -> None:
     """Two photos (a folder), two models, one told a camera: a row per photo and a legend strip below; each
     model's panel is its own-view labels in its class colours, as the model predicts them with that camera."""
@@ -31,8 +27,8 @@ def test_sheet_shows_each_models_own_view_of_each_photo(tmp_path: Path) -> None:
     Image.open(PHOTO).transpose(Image.FLIP_LEFT_RIGHT).save(folder / "b.jpg")
     out = tmp_path / "sheet.png"
     size = 64
-    _script().main([str(folder), "--model", "ssz64", "--model", str(CAMERA_TINY), "--pitch", "10", "--height",
-                    "1.0", "--size", str(size), "--out", str(out)])
+    load_script("photo_sheet").main([str(folder), "--model", "ssz64", "--model", str(CAMERA_TINY), "--pitch", "10",
+                                     "--height", "1.0", "--size", str(size), "--out", str(out)])
     sheet = np.asarray(Image.open(out).convert("RGB"))
     assert sheet.shape == (2 * size + size // 2, 3 * size, 3)
     predictor = load_predictor(str(CAMERA_TINY), device="cpu", camera=CameraPrior(pitch=10.0, height=1.0))
@@ -47,12 +43,12 @@ def test_sheet_shows_each_models_own_view_of_each_photo(tmp_path: Path) -> None:
 
 def test_missing_photo_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match="no such photo"):
-        _script().main([str(tmp_path / "none.jpg"), "--out", str(tmp_path / "x.png")])
+        load_script("photo_sheet").main([str(tmp_path / "none.jpg"), "--out", str(tmp_path / "x.png")])
 
 
 def test_a_panel_too_small_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
-        _script().main([str(PHOTO), "--size", "-5", "--out", str(tmp_path / "x.png")])
+        load_script("photo_sheet").main([str(PHOTO), "--size", "-5", "--out", str(tmp_path / "x.png")])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "--size must be at least 32" in err[0]
     assert not (tmp_path / "x.png").exists()
