@@ -103,16 +103,17 @@ def first_surface_errors(pred: np.ndarray, truth: np.ndarray, z_near: float, dz:
     return (z_near + (kp + 0.5) * dz) / (z_near + (kt + 0.5) * dz) - 1.0
 
 
-def model_rel(model: str, test_set: str, samples: int, batch: int, z_near: float, dz: float
-              ) -> tuple[float, float]:
-    """The mean and the median absolute relative first-surface depth error (REL and its median,
-    :func:`first_surface_errors`) of ``model`` told the camera's gravity and height, on the same held-out
-    samples."""
+def with_model_errors(model: str, test_set: str, samples: int, batch: int, z_near: float, dz: float,
+                      errors: list[np.ndarray]) -> Iterator[np.ndarray]:
+    """The truths of the held-out samples, batch by batch, as :func:`truths` gives them, read with ``model``'s
+    predictions (told the camera's gravity and height) in the same pass: each batch's first-surface errors
+    (:func:`first_surface_errors`) are appended to ``errors``."""
     from depth_tolerance import held_out_predictions
 
     _, pairs = held_out_predictions(model, test_set, samples, batch, "gravity,height")
-    errors = np.concatenate([first_surface_errors(p, t, z_near, dz) for p, t in pairs])
-    return float(np.abs(errors).mean()), float(np.median(np.abs(errors)))
+    for pred, truth in pairs:
+        errors.append(first_surface_errors(pred, truth, z_near, dz))
+        yield truth
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -142,11 +143,15 @@ def _main(args: argparse.Namespace) -> int:
     if args.samples < 1 or args.batch < 1:
         raise UsageError(f"--samples and --batch must be at least 1, got {args.samples} and {args.batch}")
     names, (z_near, dz), batches = truths(args.model, args.test_set, args.samples, args.batch)
+    errors: list[np.ndarray] = []
+    if args.rel:
+        batches = with_model_errors(args.model, args.test_set, args.samples, args.batch, z_near, dz, errors)
     for s, (miou, iou) in zip(sigmas, oracle_miou(batches, len(names), z_near, dz, sigmas), strict=True):
         print(f"sigma {100 * s:g} %: mIoU {miou:.1f} | "
               + " ".join(f"{names[c]} {iou[c]:.1f}" for c in range(1, len(names))))
     if args.rel:
-        rel, median = model_rel(args.model, args.test_set, args.samples, args.batch, z_near, dz)
+        absolute = np.abs(np.concatenate(errors))
+        rel, median = float(absolute.mean()), float(np.median(absolute))
         print(f"{args.model}, camera told: first-surface REL {100 * rel:.1f} % (a Gaussian's sigma "
               f"{100 * rel / np.sqrt(2 / np.pi):.1f} %), median {100 * median:.1f} %")
     return 0
