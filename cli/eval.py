@@ -389,11 +389,23 @@ def _main(args: argparse.Namespace, argv: Sequence[str]) -> int:
         data={"source": source.describe(), "kind": source.source, "root": source.root or None, "seed": source.seed,
               "augment": source.augment if source.source == "stream" else None, "split": args.split,
               "samples": count, "indices": f"indices 0..{count - 1}", "test_set": _test_set(source),
-              "camera_known": list(settings[0]) if settings else None},
+              "camera_known": list(settings[0]) if settings else None, "pack": _pack(source, mc, args.split, count)},
         prior=prior_info, machine=machine, command=shlex.join([PROG, *argv]),
         seconds=time.perf_counter() - started, examples="examples.png" if args.examples else None,
         by_camera=_by_camera(binned, mc))
     return _write(args, report, kept, mc, count)
+
+
+def _pack(source: Any, mc: Any, split: str, count: int) -> str | None:
+    """The report's ``data.pack``: the SHA-256 of the asset pack manifest streamed furnished rooms were drawn from
+    (a pack built from other sources or code draws other rooms, so reports on two packs do not compare), else
+    None."""
+    if source.source != "stream":
+        return None
+    from fruxel.train.eval.sample_cache import pack_digest
+    from fruxel.train.samples import sim_config
+
+    return pack_digest(sim_config(mc, source, ((split, count),)))
 
 
 def _by_camera(binned: dict[str, Any] | None, mc: Any) -> dict[str, Any] | None:

@@ -3,6 +3,7 @@ against counts made here from the same samples; bad model files, data sets and o
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import subprocess
@@ -123,6 +124,7 @@ def test_streamed_samples_end_to_end(shipped_model: Path, tmp_path: Path, capsys
     report = check_report(out, accs, 5, 3)
     assert report["prior"] == {"split": "train", "samples": 6}
     assert report["data"]["kind"] == "stream" and report["data"]["seed"] == 0 and report["data"]["samples"] == 5
+    assert report["data"]["pack"] is None  # the flat world reads no asset pack
     assert report["command"] == "fruxel-eval " + " ".join(argv)
     assert report["model"]["file"] == str(shipped_model) and report["model"]["training"] == {"step": 0,
                                                                                              "note": "fresh"}
@@ -297,6 +299,8 @@ def test_a_model_of_the_furnished_rooms_is_evaluated_on_them_by_default(home_mod
                           str(BATCH), "--examples", "0", "--device", "cpu", "--out", str(out), "-q"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["data"]["test_set"]["name"] == "any-camera"
+    # The pack the rooms were drawn from is named by its manifest's digest: reports on other packs do not compare.
+    assert report["data"]["pack"] == hashlib.sha256((tiny_pack / "manifest.json").read_bytes()).hexdigest()
 
 
 def test_test_sets_that_do_not_fit_are_refused_in_one_line(shipped_model: Path, home_model: Path, tmp_path: Path,
@@ -345,6 +349,7 @@ def test_data_set_split_end_to_end(shipped_model: Path, checkpoint_model: Path, 
     report = check_report(out, accs, 3, 3)
     assert report["prior"] == {"split": "train", "samples": 4}
     assert report["data"]["kind"] == "shards" and report["data"]["root"] == str(data_set)
+    assert report["data"]["pack"] is None
     assert report["data"]["seed"] == 5 and report["data"]["split"] == "test"
     # The same weights in the shipped form give the same numbers.
     out2 = tmp_path / "report2"

@@ -58,11 +58,25 @@ def stream_key(source: Any, model: Any, splits: tuple[tuple[str, int], ...]) -> 
 
     config = sim_config(model, source, splits)
     key: dict[str, Any] = {"stream": config.to_dict(), "seed": source.seed, "code": code_digest()}
-    if config.world == "home":
-        from fruxel.train.sim.rooms.library import resolve_pack
-
-        key["pack"] = hashlib.sha256((resolve_pack(config.assets) / "manifest.json").read_bytes()).hexdigest()
+    pack = pack_digest(config)
+    if pack is not None:
+        key["pack"] = pack
     return key
+
+
+def pack_digest(config: Any) -> str | None:
+    """SHA-256 (hex) of the asset pack's ``manifest.json`` that a simulator config's furnished rooms are drawn from
+    (the manifest holds every file's SHA-256, so the digest names the pack's bytes), None for the flat world, which
+    reads no pack.
+
+    Args:
+        config: a :class:`fruxel.train.sim.config.SimConfig`.
+    """
+    if config.world != "home":
+        return None
+    from fruxel.train.sim.rooms.library import resolve_pack
+
+    return hashlib.sha256((resolve_pack(config.assets) / "manifest.json").read_bytes()).hexdigest()
 
 
 def samples_cache_path(source: Any, model: Any, split: str, count: int, *, camera: bool, device: str | None) -> Path:
