@@ -70,22 +70,24 @@ def tolerant_iou(counts: np.ndarray) -> np.ndarray:
     return 100.0 * np.where((pred + true) > 0, iou, np.nan)
 
 
-def held_out_predictions(model: str, test_set: str, samples: int, batch: int, camera_known: str
+def held_out_predictions(model: str, test_set: str, samples: int, batch: int, camera_known: str, raw: bool = False
                          ) -> tuple[tuple[str, ...], Iterator[tuple[np.ndarray, np.ndarray]]]:
     """The model's class names and its ``(prediction, truth)`` label volumes ``(B, D, H, W)`` uint8, batch by batch,
     on fruxel-eval's held-out samples of ``test_set`` (its sample cache), with the pieces of the camera in
-    ``camera_known`` (comma-separated; empty: none) told to a model that reads the camera."""
+    ``camera_known`` (comma-separated; empty: none) told to a model that reads the camera; ``raw``: the network
+    alone, without the file's inference rules."""
     import torch
 
     from fruxel.train.engine.data import to_device
     from fruxel.train.eval.evaluate import model_predict
     from fruxel.train.eval.sample_cache import cached_split_batches
     from fruxel.train.model_files import load_model
+    from fruxel.train.rules import NO_RULES
     from fruxel.train.samples import SampleSource
 
     m = load_model(model, device="cpu")
     known = [k for k in camera_known.split(",") if k] if m.config.reads_camera else None
-    predict = model_predict(m.network, m.rules, camera_known=known)
+    predict = model_predict(m.network, NO_RULES if raw else m.rules, camera_known=known)
     source = SampleSource(seed=0, assets="", test_set=test_set, augment=True)
 
     def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
