@@ -108,29 +108,12 @@ class FootprintGenerator(SSZGenerator):
         b, c = s.shape[:2]
         return (s.view(b, c, *ok.shape[2:]) * ok).to(t.dtype)
 
-    def _predict_base(self, image: torch.Tensor, camera: CameraInput | None) -> tuple[torch.Tensor, ...]:
-        """SSZGenerator's, with the footprint term added to every Lift's output before its blocks."""
-        t = self.encode(image)
-        d, h, w = self.base_shape
-        depth_logits = self.depth_head(t[0]).float()
-        surface_logits = self.surface_head(t[0]).float()
-        depth = self.depth_features(depth_logits, self.levels)
-        shapes = [(d >> s, h >> s, w >> s) for s in range(self.levels)]
-        b = image.shape[0]
-        camera = (camera if camera is not None else CameraInput.unknown(b, image.device)).to(image.device)
-        cond = self.conditioning
-        ds, hs, ws = shapes[-1]
-        x = self.bottom_lift(t[-1]).reshape(b, -1, ds, hs, ws)
-        for s in range(self.levels - 1, -1, -1):
-            if s < self.levels - 1:
-                x = self.ups[s](x)
-            x = self.lifts[s](x, t[s], depth[s], shapes[s], cond(camera, s))
-            # The Lift's activation came first: the new term joins after it, so that at zero it changes nothing.
-            x = x + self.footprint_features(t[s], camera, s).to(x.dtype)
-            x = self._run(self.blocks[s], x)
-        logits = self.head(x)
-        logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
-        return logits, depth_logits, surface_logits, x, t[0]
+    def _lift(self, level: int, x: torch.Tensor, t: torch.Tensor, depth: torch.Tensor, shape: tuple[int, int, int],
+              camera: CameraInput | None) -> torch.Tensor:
+        """SSZGenerator's merge, with the footprint term added after it (the Lift's activation first, so that the
+        term at zero changes nothing). ``camera`` is never None here: the network reads the camera."""
+        x = super()._lift(level, x, t, depth, shape, camera)
+        return x + self.footprint_features(t, camera, level).to(x.dtype)
 
 
 def main(argv: list[str]) -> int:

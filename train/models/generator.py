@@ -217,6 +217,15 @@ class SSZGenerator(nn.Module):
             return checkpoint(module, *args, use_reentrant=False)
         return module(*args)
 
+    def _lift(self, level: int, x: torch.Tensor, t: torch.Tensor, depth: torch.Tensor, shape: tuple[int, int, int],
+              camera: CameraInput | None) -> torch.Tensor:
+        """Decoder level ``level``'s 2D-to-3D merge (:class:`~.blocks.Lift`) of the volume ``x`` with the level's
+        image features ``t`` ``(B, T_s, H_s, W_s)``, depth features and, with ``camera_inputs``, the camera's
+        per-cell geometry: ``(B, V_s, D_s, H_s, W_s)``. The seam an architecture derived from this one extends
+        (``experiments/footprint_lift.py``)."""
+        cond = self.conditioning
+        return self.lifts[level](x, t, depth, shape, cond(camera, level) if cond is not None else None)
+
     # ------------------------------------------------------------------ forward
     def forward(self, image: torch.Tensor, camera: CameraInput | None = None) -> ModelOutput:
         """Predict a batch: the network alone (inference rules are :mod:`fruxel.train.rules`).
@@ -257,14 +266,13 @@ class SSZGenerator(nn.Module):
         bottom = self.bottom_lift(t[-1])
         ds, hs, ws = shapes[-1]
         x = bottom.reshape(b, -1, ds, hs, ws)
-        cond = self.conditioning
-        if cond is not None and camera is not None:
+        if self.conditioning is not None and camera is not None:
             camera = camera.to(image.device)
-        x = self.lifts[-1](x, t[-1], depth[-1], shapes[-1], cond(camera, self.levels - 1) if cond is not None else None)
+        x = self._lift(self.levels - 1, x, t[-1], depth[-1], shapes[-1], camera)
         x = self._run(self.blocks[-1], x)
         for s in range(self.levels - 2, -1, -1):
             x = self.ups[s](x)
-            x = self.lifts[s](x, t[s], depth[s], shapes[s], cond(camera, s) if cond is not None else None)
+            x = self._lift(s, x, t[s], depth[s], shapes[s], camera)
             x = self._run(self.blocks[s], x)
         logits = self.head(x)
         logits = logits + self.fusion(depth_logits, surface_logits).to(logits.dtype)
