@@ -34,7 +34,7 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 def committable_pack(pack: Path, out: Path) -> Path:
     """A pack folder at ``out`` holding the committable assets of ``pack`` alone (their files linked, not copied),
     each in its split."""
-    from fruxel.train.sim.assetpack.manifest import MANIFEST_NAME, manifest_bytes, parse_manifest
+    from fruxel.train.sim.assetpack.manifest import BUILDER_NAME, MANIFEST_NAME, manifest_bytes, parse_manifest
 
     manifest = pack / MANIFEST_NAME
     entries = [e for e in parse_manifest(manifest.read_bytes(), str(manifest)) if e.committable]
@@ -43,6 +43,8 @@ def committable_pack(pack: Path, out: Path) -> Path:
             (out / name).parent.mkdir(parents=True, exist_ok=True)
             (out / name).symlink_to((pack / name).resolve())
     (out / MANIFEST_NAME).write_bytes(manifest_bytes(entries))
+    if (pack / BUILDER_NAME).is_file():  # else the copy is refused as its pack would be, in one line
+        (out / BUILDER_NAME).write_bytes((pack / BUILDER_NAME).read_bytes())
     return out
 
 

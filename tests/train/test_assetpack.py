@@ -17,7 +17,7 @@ import pytest
 from fruxel.train.sim.assetpack import AssetPack, AssetPackError
 from fruxel.train.sim.assetpack.build import PackConfig, build_pack
 from fruxel.train.sim.assetpack.licences import ALLOWED, COMMITTABLE, lookup_copyright, parse_debian_copyright
-from fruxel.train.sim.assetpack.manifest import MANIFEST_NAME, assign_splits
+from fruxel.train.sim.assetpack.manifest import BUILDER_NAME, MANIFEST_NAME, assign_splits, builder_digest
 
 SOURCES = Path(__file__).resolve().parents[1] / "data" / "assetpack_sources"
 """The tiny committed sources of the asset pack (scripts/make_assetpack_fixture.py; tests/conftest.py builds them)."""
@@ -35,7 +35,7 @@ def pack_copy(pack_dir: Path, tmp_path: Path) -> Path:
 def test_manifest_covers_every_file_with_an_allowed_licence(pack_dir: Path) -> None:
     pack = AssetPack(pack_dir)
     listed = {p for e in pack.entries for p in e.files.values()}
-    on_disk = {str(p.relative_to(pack_dir)) for p in pack_dir.rglob("*") if p.is_file()} - {MANIFEST_NAME}
+    on_disk = {str(p.relative_to(pack_dir)) for p in pack_dir.rglob("*") if p.is_file()} - {MANIFEST_NAME, BUILDER_NAME}
     assert on_disk == listed and len(listed) > 0
     assert {e.kind for e in pack.entries} == {"texture", "mesh", "image"}
     for e in pack.entries:
@@ -98,6 +98,35 @@ def _rewrite_manifest(root: Path, change) -> None:
     doc = json.loads((root / MANIFEST_NAME).read_text())
     change(doc)
     (root / MANIFEST_NAME).write_text(json.dumps(doc))
+
+
+def test_a_pack_names_the_code_that_built_it_and_one_built_by_other_code_is_refused(pack_copy: Path) -> None:
+    """A pack built by other pack code can hold other bytes for the same sources, and so draw other rooms and test
+    sets while its manifest still checks: it is refused in one line that says how to mend it, and so is a pack
+    that names no builder (built before packs did)."""
+    assert (pack_copy / BUILDER_NAME).read_text().strip() == builder_digest()
+    assert len(AssetPack(pack_copy)) > 0
+    (pack_copy / BUILDER_NAME).write_text("0123456789abcdef\n")
+    with pytest.raises(AssetPackError, match=r"builder\.txt: built by pack code 0123456789abcdef, not by this "
+                                             r"fruxel's \([0-9a-f]{16}\).*make assets"):
+        AssetPack(pack_copy)
+    (pack_copy / BUILDER_NAME).unlink()
+    with pytest.raises(AssetPackError, match="built before packs named the code that built them"):
+        AssetPack(pack_copy)
+
+
+def test_the_builder_digest_follows_the_pack_code(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from fruxel.train.sim.assetpack import manifest
+
+    here = Path(manifest.__file__).resolve().parent
+    for name in manifest.BUILDER_MODULES:
+        shutil.copy(here / f"{name}.py", tmp_path / f"{name}.py")
+    monkeypatch.setattr(manifest, "__file__", str(tmp_path / "manifest.py"))
+    same = manifest.builder_digest()
+    assert same == builder_digest()
+    with open(tmp_path / "meshes.py", "a") as f:
+        f.write("# a change to how meshes are converted\n")
+    assert manifest.builder_digest() != same
 
 
 def test_loader_refuses_a_corrupt_manifest(pack_copy: Path) -> None:

@@ -20,12 +20,14 @@ from typing import Any
 import numpy as np
 
 from .manifest import (
+    BUILDER_NAME,
     FOLDERS,
     MANIFEST_NAME,
     ROLES,
     AssetPackError,
     Entry,
     assign_splits,
+    builder_digest,
     manifest_bytes,
 )
 from .sources import PACKAGES, RELIEF_M, Candidate, Package, collect
@@ -155,6 +157,7 @@ def _write(out: Path, blobs: dict[str, bytes], manifest: bytes, replace: bool) -
         for rel, data in sorted(blobs.items()):
             (tmp / rel).write_bytes(data)
         (tmp / MANIFEST_NAME).write_bytes(manifest)
+        (tmp / BUILDER_NAME).write_text(builder_digest() + "\n", encoding="ascii")
         for p in tmp.rglob("*"):
             if p.is_file():
                 with open(p, "rb") as f:

@@ -56,6 +56,11 @@ FORMAT_VERSION = 1
 """The manifest version this module writes and reads."""
 MANIFEST_NAME = "manifest.json"
 """The manifest's file name in a pack folder."""
+BUILDER_NAME = "builder.txt"
+"""The file of a pack folder that names the code that built it (:func:`builder_digest`), beside the manifest."""
+BUILDER_MODULES = ("build", "fetch", "furniture", "licences", "manifest", "meshes", "sources", "textures")
+"""The modules of this package whose code decides a pack's bytes (the reader and the per-machine derived arrays
+do not)."""
 KINDS = ("texture", "mesh", "image")
 """Asset kinds."""
 SPLITS = ("train", "test")
@@ -173,6 +178,24 @@ def assign_splits(groups: Iterable[tuple[tuple[str, str], str]], test_fraction: 
         for k, i in enumerate(ids):
             out[i] = "test" if k < n_test else "train"
     return out
+
+
+def builder_digest() -> str:
+    """A digest (16 hex digits) of the pack-building code, :data:`BUILDER_MODULES`' source files.
+
+    A pack holds it in :data:`BUILDER_NAME`, and :class:`~.pack.AssetPack` opens only a pack of the same digest:
+    a pack built by other code may hold other bytes for the same sources (a scan turned upright, say), and so draw
+    other rooms, other test sets included, while its manifest still checks. Any change to those files asks for the
+    pack to be built again (a minute or two), which is the price of never reading a stale one.
+    """
+    from pathlib import Path
+
+    digest = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for name in BUILDER_MODULES:
+        digest.update(f"{name}\0".encode())
+        digest.update((here / f"{name}.py").read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def manifest_dict(entries: Iterable[Entry]) -> dict[str, Any]:

@@ -4,6 +4,8 @@ A pack folder (built by :func:`fruxel.train.sim.assetpack.build.build_pack`)::
 
     pack/
       manifest.json                 # every asset: files, split, source, licence (manifest.py)
+      builder.txt                   # the digest of the code that built it (manifest.builder_digest); a pack
+                                    # of other code is refused: it may hold other bytes for the same sources
       textures/ID.jpg               # albedo, sRGB, RGB JPEG
       textures/ID.normal.jpg        # tangent-space normal map, RGB JPEG (see Texture.normal)
       meshes/ID.npz                 # vertices, faces, parts (see Mesh), written without pickle
@@ -21,7 +23,7 @@ Mesh file (``.npz``, every member a plain npy array; read strictly, never with p
 
 Usage::
 
-    pack = AssetPack("assets/pack")                       # checks the manifest and every file's SHA-256
+    pack = AssetPack("assets/pack")                       # checks the builder, the manifest, every file's SHA-256
     for tex in pack.textures(category="brick", split="train"):
         tex.albedo, tex.normal, tex.size_m                # (H, W, 3) uint8, (H, W, 3) float32, (2,) metres
     beds = pack.meshes(category="bed", split="test")      # Mesh records
@@ -44,7 +46,17 @@ import numpy as np
 
 from fruxel.io import ArchiveError, describe_read_error, file_sha256, open_archive, open_npy_member
 
-from .manifest import FOLDERS, KINDS, MANIFEST_NAME, SPLITS, AssetPackError, Entry, parse_manifest
+from .manifest import (
+    BUILDER_NAME,
+    FOLDERS,
+    KINDS,
+    MANIFEST_NAME,
+    SPLITS,
+    AssetPackError,
+    Entry,
+    builder_digest,
+    parse_manifest,
+)
 
 if TYPE_CHECKING:
     import trimesh
@@ -145,7 +157,21 @@ class AssetPack:
         self.entries: tuple[Entry, ...] = tuple(parse_manifest(data, str(manifest)))
         """Every asset, in manifest (id) order."""
         self._by_id = {e.id: e for e in self.entries}
+        self._check_builder()
         self._check_files(verify)
+
+    def _check_builder(self) -> None:
+        """Refuse a pack built by other pack-building code than this fruxel's (:func:`.manifest.builder_digest`)."""
+        stamp = self.root / BUILDER_NAME
+        try:
+            theirs = stamp.read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError):
+            theirs = None
+        ours = builder_digest()
+        if theirs != ours:
+            what = f"built by pack code {theirs}" if theirs else "built before packs named the code that built them"
+            raise AssetPackError(f"{stamp}: {what}, not by this fruxel's ({ours}); its rooms could differ: build it "
+                                 "again (make assets, or fruxel-sim assets --replace)")
 
     def _check_files(self, verify: bool) -> None:
         listed = {p for e in self.entries for p in e.files.values()}
@@ -158,7 +184,7 @@ class AssetPack:
                 if rel not in listed:
                     raise AssetPackError(f"{p}: file not listed in {MANIFEST_NAME} (foreign or left over)")
         for p in sorted(self.root.iterdir()):
-            if p.name != MANIFEST_NAME and p.name not in FOLDERS.values():
+            if p.name not in (MANIFEST_NAME, BUILDER_NAME) and p.name not in FOLDERS.values():
                 raise AssetPackError(f"{p}: unexpected entry in an asset pack folder")
         for e in self.entries:
             total = 0
