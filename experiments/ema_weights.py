@@ -21,11 +21,13 @@ from typing import Any
 
 import torch
 
+from fruxel.train.engine.callbacks import Callback
+
 EMA_FILE = "ema.safetensors"
 """The average's file in the run folder."""
 
 
-class WeightAverage:
+class WeightAverage(Callback):
     """The trainer callback that keeps and writes the average (module docstring).
 
     Args:
@@ -35,34 +37,29 @@ class WeightAverage:
     def __init__(self, decay: float) -> None:
         self.decay = decay
         self.shadow: dict[str, torch.Tensor] = {}
+        """The averaged parameters by name, float32, on the network's device."""
 
     def on_start(self, trainer: Any) -> None:
         from fruxel.train.model_files import read_model_file
 
-        net = trainer.state.network
-        own = {k: v.detach().float().clone() for k, v in net.state_dict().items() if v.is_floating_point()}
+        self._params = dict(trainer.state.network.named_parameters())
+        self.shadow = {k: p.detach().float().clone() for k, p in self._params.items()}
         path = trainer.folder.file(EMA_FILE)
         if trainer.resumed and os.path.exists(path):
             for k, v in read_model_file(path).state.items():
-                if k in own:
-                    own[k] = v.to(own[k].device, torch.float32)
-        self.shadow = own
-        self._params = dict(net.named_parameters())
+                if k in self.shadow:
+                    self.shadow[k] = v.to(self.shadow[k].device, torch.float32)
+        self._pairs = ([self.shadow[k] for k in self._params], [p.detach() for p in self._params.values()])
 
     def on_step(self, trainer: Any, terms: dict[str, torch.Tensor]) -> None:
-        keys = [k for k in self._params if k in self.shadow]
         with torch.no_grad():
-            torch._foreach_lerp_([self.shadow[k] for k in keys], [self._params[k].detach().float() for k in keys],
-                                 1.0 - self.decay)
+            torch._foreach_lerp_(self._pairs[0], [p.float() for p in self._pairs[1]], 1.0 - self.decay)
         every, step = trainer.config.run.checkpoint_every, trainer.state.step
         if every and step % every == 0 and step < trainer.config.run.steps:
             self.save(trainer)
 
     def on_stop(self, trainer: Any, interrupted: bool) -> None:
         self.save(trainer)
-
-    def on_close(self, trainer: Any) -> None:
-        pass
 
     def save(self, trainer: Any) -> None:
         """Write ``ema.safetensors``: the trained network with the averaged parameters (its buffers its own)."""
@@ -75,8 +72,7 @@ class WeightAverage:
         net = copy.deepcopy(trainer.state.network)
         with torch.no_grad():
             for k, p in net.named_parameters():
-                if k in self.shadow:
-                    p.copy_(self.shadow[k].to(p.dtype))
+                p.copy_(self.shadow[k].to(p.dtype))
         s = trainer.state
         meta = {"step": s.step, "samples": s.samples, "ema_decay": self.decay, "config": trainer.config.name}
         save_model(trainer.folder.file(EMA_FILE), net, trainer.config.model, training=meta)
@@ -86,17 +82,10 @@ def main(argv: list[str]) -> int:
     """Parse ``--decay``, add the callback to every Trainer, run fruxel-train with the rest."""
     p = argparse.ArgumentParser(prog="ema_weights.py")
     p.add_argument("--decay", type=float, default=0.999)
-    p.add_argument("--arch", action="append", default=[],
-                   help="an experiments module to import first (an architecture it registers)")
     p.add_argument("rest", nargs=argparse.REMAINDER)
     a = p.parse_args(argv)
     if not 0.0 < a.decay < 1.0:
         p.error(f"--decay must be in (0, 1), got {a.decay}")
-    import importlib
-
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    for m in a.arch:
-        importlib.import_module(m)
     from fruxel.cli import train as train_cli
     from fruxel.train.engine import trainer as trainer_mod
 

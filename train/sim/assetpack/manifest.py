@@ -38,6 +38,7 @@ split, so test rooms use textures, meshes and images that training never sees.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import re
@@ -180,13 +181,14 @@ def assign_splits(groups: Iterable[tuple[tuple[str, str], str]], test_fraction: 
     return out
 
 
+@functools.cache
 def builder_digest() -> str:
     """A digest (16 hex digits) of the pack-building code, :data:`BUILDER_MODULES`' source files.
 
     A pack holds it in :data:`BUILDER_NAME`, and :class:`~.pack.AssetPack` opens only a pack of the same digest:
     a pack built by other code may hold other bytes for the same sources (a scan turned upright, say), and so draw
     other rooms, other test sets included, while its manifest still checks. Any change to those files asks for the
-    pack to be built again (a minute or two), which is the price of never reading a stale one.
+    pack to be built again (a minute or two), which is the price of never reading a stale one. Read once a process.
     """
     from pathlib import Path
 
