@@ -70,12 +70,12 @@ def tolerant_iou(counts: np.ndarray) -> np.ndarray:
     return 100.0 * np.where((pred + true) > 0, iou, np.nan)
 
 
-def held_out_predictions(model: str, test_set: str, samples: int, batch: int, camera_known: str, raw: bool = False
-                         ) -> tuple[tuple[str, ...], Iterator[tuple[np.ndarray, np.ndarray]]]:
+def held_out_predictions(model: str, test_set: str, samples: int, batch: int, camera_known: str, raw: bool = False,
+                         device: str = "cpu") -> tuple[tuple[str, ...], Iterator[tuple[np.ndarray, np.ndarray]]]:
     """The model's class names and its ``(prediction, truth)`` label volumes ``(B, D, H, W)`` uint8, batch by batch,
     on fruxel-eval's held-out samples of ``test_set`` (its sample cache), with the pieces of the camera in
     ``camera_known`` (comma-separated; empty: none) told to a model that reads the camera; ``raw``: the network
-    alone, without the file's inference rules."""
+    alone, without the file's inference rules; ``device``: where the network runs (``cpu``, ``cuda``)."""
     import torch
 
     from fruxel.train.engine.data import to_device
@@ -85,7 +85,7 @@ def held_out_predictions(model: str, test_set: str, samples: int, batch: int, ca
     from fruxel.train.rules import NO_RULES
     from fruxel.train.samples import SampleSource
 
-    m = load_model(model, device="cpu")
+    m = load_model(model, device=device)
     known = [k for k in camera_known.split(",") if k] if m.config.reads_camera else None
     predict = model_predict(m.network, NO_RULES if raw else m.rules, camera_known=known)
     source = SampleSource(seed=0, assets="", test_set=test_set, augment=True)
@@ -93,9 +93,9 @@ def held_out_predictions(model: str, test_set: str, samples: int, batch: int, ca
     def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
         with torch.no_grad():
             for image, labels, record in cached_split_batches(source, m.config, "test", samples, batch,
-                                                              device="cpu", camera=True):
-                x, _ = to_device({"image": image, "labels": labels}, torch.device("cpu"))
-                yield predict(x, labels, record).numpy(), labels.numpy()
+                                                              device=device, camera=True):
+                x, _ = to_device({"image": image, "labels": labels}, torch.device(device))
+                yield predict(x, labels, record).cpu().numpy(), labels.cpu().numpy()
 
     return tuple(m.config.classes.names), pairs()
 

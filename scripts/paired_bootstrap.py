@@ -88,7 +88,7 @@ def _main(args: argparse.Namespace) -> int:
     confs = []
     for model in args.model:
         names, pairs = held_out_predictions(model, args.test_set, args.samples, args.batch, args.camera_known,
-                                            raw=args.raw)
+                                            raw=args.raw, device=args.device)
         confs.append(room_confusions(pairs, len(names), per_room))
     confs = np.stack(confs)
     whole = miou(confs.sum(axis=1))
@@ -119,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--raw", action="store_true", help="the networks alone, without their files' inference rules")
     p.add_argument("--rounds", type=int, default=2000)
+    p.add_argument("--device", default="cpu", help="where the networks run (cpu, cuda)")
 
     def checked(args: argparse.Namespace) -> int:
         if len(args.model) < 2:

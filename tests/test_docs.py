@@ -65,7 +65,7 @@ def test_the_camera_aware_table_follows_each_camera_setting_of_its_reports(
     """ssz64-any's rows are its reports' results under each camera setting: a change to the pose-unknown result of
     one report is found by --check in that table alone, and the rewrite shows it."""
     card, reports = copies
-    path = reports / "ssz64-any-any-camera-256.json"
+    path = reports / "ssz64-any-any-camera-2048.json"
     report = json.loads(path.read_text())
     counts = report["results"]["model@none"]["counts"]
     counts["own_correct"] = counts["own_hits"]
