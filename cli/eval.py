@@ -7,17 +7,17 @@ Usage::
                 [--device cpu|cuda[:N]] [--backend NAME] [--examples N]
                 [--camera-known gravity,height|gravity|none ...] [--by-camera] [-q]
 
-The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's
-name (``ssz64``, ``ssz128``, ``ssz64-any``); by default the model shipped with fruxel (``ssz64``). Samples are the first
-N of a data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid, image size and
-classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split streamed for the
-model's grid and image size (default 256, ``--seed``): by default the ``any-camera`` test set for a model that labels
-the furnished rooms' classes, else the flat world from the robot's mount (the samples of earlier reports, as
-``--test-set robot`` gives them) (:func:`fruxel.train.sim.testsets.default_test_set`); with ``--test-set NAME`` those of
-a held-out test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and ``any-camera-test-assets``,
-furnished rooms from any camera with training or held-out assets, from the asset pack ``--assets`` names; ``robot``, the
-robot's mount in the flat world). A room-world set needs a model whose classes include ``ceiling`` and ``object``. The
-same samples are predicted by
+The model (``--checkpoint``) is a shipped ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name
+(``ssz64``, ``ssz128``, ``ssz64-any``); by default the model shipped with fruxel as the default (``ssz64-any``). Samples
+are the first N of a data set's split (``--data DIR --split test``, shards from ``fruxel-sim generate``, whose grid,
+image size and classes must be the model's; N defaults to the whole split) or N samples of the simulator's test split
+streamed for the model's grid and image size (default 256, ``--seed``): by default the ``any-camera`` test set for a
+model that labels the furnished rooms' classes, else the flat world from the robot's mount (the samples of earlier
+reports, as ``--test-set robot`` gives them) (:func:`fruxel.train.sim.testsets.default_test_set`); with ``--test-set
+NAME`` those of a held-out test set (:data:`fruxel.train.sim.testsets.TEST_SETS`: ``any-camera`` and
+``any-camera-test-assets``, furnished rooms from any camera with training or held-out assets, from the asset pack
+``--assets`` names; ``robot``, the robot's mount in the flat world). A room-world set needs a model whose classes
+include ``ceiling`` and ``object``. The same samples are predicted by
 
 * the model (argmax of its logits),
 * the **per-cell prior**: each cell's most frequent label over ``--prior-samples`` samples of the training split

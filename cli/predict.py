@@ -19,7 +19,7 @@ camera is (:class:`fruxel.train.predict.CameraPrior`); other models ignore them.
 falls on grey padding are left empty: the photo says nothing of them. The model (``--checkpoint``: a shipped
 ``.safetensors`` file, a training checkpoint ``.pt`` or a shipped model's name, ``ssz64``, ``ssz128`` or ``ssz64-any``
 (the one that reads the camera); default the
-model shipped with fruxel, ``ssz64``) predicts the images in batches of ``--batch``.
+model shipped with fruxel, ``ssz64-any``) predicts the images in batches of ``--batch``.
 
 For an image ``NAME.EXT`` it writes into ``--out`` (default ``out/``)
 

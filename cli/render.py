@@ -168,8 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     ph = p.add_argument_group("a photo MODEL (predicted with SSZ)")
     ph.add_argument("--checkpoint", type=Path, default=None, metavar="FILE",
                     help="the SSZ model: a shipped .safetensors file, a training checkpoint, or a model shipped with "
-                    "fruxel by name: ssz64 (the default, 64^3 cells from 256x256 images), ssz128 (128^3 cells from "
-                    "512x512) or ssz64-any (64^3 cells from any camera: give --pitch, --roll, --height when known)")
+                    "fruxel by name: ssz64-any (the default: 64^3 cells from 256x256 images from any camera; give "
+                    "--pitch, --roll, --height when known), ssz64 (64^3 cells, the robot's mount) or ssz128 (ssz64 "
+                    "at 128^3 cells from 512x512)")
     ph.add_argument("--truth", type=Path, default=None, metavar="FILE.npz",
                     help="the photo's ground truth, a fruxel model on the prediction's grid: adds its column and the "
                     "own-view first-hit accuracy")
@@ -437,6 +438,7 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
     import numpy as np
 
     import fruxel
+    from fruxel.classes import ClassTableError
     from fruxel.render.frames import RenderInput
     from fruxel.train.model_files import model_path
     from fruxel.train.predict import (
@@ -467,8 +469,12 @@ def load_photo(args: argparse.Namespace) -> tuple[RenderInput, Photo]:
         if truth.grid != grid:
             raise InputError(f"--truth {args.truth}: its grid ({_describe_grid(truth.grid)}) is not the model's "
                              f"({_describe_grid(grid)})")
-        if len(truth.classes) != len(classes):
-            raise InputError(f"--truth {args.truth}: {len(truth.classes)} classes, the model predicts {len(classes)}")
+        try:  # a truth of fewer classes (the flat world's, say) is compared by class name
+            lut = truth.classes.indices_in(classes)
+        except ClassTableError:
+            raise InputError(f"--truth {args.truth}: its classes ({', '.join(truth.classes.names)}) are not all among "
+                             f"the model's ({', '.join(classes.names)})") from None
+        truth = RenderInput(lut[truth.volume].astype(np.uint8), grid, classes, truth.name)
     fit = args.fit or FITS[0]
     image, view = photo_view(path, image, args, PROG, grid.hfov)
     x = to_tensor([frame_image(image, grid, predictor.config.image_size, view, fit)], predictor.device)

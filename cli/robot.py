@@ -346,10 +346,10 @@ def _check_model(config: Any) -> None:
             model grid's width (the simulator renders the camera image at a whole multiple of the grid's size).
         ModelFileError: an unusable ``--checkpoint``.
     """
-    from fruxel.train.model_files import model_path, read_model_file
+    from fruxel.train.model_files import ROBOT_MODEL, model_path, read_model_file
 
     torch_device(config.device)
-    path = model_path(config.checkpoint)
+    path = model_path(config.checkpoint or ROBOT_MODEL)
     grid = read_model_file(path).config.grid
     if config.size % grid.width:
         below = max(grid.width, config.size - config.size % grid.width)

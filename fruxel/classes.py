@@ -226,6 +226,15 @@ class ClassTable:
         except ValueError:
             raise ClassTableError(f"no class named {name!r}; classes are {list(self.names)}") from None
 
+    def indices_in(self, other: ClassTable) -> np.ndarray:
+        """Each of this table's classes' label id in ``other``, by name: ``(C,)`` int64, so that a label volume of
+        this table is ``indices_in(other)[labels]`` in ``other``'s (a truth of fewer classes against a model of
+        more). Raises ``ClassTableError`` naming the classes ``other`` lacks."""
+        missing = [n for n in self.names if n not in other.names]
+        if missing:
+            raise ClassTableError(f"no class named {', '.join(map(repr, missing))} among {list(other.names)}")
+        return np.array([other.names.index(n) for n in self.names], dtype=np.int64)
+
     def palette(self) -> np.ndarray:
         """Colours of all classes: ``(C, 3)`` uint8 RGB, row ``c`` for label ``c``. A new array each call."""
         return np.array(self.colours, dtype=np.uint8).reshape(len(self), 3)

@@ -1,7 +1,7 @@
 """Write the bundled photo and its ground truth: ``fruxel/data/photo.png`` and ``fruxel/data/photo_truth.npz``.
 
 Run ``python scripts/make_photo.py [--out-dir DIR] [--index I]``. The photo is sample :data:`INDEX` of the
-simulator's *test* split (rooms from seeds the training split never uses) with the shipped model's grid (64^3,
+simulator's *test* split (rooms from seeds the training split never uses) with the robot model ssz64's grid (64^3,
 0.5-8 m, 60 degrees) and class table, the training's base seed (0) and samples per room (16), and the seed
 rule of :mod:`fruxel.train.sim.config` (its augmentation included): the room and the robot pose the shipped
 model was evaluated on, its camera image rendered at 512 x 512, larger than the 64^3 model's input (that model reads
@@ -12,7 +12,7 @@ as a fruxel model file; ``photo_truth128.npz`` holds its 128^3 labels, the truth
 Sample 43 was chosen because its camera sees every class (wall, floor, window, furniture, door and a sculpture),
 after looking at the own-view class counts of 58 test samples, with the first shipped model, whose own-view
 first-hit accuracy on it was close to its mean over the test split: a typical photo, not the best one
-(docs/experiments.md). ``make demo`` gives the shipped model's own-view accuracy on it in its picture's title;
+(docs/experiments.md). ``make demo`` gives the default model's own-view accuracy on it in its picture's title;
 docs/model.md gives the model's accuracy over the test split.
 
 The labels are exact on any machine (``fruxelize`` is deterministic); the image bytes are those of Mesa's
@@ -41,19 +41,19 @@ IMAGE_SIZE = 512
 
 
 def photo_config(model_file: str | Path | None = None) -> Any:
-    """The simulator settings of the photo: a shipped model's grid and classes (the default model's unless
-    ``model_file`` is given), a 512-pixel image."""
-    from fruxel.train.model_files import read_model_file
+    """The simulator settings of the photo: a shipped model's grid and classes (those of the robot's model, whose
+    flat world the photo is from, unless ``model_file`` is given), a 512-pixel image."""
+    from fruxel.train.model_files import ROBOT_MODEL, read_model_file, shipped_model
     from fruxel.train.sim.config import ImageConfig, SimConfig
 
-    model = read_model_file(model_file).config
+    model = read_model_file(model_file if model_file is not None else shipped_model(ROBOT_MODEL)).config
     return SimConfig(grid=model.grid, image=ImageConfig(size=IMAGE_SIZE), classes=model.classes,
                      samples_per_scene=SAMPLES_PER_SCENE, splits=(("train", 10_000_000), (SPLIT, TEST_SAMPLES)))
 
 
 def photo_sample(index: int = INDEX, config: Any = None) -> Any:
     """The :class:`fruxel.train.sim.sample.Sample` of the bundled photo (or of another test sample), with the
-    labels on the grid of ``config`` (a :func:`photo_config`; default: the default model's)."""
+    labels on the grid of ``config`` (a :func:`photo_config`; default: the robot's model's)."""
     from fruxel.train.sim.sample import SampleMaker
 
     with SampleMaker(config if config is not None else photo_config(), SEED) as maker:

@@ -196,7 +196,7 @@ class RobotDemoConfig:
     """Where SSZ and Warp run, ``cpu``, ``cuda`` or ``cuda:N``; unset: CUDA when present."""
     checkpoint: str | None = None
     """SSZ model file (shipped ``.safetensors`` or training checkpoint) or a shipped model's name (``ssz64``,
-    ``ssz128``, ``ssz64-any``); unset: the shipped default."""
+    ``ssz128``, ``ssz64-any``); unset: the robot's own model, ``ssz64`` (not the default for photos)."""
     threads: int | None = None
     """torch's CPU threads for SSZ; unset: half the cores (at least 1), leaving the rest to the simulator, OpenGL
     and the kernels. torch's own default, a thread per core, stalls whenever another process takes a core (its
@@ -250,6 +250,7 @@ class RobotDemo:
     """
 
     def __init__(self, config: RobotDemoConfig) -> None:
+        from .model_files import ROBOT_MODEL
         from .predict import CameraPrior, load_predictor, share_cpu
         from .sim.cameras import ROBOT_CAMERA
         from .sim.config import AugmentConfig, ImageConfig, SimConfig, TrajectoryConfig
@@ -260,8 +261,8 @@ class RobotDemo:
         # The robot knows its mount: a model that reads the camera is told its pitch, roll (level) and height.
         mount = trajectory.mount
         prior = CameraPrior(pitch=float(mount.tilt), roll=0.0, height=float(mount.height))
-        self.predictor = load_predictor(config.checkpoint, device=config.device, batch=1, compile=config.compile,
-                                        camera=prior)
+        self.predictor = load_predictor(config.checkpoint or ROBOT_MODEL, device=config.device, batch=1,
+                                        compile=config.compile, camera=prior)
         if not config.flip_average:  # before the first frame: the Predictor compiles and captures then
             self.predictor.rules = dataclasses.replace(self.predictor.rules, flip_average=False)
         mc = self.predictor.config

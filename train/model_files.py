@@ -37,11 +37,15 @@ LEGACY_FORMAT = "fruxel-ssz"
 """``format`` of version 1 files."""
 SHIPPED_MODELS = {"ssz64": "ssz64.safetensors", "ssz128": "ssz128.safetensors", "ssz64-any": "ssz64-any.safetensors"}
 """The models shipped with fruxel (in ``fruxel/train/data/``), by the name that ``--checkpoint`` and ``run.init``
-accept in place of a path: ``ssz64`` (64^3 cells from a 256 x 256 image, the default), ``ssz128`` (128^3 cells
-from 512 x 512, the paper's scale) and ``ssz64-any`` (64^3 cells, trained on furnished rooms from any camera; it
-reads the camera's gravity direction and height when told them); docs/model.md."""
-DEFAULT_MODEL = "ssz64"
-"""The shipped model used when none is named."""
+accept in place of a path: ``ssz64-any`` (64^3 cells from a 256 x 256 image, trained on furnished rooms from any
+camera; it reads the camera's gravity direction and height when told them; the default), ``ssz64`` (64^3 cells,
+trained from the robot's own mount in the flat world: the robot's model) and ``ssz128`` (ssz64 at 128^3 cells from
+512 x 512, the paper's scale); docs/model.md."""
+DEFAULT_MODEL = "ssz64-any"
+"""The shipped model used when none is named: the one for a photo from any camera."""
+ROBOT_MODEL = "ssz64"
+"""The shipped model of the robot's own mount (``fruxel-robot`` and the live demo when none is named): the
+specialist, which reads that mount better than :data:`DEFAULT_MODEL` (docs/model.md)."""
 MAX_TENSORS = 10_000
 """Most tensors a shipped model may hold (a sanity bound against hostile files)."""
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 import shlex
 import shutil
 from pathlib import Path
@@ -86,11 +87,41 @@ def test_photo_without_truth_has_two_columns(tmp_path: Path, photo_panel: np.nda
 
 
 def test_title_states_the_own_view_accuracy() -> None:
-    args = build_parser().parse_args([str(PHOTO), "--truth", str(PHOTO_TRUTH), "--device", "cpu"])
+    args = build_parser().parse_args([str(PHOTO), "--checkpoint", "ssz64", "--truth", str(PHOTO_TRUTH),
+                                      "--device", "cpu"])
     inp, photo = load_photo(args)
     assert inp.volume.shape == (1, 7, 64, 64, 64) and inp.grid == TRUTH.grid
     assert "ssz64.safetensors" in photo.title and "98.4 %" in photo.title, photo.title
     assert photo.truth is not None and np.array_equal(photo.truth.volume, TRUTH.labels)
+
+
+def test_the_default_model_reads_a_truth_of_fewer_classes_by_name() -> None:
+    """The default model (ssz64-any, nine classes) against the flat world's truth (seven): the truth's labels are
+    carried into the model's table by class name, and told the photo's camera it finds the truth's own view."""
+    args = build_parser().parse_args([str(PHOTO), "--truth", str(PHOTO_TRUTH), "--pitch", "10", "--height", "1.0",
+                                      "--device", "cpu"])
+    inp, photo = load_photo(args)
+    assert inp.volume.shape == (1, 9, 64, 64, 64) and "ssz64-any.safetensors" in photo.title
+    assert photo.truth is not None and photo.truth.classes == inp.classes
+    names = inp.classes.names
+    for old, name in enumerate(TRUTH.classes.names):  # each cell keeps its class, under the model's label id
+        cells = np.asarray(TRUTH.labels) == old
+        assert np.all(photo.truth.volume[cells] == names.index(name))
+    accuracy = float(re.search(r"accuracy against photo_truth.npz: ([0-9.]+) %", photo.title).group(1))
+    assert accuracy > 90.0, photo.title
+
+
+def test_a_truth_with_a_class_the_model_lacks_is_one_line(tmp_path: Path) -> None:
+    """A truth whose classes are not all the model's is refused before the render, naming both tables."""
+    from fruxel.classes import ClassTable
+    from fruxel.model import FruxelModel
+
+    odd = tmp_path / "odd.npz"
+    fruxel.save(odd, FruxelModel(np.asarray(TRUTH.labels), TRUTH.grid, ClassTable.from_names(
+        ["empty", "wall", "floor", "window", "furniture", "door", "statue"])))
+    args = build_parser().parse_args([str(PHOTO), "--truth", str(odd), "--device", "cpu"])
+    with pytest.raises(InputError, match="odd.npz.*statue.*not all among"):
+        load_photo(args)
 
 
 def test_the_128_model_by_name_with_its_truth(tmp_path: Path) -> None:

@@ -217,8 +217,10 @@ def test_viewer_without_a_reachable_display_is_one_line(tmp_path: Path) -> None:
     (["--view", "--out", "x.mp4"], ("--view", "--out")),
     (["--checkpoint", "missing.safetensors", "--out", "x.mp4"], ("missing.safetensors", "no such file")),
     (["--size", "5000", "--out", "x.mp4"], ("size", "2048")),
-    # The simulator renders the camera image at a whole multiple of the model grid (64 columns for ssz64).
-    *[(["--size", size, "--out", "x.mp4"], (f"--size {size}", "64")) for size in ("1", "32", "100", "200", "240")],
+    # The simulator renders the camera image at a whole multiple of the model grid (64 columns for ssz64, the
+    # robot's model when none is named, not the photo commands' default).
+    *[(["--size", size, "--out", "x.mp4"], (f"--size {size}", "64", "ssz64.safetensors"))
+      for size in ("1", "32", "100", "200", "240")],
     (["--size", "192", "--checkpoint", "ssz128", "--out", "x.mp4"], ("--size 192", "128")),
     (["--out", "file/x.mp4"], ("--out", "file is a file")),
     (["--out", "folder.mp4"], ("--out", "folder")),

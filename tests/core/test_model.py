@@ -44,6 +44,17 @@ def test_colour_of_is_vectorised() -> None:
         DEFAULT_CLASSES.colour_of(np.array([0.0, 1.0]))
 
 
+def test_indices_in_carries_labels_into_a_larger_table_by_name() -> None:
+    small = ClassTable.from_names(["empty", "floor", "wall"])
+    big = ClassTable.from_names(["empty", "wall", "window", "floor"])
+    lut = small.indices_in(big)
+    assert lut.tolist() == [0, 3, 1]
+    labels = np.array([[0, 1], [2, 1]], dtype=np.uint8)
+    assert [big.names[i] for i in lut[labels].ravel()] == [small.names[i] for i in labels.ravel()]
+    with pytest.raises(ClassTableError, match="'window'"):
+        big.indices_in(small)
+
+
 def test_class_table_dict_round_trip_and_extension() -> None:
     table = DEFAULT_CLASSES.extended("plant", "lamp", colours=[(1, 2, 3)])
     assert table.names[-2:] == ("plant", "lamp") and table.colours[-2] == (1, 2, 3)

@@ -66,7 +66,8 @@ def test_shipped_weights_are_safetensors() -> None:
 
 @pytest.fixture(scope="module")
 def predictor():
-    return load_predictor(device="cpu")
+    """ssz64, the robot's model, whose flat world and class table the bundled photo and its truth are."""
+    return load_predictor("ssz64", device="cpu")
 
 
 def test_shipped_weights_load_without_pickle(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -154,7 +155,7 @@ def test_shipped_camera_aware_model_loads_without_pickle(monkeypatch: pytest.Mon
     """ssz64-any: ssz64's grid and image, the furnished rooms' classes, and it reads the camera."""
     _refuse_unpickling(monkeypatch)
     p = load_predictor("ssz64-any", device="cpu")
-    base = load_predictor(device="cpu").config
+    base = load_predictor("ssz64", device="cpu").config
     assert p.config.reads_camera and not base.reads_camera
     assert (p.config.grid, p.config.image_size) == (base.grid, base.image_size)
     assert p.config.classes.names[-2:] == ("ceiling", "object")
