@@ -123,7 +123,7 @@ CAMERA_AWARE = {
     "ssz64-any": CameraAware("ssz64-any.safetensors", ("ssz64-any-any-camera-2048.json",
                                                        "ssz64-any-test-assets-2048.json", "ssz64-any-robot-2048.json")),
 }
-"""The shipped camera-aware models by name (issue 39's work in progress; not the default)."""
+"""The shipped camera-aware models by name (issue 39's; ssz64-any is the default model)."""
 MODEL_FILES = {**{n: s.file for n, s in SHIPPED.items()}, **{n: c.file for n, c in CAMERA_AWARE.items()}}
 """Every shipped model's file by name."""
 CANDIDATES = (

@@ -71,10 +71,14 @@ def set_sheet(name: str, config: Any, count: int, seed: int, used: set[str]) -> 
     with SampleMaker(config, seed) as maker:
         sheet, samples = preview_sheet(maker, config, "test", indices, seed, what=f"test set {name}: ")
         for index in indices:
-            scene, _ = maker.scene_of("test", index)
-            used.update(o.asset for o in scene.objects if o.asset)
-            used.update(a for o in scene.objects for m in o.materials for a in (m.texture, m.image) if a)
+            used.update(room_assets(maker.scene_of("test", index)[0]))
     return sheet, samples
+
+
+def room_assets(scene: Any) -> set[str]:
+    """The ids of the pack assets a room holds: its objects' meshes and their materials' textures and images."""
+    used = {o.asset for o in scene.objects if o.asset}
+    return used | {a for o in scene.objects for m in o.materials for a in (m.texture, m.image) if a}
 
 
 def comparison_sheet(images: dict[str, list[np.ndarray]], photos: Path) -> np.ndarray:

@@ -15,7 +15,7 @@ from PIL import Image
 import fruxel
 from fruxel import kernels
 from fruxel.cli.render import InputError, build_parser, is_photo, load_photo, main
-from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128, SAMPLE_ROOM
+from fruxel.data import PHOTO, PHOTO_TRUTH, PHOTO_TRUTH_128, ROOM_PHOTO, ROOM_TRUTH, SAMPLE_ROOM
 from fruxel.render.compare import GAP, fit_height
 from fruxel.train.predict import frame_image, load_image
 
@@ -137,19 +137,24 @@ def test_the_128_model_by_name_with_its_truth(tmp_path: Path) -> None:
         load_photo(args)
 
 
-def test_make_demo_command_line_runs(tmp_path: Path) -> None:
-    """The Makefile's demo recipe, as written there, with its output folder moved into tmp_path."""
-    recipe = next(line.strip() for line in (ROOT / "Makefile").read_text().splitlines()
-                  if "bin/fruxel-render" in line)
-    argv = shlex.split(recipe)[1:]
-    out = argv.index("--out")
-    argv[out + 1] = str(tmp_path / argv[out + 1])
-    argv = [str(ROOT / a) if (ROOT / a).is_file() else a for a in argv]
-    assert str(PHOTO) in argv and str(PHOTO_TRUTH) in argv
-    assert main(argv) == 0
-    pictures = list(tmp_path.rglob("*.png"))
-    assert len(pictures) == 1 and pictures[0].name == "photo_both.png"
-    img = read_png(pictures[0])
+def test_make_demo_command_lines_run(tmp_path: Path) -> None:
+    """The Makefile's demo recipe, as written there, with its output folder moved into tmp_path: the furnished room
+    and the robot's flat photo, each predicted by the default model told its camera, whose own view it reads."""
+    recipe = [ln.strip() for ln in (ROOT / "Makefile").read_text().splitlines() if "bin/fruxel-render" in ln]
+    assert len(recipe) == 2
+    for line, photo, truth in zip(recipe, (ROOM_PHOTO, PHOTO), (ROOM_TRUTH, PHOTO_TRUTH), strict=True):
+        argv = shlex.split(line)[1:]
+        out = argv.index("--out")
+        argv[out + 1] = str(tmp_path / argv[out + 1])
+        argv = [str(ROOT / a) if (ROOT / a).is_file() else a for a in argv]
+        assert argv[0] == str(photo) and str(truth) in argv and "--checkpoint" not in argv
+        _, shown = load_photo(build_parser().parse_args([*argv, "--device", "cpu"]))
+        accuracy = float(re.search(rf"accuracy against {truth.name}: ([0-9.]+) %", shown.title).group(1))
+        assert accuracy > 80.0, shown.title
+        assert main(argv) == 0
+    pictures = sorted(p.name for p in tmp_path.rglob("*.png"))
+    assert pictures == ["photo_both.png", "room_both.png"]
+    img = read_png(tmp_path / "out" / "room_both.png")
     assert img.shape[0] > 700 and img.shape[1] > 1200
 
 
