@@ -65,7 +65,8 @@ def snap_shifts(pred: np.ndarray, truth: np.ndarray, classes: list[int], within:
 def _main(args: argparse.Namespace) -> int:
     from fruxel.cli.common import UsageError
 
-    names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known)
+    names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known,
+                                        device=args.device)
     unknown = [c for c in args.classes.split(",") if c and c not in names]
     if unknown:
         raise UsageError(f"--classes {args.classes}: not classes of the model ({', '.join(names[1:])})")

@@ -107,10 +107,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=256)
     p.add_argument("--camera-known", default="gravity,height", help="pieces of the camera told (empty: none)")
     p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--device", default="cpu", help="where the network runs (cpu, cuda)")
 
 
 def _main(args: argparse.Namespace) -> int:
-    names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known)
+    names, pairs = held_out_predictions(args.model, args.test_set, args.samples, args.batch, args.camera_known,
+                                        device=args.device)
     counts = {r: np.zeros((len(names), 4), dtype=np.int64) for r in TOLERANCES}
     errors = np.zeros((len(names), 5), dtype=np.int64)
     for pred, truth in pairs:
