@@ -12,15 +12,16 @@ Usage::
 MODEL (default: the bundled sample room, ``fruxel.data.SAMPLE_ROOM``) is one of
 
 * a photo (``.png``, ``.jpg``, ``.webp``, ``.bmp``, ``.tif``, ``.gif``, or any file that starts like one): SSZ
-  predicts its model (``--checkpoint``, default the shipped model, :func:`fruxel.train.predict.load_predictor`),
-  after the photo is brought to the view of the model's grid camera (``--hfov``: the photo's horizontal field of
-  view, else ``--intrinsics``, else its EXIF 35 mm focal length, else the grid's; ``--fit``: how its aspect is
-  matched, :func:`fruxel.train.predict.frame_image`; :func:`fruxel.cli.common.photo_view`), and with what is known of
-  its camera (``--pitch``, ``--roll``, ``--height``) for a model that reads it. The
-  picture then shows the photo, the predicted model and, with ``--truth FILE.npz`` (a fruxel model on the same
-  grid), the ground truth, each as the mesh, the ray cast or both (:class:`fruxel.render.compare.PhotoComparison`),
-  from one view fitted to what the models hold, and the own-view first-hit accuracy against the truth in its
-  title. ``--orbit``, ``--export``, ``--view`` and ``--benchmark`` work on the prediction;
+  predicts its model (``--checkpoint``, default ``ssz64-any``, :func:`fruxel.train.predict.load_predictor`), after
+  the photo is brought to the view of the model's grid camera (``--hfov``: the photo's horizontal field of view, else
+  ``--intrinsics``, else its EXIF 35 mm focal length, else the grid's; ``--fit``: how its aspect is matched,
+  :func:`fruxel.train.predict.frame_image`; :func:`fruxel.cli.common.photo_view`), and with what is known of its
+  camera (``--pitch``, ``--roll``, ``--height``) for a model that reads it. The picture then shows the photo, the
+  predicted model and, with ``--truth FILE.npz`` (a fruxel model on the same grid, its classes among the model's,
+  matched by name), the ground truth, each as the mesh, the ray cast or both
+  (:class:`fruxel.render.compare.PhotoComparison`), from one view fitted to what the models hold, and the own-view
+  first-hit accuracy against the truth in its title. ``--orbit``, ``--export``, ``--view`` and ``--benchmark`` work on
+  the prediction;
 
 * a fruxel model file ``.npz`` (:func:`fruxel.load`);
 * a logits file ``.npz`` (:func:`fruxel.save_logits`, :func:`fruxel.load_logits`): logits ``(C, D, H, W)`` with
@@ -172,8 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "--pitch, --roll, --height when known), ssz64 (64^3 cells, the robot's mount) or ssz128 (ssz64 "
                     "at 128^3 cells from 512x512)")
     ph.add_argument("--truth", type=Path, default=None, metavar="FILE.npz",
-                    help="the photo's ground truth, a fruxel model on the prediction's grid: adds its column and the "
-                    "own-view first-hit accuracy")
+                    help="the photo's ground truth, a fruxel model on the prediction's grid whose classes are among "
+                    "the model's (matched by name): adds its column and the own-view first-hit accuracy")
     ph.add_argument("--fit", choices=FITS, default=None,
                     help="without --hfov, how a photo of another aspect than the grid's is matched: crop (default; a "
                     "centred crop of the grid's aspect) or pad (grey bands); with --hfov geometry alone decides")

@@ -12,10 +12,11 @@ room in ``fruxel-eval``, which draws from every asset. The camera (any height, p
 set) is printed as the ``--pitch``, ``--roll`` and ``--height`` that ``make demo`` tells the model; the image is
 already framed to the grid's 60 degrees (grey where a narrower camera saw nothing).
 
-Sample 51 (room 3, frame 3) was chosen after looking at frame 3 of the test split's first 12 rooms: it sees eight
-classes from a hand-held height, looks like a lived-in room, and the default model's own-view first-hit accuracy
-on it, told its camera, was near that model's mean over the test set: a typical photo, not the best one. The
-labels are exact on any machine; the image is the ray tracer's on Warp's CPU device.
+Sample 51 (room 3, frame 3) was chosen after looking at frame 3 of the test split's first 12 rooms: its truth holds
+six classes (wall, floor, window, furniture, ceiling, object), seen from a hand-held height; it looks like a
+lived-in room, and the default model's own-view first-hit accuracy on it, told its camera, was near that model's
+mean over the test set: a typical photo, not the best one. The labels are exact on any machine; the image is the ray
+tracer's on Warp's CPU device (the script and its test make it there, on any machine).
 ``tests/train/test_room_photo.py`` checks that the bundled files are this sample and that the Makefile tells its
 camera.
 """
@@ -52,7 +53,7 @@ def room_sample(pack: Path) -> tuple[Any, Any, set[str]]:
         committable = committable_pack(pack, Path(tmp) / "pack")
         shape = argparse.Namespace(grid=64, image=IMAGE_SIZE, count=INDEX + 1)  # rooms: the split holds INDEX
         config = set_config(TEST_SET, shape, committable)
-        with SampleMaker(config, SEED) as maker:
+        with SampleMaker(config, SEED, device="cpu") as maker:
             sample = maker.make("test", INDEX)
             scene, _ = maker.scene_of("test", INDEX)
     return sample, config, room_assets(scene)

@@ -538,16 +538,34 @@ TABLES: dict[str, Callable[[Sources], list[str]]] = {
 
 
 def table_results(src: Sources) -> list[str]:
-    """The README's short table: each shipped model's headline numbers on its test sets."""
+    """The README's short table: the default, camera-aware model on each of its test sets under each camera
+    setting, then each robot-mount model's headline numbers on its pooled test sets (the flat world's ``robot``
+    samples)."""
+    from fruxel.train.eval.report import rule_names
+
     rows = []
+    for name, aware in CAMERA_AWARE.items():
+        for file in aware.reports:
+            report = src.report(file)
+            test_set = (report["data"].get("test_set") or {}).get("name", "?")
+            for key, label in rule_names(report).items():
+                if key.startswith("model"):
+                    acc = _accumulator(report, key)
+                    rows.append(_results_row(name, report["model"]["grid"], f"`{test_set}`, {label[7:]}",
+                                             _summary(acc, report["classes"]["names"]), acc.samples))
     for name, shipped in SHIPPED.items():
-        names = src.report(shipped.pool.reports[0])["classes"]["names"]
         acc, _ = src.pool(shipped.pool)
-        s = _summary(acc, names)
-        grid = src.report(shipped.pool.reports[0])["model"]["grid"]
-        rows.append([f"`{name}`", f"{grid['width']}x{grid['height']}x{grid['depth']}", f"{acc.samples:,}",
-                     *(_num(s[k], nd) for k, _, nd in METRICS[:4])])
-    return _table(["model", "cells", "test samples", *(t for _, t, _ in METRICS[:4])], rows)
+        report = src.report(shipped.pool.reports[0])
+        rows.append(_results_row(name, report["model"]["grid"], "`robot`", _summary(acc, report["classes"]["names"]),
+                                 acc.samples))
+    return _table(["model", "cells", "test set", "test samples", *(t for _, t, _ in METRICS[:4])], rows,
+                  "lll" + "r" * 5)
+
+
+def _results_row(name: str, grid: dict[str, Any], test_set: str, s: dict[str, Any], samples: int) -> list[str]:
+    """One row of :func:`table_results`."""
+    return [f"`{name}`", f"{grid['width']}x{grid['height']}x{grid['depth']}", test_set, f"{samples:,}",
+            *(_num(s[k], nd) for k, _, nd in METRICS[:4])]
 
 
 README_TABLES: dict[str, Callable[[Sources], list[str]]] = {"results": table_results}

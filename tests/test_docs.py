@@ -262,3 +262,13 @@ def test_conventions_are_in_step_with_the_spec() -> None:
     if not spec.is_file():
         pytest.skip("no shared/SPEC.md beside this clone")
     assert (ROOT / "docs" / "conventions.md").read_text(encoding="utf-8") == spec.read_text(encoding="utf-8")
+
+
+def test_readme_results_lead_with_the_default_model() -> None:
+    """The README's results table opens with the model a command uses when none is named."""
+    from fruxel.train.model_files import DEFAULT_MODEL
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    table = text[text.index("<!-- generated: results -->"):].split("<!-- end -->")[0]
+    rows = [ln for ln in table.splitlines() if ln.startswith("| `")]
+    assert rows and rows[0].startswith(f"| `{DEFAULT_MODEL}` |"), rows[:1]

@@ -14,7 +14,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DATA_FILES = ("fruxel/train/data/ssz64.safetensors", "fruxel/train/data/ssz128.safetensors",
               "fruxel/train/data/ssz64-any.safetensors",
-              "fruxel/data/sample_room.npz", "fruxel/data/photo.png", "fruxel/kernels/cl/first_hit.cl",
+              "fruxel/data/sample_room.npz", "fruxel/data/photo.png", "fruxel/data/room.png",
+              "fruxel/data/room_truth.npz", "fruxel/data/room_credits.md", "fruxel/kernels/cl/first_hit.cl",
               "fruxel/kernels/cl/ray.h")
 """Files the wheel must hold besides the modules: shipped models, bundled samples, OpenCL sources."""
 

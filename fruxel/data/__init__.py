@@ -16,7 +16,8 @@ SAMPLE_ROOM = DATA_DIR / "sample_room.npz"
 
 PHOTO = DATA_DIR / "photo.png"
 """Path of the bundled photo: 512 x 512 RGB, a robot camera's view (horizontal field of view 60 degrees) of a room
-of the simulator's test split, which the shipped SSZ model never saw in training."""
+of the flat world's test split, which no shipped SSZ model saw in training (ssz64, the robot's model, reads it
+best)."""
 
 PHOTO_TRUTH = DATA_DIR / "photo_truth.npz"
 """Path of the photo's ground truth, a fruxel model (64^3 cells, 0.5 to 8 m, 60 degrees) aligned with the photo's

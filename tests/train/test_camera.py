@@ -306,9 +306,9 @@ def _floor_rows(image: np.ndarray, camera: CameraPrior) -> tuple[np.ndarray, np.
 def test_the_camera_aware_model_puts_floor_in_the_bottom_rows_and_none_above_the_horizon(world: str,
                                                                                          tiny_pack: Path) -> None:
     """Issue 39's test of a photo told its pitch: floor in the bottom rows, none above the horizon line that the
-    pitch implies (a floor cannot be seen looking up). On the two photos with a known camera that the repository
-    holds: the bundled simulator photo (the robot's mount, 10 degrees down, 1.0 m) and a furnished room of the
-    any-camera test set."""
+    pitch implies (a floor cannot be seen looking up). On two photos with a known camera: the bundled flat-world
+    photo (the robot's mount, 10 degrees down, 1.0 m) and a furnished room of the tiny pack's any-camera test set
+    (the bundled room photo's pack is not in a clone)."""
     from fruxel.data import PHOTO
     from fruxel.train import samples
     from fruxel.train.predict import load_image, load_predictor

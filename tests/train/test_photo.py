@@ -1,5 +1,5 @@
-"""The shipped SSZ model and the bundled photo: weights that load without pickle, a photo that is what
-``scripts/make_photo.py`` says it is, and a prediction of it that matches its ground truth."""
+"""The shipped SSZ models and the bundled flat-world photo: weights that load without pickle, a photo that is what
+``scripts/make_photo.py`` says it is, and ssz64's prediction of it that matches its ground truth."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ from fruxel.train.predict import load_image, load_predictor, prepare_image, to_t
 from .conftest import load_script
 
 OWN_VIEW_FLOOR = 95.5
-"""Own-view first-hit accuracy (percent) the shipped model must reach on the bundled photo. Measured: 98.4 % (CPU,
-torch 2.x, float32); the floor is three points below it, so that rounding on another machine cannot fail the test
+"""Own-view first-hit accuracy (percent) ssz64, the robot's model, must reach on the bundled photo. Measured: 98.4 %
+(CPU, torch 2.x, float32); the floor is three points below it, so that rounding on another machine cannot fail the test
 while a broken model, a wrong input mapping or a truth out of step with the photo does."""
 
 
@@ -147,7 +147,7 @@ def test_shipped_128_model_loads_without_pickle(monkeypatch: pytest.MonkeyPatch)
     assert p.config.grid.shape == (128, 128, 128) and p.config.image_size == (512, 512)
     assert p.config.refine
     # Its grid is the 64^3 model's frustum, twice as fine.
-    coarse = load_predictor(device="cpu").config.grid
+    coarse = load_predictor("ssz64", device="cpu").config.grid
     assert (p.config.grid.z_near, p.config.grid.z_far, p.config.grid.hfov) == (coarse.z_near, coarse.z_far, coarse.hfov)
 
 
