@@ -26,7 +26,7 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -504,21 +504,23 @@ def table_camera_models(src: Sources) -> list[str]:
                    "inference rules"], rows, "l" * 9)
 
 
+def camera_results(src: Sources, name: str) -> Iterator[tuple[dict[str, Any], str, str, str, Any]]:
+    """Each result of a camera-aware model's reports, in their order: ``(report, test set, result key, its name in
+    the tables, accumulator)``."""
+    from fruxel.train.eval.report import rule_names
+
+    for file in CAMERA_AWARE[name].reports:
+        report = src.report(file)
+        test_set = (report["data"].get("test_set") or {}).get("name", "?")
+        for key, label in rule_names(report).items():
+            yield report, test_set, key, label, _accumulator(report, key)
+
+
 def table_camera_sets(src: Sources, name: str) -> list[str]:
     """A camera-aware model on each of its test sets, under each camera setting, beside the visible-surface
     oracle."""
-    from fruxel.train.eval.report import rule_names
-
-    rows = []
-    for file in CAMERA_AWARE[name].reports:
-        report = src.report(file)
-        names = report["classes"]["names"]
-        test_set = (report["data"].get("test_set") or {}).get("name", "?")
-        for key, label in rule_names(report).items():
-            if key == "prior":
-                continue
-            acc = _accumulator(report, key)
-            rows.append([f"`{test_set}`", label, f"{acc.samples:,}", *_metric_cells(_summary(acc, names))])
+    rows = [[f"`{test_set}`", label, f"{acc.samples:,}", *_metric_cells(_summary(acc, report["classes"]["names"]))]
+            for report, test_set, key, label, acc in camera_results(src, name) if key != "prior"]
     return _table(["test set", "prediction", "samples", *(t for _, t, _ in METRICS)], rows, "ll" + "r" * 6)
 
 
@@ -541,18 +543,10 @@ def table_results(src: Sources) -> list[str]:
     """The README's short table: the default, camera-aware model on each of its test sets under each camera
     setting, then each robot-mount model's headline numbers on its pooled test sets (the flat world's ``robot``
     samples)."""
-    from fruxel.train.eval.report import rule_names
-
-    rows = []
-    for name, aware in CAMERA_AWARE.items():
-        for file in aware.reports:
-            report = src.report(file)
-            test_set = (report["data"].get("test_set") or {}).get("name", "?")
-            for key, label in rule_names(report).items():
-                if key.startswith("model"):
-                    acc = _accumulator(report, key)
-                    rows.append(_results_row(name, report["model"]["grid"], f"`{test_set}`, {label[7:]}",
-                                             _summary(acc, report["classes"]["names"]), acc.samples))
+    rows = [_results_row(name, report["model"]["grid"], f"`{test_set}`, {label.removeprefix('model, ')}",
+                         _summary(acc, report["classes"]["names"]), acc.samples)
+            for name in CAMERA_AWARE for report, test_set, key, label, acc in camera_results(src, name)
+            if key.startswith("model")]
     for name, shipped in SHIPPED.items():
         acc, _ = src.pool(shipped.pool)
         report = src.report(shipped.pool.reports[0])
